@@ -1,0 +1,13 @@
+//! Control laws of Kim, Shin and Chung, as pure functions of state and parameters: no IPC,
+//! no clock, no allocation.
+//!
+//! - [`torque_modulation`]: nonlinear torque modulation, eq. (12).
+//! - [`commutation`]: desired phase currents from the torque, eq. (17).
+//! - [`current_tracking`]: the nonlinear current tracking law, eq. (22), and its sampled
+//!   design for a 50 µs period with compute delay.
+//! - [`microstepping`]: the baselines' references, eqs. (2) and (39).
+
+pub mod commutation;
+pub mod current_tracking;
+pub mod microstepping;
+pub mod torque_modulation;

@@ -1,0 +1,317 @@
+//! Launches the plant, the position loop and the current loop as separate processes (this
+//! same binary with a role sub-command), supervises them, and collects the plant's state
+//! stream for the metrics. Every child is killed and reaped on any exit path (drop guard),
+//! children die with us (PR_SET_PDEATHSIG), and dead nodes' shared memory is removed.
+
+use crate::metrics::{Metrics, RunReport};
+use anyhow::{bail, Context, Result};
+use std::io::{BufRead, BufReader};
+use std::os::unix::process::CommandExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+use stepdrive_shared::messages::state_flags;
+use stepdrive_shared::poll::termination_requested;
+use stepdrive_shared::services::{
+    cleanup_dead_nodes, subscriber, try_receive, Topics, MONITOR_BUFFER,
+};
+use stepdrive_shared::{Method, Scenario};
+
+#[derive(Debug, Clone)]
+pub struct LaunchOptions {
+    pub instance: String,
+    pub startup_timeout: Duration,
+    pub peer_timeout: Duration,
+}
+
+/// Error for a Ctrl-C / SIGTERM during a run, so `main` can exit with 130.
+#[derive(Debug, thiserror::Error)]
+#[error("interrupted; all stack processes were stopped")]
+pub struct Interrupted;
+
+/// A child process that is terminated and reaped when dropped.
+struct Supervised {
+    role: &'static str,
+    child: Child,
+    last_error: Arc<Mutex<Option<String>>>,
+    status: Option<ExitStatus>,
+    forwarder: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Supervised {
+    fn spawn(role: &'static str, args: &[String]) -> Result<Self> {
+        let exe = std::env::current_exe().context("cannot locate the stepdrive executable")?;
+        let mut cmd = Command::new(exe);
+        cmd.arg(role)
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped());
+        if std::env::var_os("RUST_LOG").is_none() {
+            cmd.env("RUST_LOG", "warn");
+        }
+        // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
+        unsafe {
+            cmd.pre_exec(|| {
+                // Die with the launcher even if it is SIGKILLed: no orphan loops.
+                if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGTERM) != 0 {
+                    return Err(std::io::Error::last_os_error());
+                }
+                Ok(())
+            });
+        }
+        let mut child = cmd
+            .spawn()
+            .with_context(|| format!("cannot start the {role} process"))?;
+        let last_error = Arc::new(Mutex::new(None));
+        let forwarder = child.stderr.take().map(|stderr| {
+            let last_error = Arc::clone(&last_error);
+            std::thread::spawn(move || {
+                for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+                    eprintln!("[{role}] {line}");
+                    if let Some(msg) = line.strip_prefix("error: ") {
+                        if let Ok(mut slot) = last_error.lock() {
+                            *slot = Some(msg.to_string());
+                        }
+                    }
+                }
+            })
+        });
+        tracing::debug!(role, pid = child.id(), "started");
+        Ok(Self {
+            role,
+            child,
+            last_error,
+            status: None,
+            forwarder,
+        })
+    }
+
+    fn poll_exit(&mut self) -> Result<Option<ExitStatus>> {
+        if self.status.is_none() {
+            self.status = self
+                .child
+                .try_wait()
+                .with_context(|| format!("cannot query the {role} process", role = self.role))?;
+        }
+        Ok(self.status)
+    }
+
+    fn signal(&self, sig: libc::c_int) {
+        if self.status.is_none() {
+            // SAFETY: plain kill(2) on our own, not yet reaped child.
+            unsafe { libc::kill(self.child.id() as libc::pid_t, sig) };
+        }
+    }
+
+    /// Waits up to `timeout` for a voluntary exit, then SIGTERM, then SIGKILL.
+    fn finish(&mut self, timeout: Duration) -> ExitStatus {
+        let exited = |c: &mut Child, within: Duration| -> Option<ExitStatus> {
+            let deadline = Instant::now() + within;
+            loop {
+                match c.try_wait() {
+                    Ok(Some(status)) => return Some(status),
+                    Ok(None) if Instant::now() < deadline => {
+                        std::thread::sleep(Duration::from_millis(2))
+                    }
+                    _ => return None,
+                }
+            }
+        };
+        if self.status.is_none() {
+            self.status = exited(&mut self.child, timeout).or_else(|| {
+                tracing::warn!(role = self.role, "did not exit in time; sending SIGTERM");
+                self.signal(libc::SIGTERM);
+                exited(&mut self.child, Duration::from_secs(1)).or_else(|| {
+                    let _ = self.child.kill();
+                    self.child.wait().ok()
+                })
+            });
+        }
+        if let Some(f) = self.forwarder.take() {
+            let _ = f.join();
+        }
+        // Unknown only if the child could not be waited for: report failure, never guess success.
+        self.status.unwrap_or_else(|| {
+            use std::os::unix::process::ExitStatusExt;
+            ExitStatus::from_raw(1 << 8)
+        })
+    }
+
+    fn describe_failure(&self, status: ExitStatus) -> String {
+        let detail = self
+            .last_error
+            .lock()
+            .ok()
+            .and_then(|e| e.clone())
+            .unwrap_or_else(|| "no error message (see its log above)".to_string());
+        format!("the {} process exited with {status}: {detail}", self.role)
+    }
+}
+
+impl Drop for Supervised {
+    fn drop(&mut self) {
+        if self.status.is_none() {
+            self.signal(libc::SIGTERM);
+            let deadline = Instant::now() + Duration::from_secs(2);
+            while Instant::now() < deadline {
+                if let Ok(Some(_)) = self.child.try_wait() {
+                    return;
+                }
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            let _ = self.child.kill();
+            let _ = self.child.wait();
+        }
+    }
+}
+
+/// The scenario as the children read it; removed when dropped.
+struct ScenarioFile(PathBuf);
+
+impl ScenarioFile {
+    fn write(s: &Scenario, instance: &str) -> Result<Self> {
+        let path =
+            std::env::temp_dir().join(format!("stepdrive-{}-{instance}.toml", std::process::id()));
+        let text = s.to_toml_string()?;
+        std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))?;
+        Ok(Self(path))
+    }
+    fn path(&self) -> &Path {
+        &self.0
+    }
+}
+
+impl Drop for ScenarioFile {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_file(&self.0);
+    }
+}
+
+/// Runs one method of one scenario on three processes in lockstep and returns its report.
+pub fn run_lockstep(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<RunReport> {
+    let removed = cleanup_dead_nodes();
+    if removed > 0 {
+        tracing::warn!(
+            removed,
+            "removed resources of dead stepdrive/iceoryx2 nodes"
+        );
+    }
+    let file = ScenarioFile::write(s, &opts.instance)?;
+    let common = vec![
+        "--instance".to_string(),
+        opts.instance.clone(),
+        "--scenario".to_string(),
+        file.path().display().to_string(),
+        "--startup-timeout-s".to_string(),
+        opts.startup_timeout.as_secs_f64().to_string(),
+        "--peer-timeout-s".to_string(),
+        opts.peer_timeout.as_secs_f64().to_string(),
+    ];
+
+    // The monitor subscribes before the plant may start: the plant waits for 3 subscribers.
+    let topics = Topics::open(&opts.instance, "monitor")
+        .context("cannot attach the monitor to the stack's services")?;
+    let states = subscriber(&topics.state, "drive/state", MONITOR_BUFFER)?;
+
+    let mut children = Vec::with_capacity(3);
+    let mut plant_args = common.clone();
+    plant_args.extend(["--wait-subscribers".to_string(), "3".to_string()]);
+    children.push(Supervised::spawn("plant", &plant_args)?);
+    children.push(Supervised::spawn("position-loop", &common)?);
+    let mut cl_args = common.clone();
+    cl_args.extend(["--method".to_string(), method.as_str().to_string()]);
+    children.push(Supervised::spawn("current-loop", &cl_args)?);
+
+    let mut metrics = Metrics::new(s);
+    let total = s.sample_count();
+    let duration = s.duration_s();
+    let mut first_ns: Option<u64> = None;
+    let mut last_ns = 0;
+    let mut done = false;
+    let started = Instant::now();
+    let mut last_sample_at = Instant::now();
+    let mut next_progress = Instant::now() + Duration::from_secs(1);
+
+    while !done {
+        let mut got = false;
+        while let Some(state) = try_receive(&states)? {
+            got = true;
+            if state.seq != metrics.samples() {
+                bail!(
+                    "monitor expected sample {}, got {}: samples were lost",
+                    metrics.samples(),
+                    state.seq
+                );
+            }
+            first_ns.get_or_insert(state.publish_time_ns);
+            last_ns = state.publish_time_ns;
+            metrics.push(&state);
+            if state.flags & state_flags::LAST != 0 {
+                done = true;
+                break;
+            }
+        }
+        if got {
+            last_sample_at = Instant::now();
+        }
+        if done {
+            break;
+        }
+        for child in children.iter_mut() {
+            if let Some(status) = child.poll_exit()? {
+                let msg = child.describe_failure(status);
+                drop(children);
+                cleanup_dead_nodes();
+                bail!("{msg}");
+            }
+        }
+        if termination_requested() {
+            drop(children);
+            cleanup_dead_nodes();
+            return Err(Interrupted.into());
+        }
+        let limit = if metrics.samples() == 0 {
+            opts.startup_timeout
+        } else {
+            opts.peer_timeout
+        } + Duration::from_secs(1);
+        if last_sample_at.elapsed() > limit {
+            bail!(
+                "no state sample for {:.1} s (after {} of {total}); the stack is stuck",
+                last_sample_at.elapsed().as_secs_f64(),
+                metrics.samples()
+            );
+        }
+        if Instant::now() >= next_progress {
+            let done_s = metrics.samples() as f64 / s.rates.current_loop_hz;
+            tracing::info!(
+                "{method}: {done_s:.2} of {duration:.2} s simulated ({:.0} %), {:.1} s elapsed",
+                100.0 * metrics.samples() as f64 / total as f64,
+                started.elapsed().as_secs_f64()
+            );
+            next_progress += Duration::from_secs(1);
+        }
+        std::thread::sleep(Duration::from_micros(500));
+    }
+
+    let mut failures = Vec::new();
+    for child in children.iter_mut() {
+        let status = child.finish(Duration::from_secs(10));
+        if !status.success() {
+            failures.push(child.describe_failure(status));
+        }
+    }
+    drop(children);
+    drop(states);
+    drop(topics);
+    cleanup_dead_nodes();
+    if !failures.is_empty() {
+        bail!("{}", failures.join("; "));
+    }
+    let wall = first_ns
+        .map(|f| last_ns.saturating_sub(f) as f64 * 1e-9)
+        .unwrap_or(0.0);
+    Ok(metrics.finish(method, "lockstep", wall))
+}

@@ -1,0 +1,161 @@
+//! The run's figures of merit, computed from the plant's state stream alone (the truth), with
+//! θ_d taken from the scenario's trajectory, so a controller cannot grade itself.
+
+use serde::Serialize;
+use stepdrive_shared::frames::dq_currents;
+use stepdrive_shared::messages::{state_flags, DriveState};
+use stepdrive_shared::trajectory::Trapezoid;
+use stepdrive_shared::{Method, Scenario};
+
+/// One method's results: one object of the JSON `runs` array, one column of the table.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct RunReport {
+    pub method: String,
+    pub mode: String,
+    /// max |θ_d − θ| over the cruise window, rad.
+    pub cruise_max_abs_error_rad: f64,
+    /// mean θ_d − θ over the final window, rad.
+    pub final_error_rad: f64,
+    pub cruise_mean_id_a: f64,
+    pub cruise_mean_iq_a: f64,
+    /// K_m i_q averaged over the cruise window, N·m.
+    pub cruise_mean_torque_nm: f64,
+    /// R (i_a² + i_b²) averaged over the run, W.
+    pub mean_copper_loss_w: f64,
+    /// v_a i_a + v_b i_b averaged over the run, W.
+    pub mean_input_power_w: f64,
+    pub max_abs_voltage_v: f64,
+    /// R B ω_d / (K_m V_max N_r), rad.
+    pub eq7_bound_rad: f64,
+    pub sim_time_s: f64,
+    pub wall_time_s: f64,
+    /// Current-loop cycles executed (= plant samples).
+    pub samples: u64,
+    /// Samples during which the drive limited a phase voltage to ±V_bus.
+    pub voltage_limited_samples: u64,
+    /// Samples that carried a fault bit.
+    pub fault_samples: u64,
+}
+
+/// Accumulates [`RunReport`] figures one state sample at a time; no allocation per sample.
+#[derive(Debug, Clone)]
+pub struct Metrics {
+    trajectory: Trapezoid,
+    cruise: (f64, f64),
+    final_from: f64,
+    r: f64,
+    k_m: f64,
+    n_r: f64,
+    eq7: f64,
+    cruise_max_abs_error: f64,
+    cruise_sum_id: f64,
+    cruise_sum_iq: f64,
+    cruise_n: u64,
+    final_sum_error: f64,
+    final_n: u64,
+    sum_copper: f64,
+    sum_input: f64,
+    intervals: u64,
+    max_abs_voltage: f64,
+    samples: u64,
+    limited: u64,
+    faults: u64,
+    previous_i: Option<[f64; 2]>,
+    last_time: f64,
+}
+
+impl Metrics {
+    pub fn new(s: &Scenario) -> Self {
+        Self {
+            trajectory: Trapezoid::new(&s.trajectory),
+            cruise: (s.metrics.cruise_start_s, s.metrics.cruise_end_s),
+            final_from: s.duration_s() - s.metrics.final_window_s,
+            r: s.motor.resistance_ohm,
+            k_m: s.motor.torque_constant_nm_per_a,
+            n_r: s.motor.n_r(),
+            eq7: s.eq7_bound_rad(),
+            cruise_max_abs_error: 0.0,
+            cruise_sum_id: 0.0,
+            cruise_sum_iq: 0.0,
+            cruise_n: 0,
+            final_sum_error: 0.0,
+            final_n: 0,
+            sum_copper: 0.0,
+            sum_input: 0.0,
+            intervals: 0,
+            max_abs_voltage: 0.0,
+            samples: 0,
+            limited: 0,
+            faults: 0,
+            previous_i: None,
+            last_time: 0.0,
+        }
+    }
+
+    pub fn push(&mut self, s: &DriveState) {
+        let t = s.sample_time_s;
+        let error = self.trajectory.at(t).theta - s.theta_rad;
+        let i = [s.i_a_a, s.i_b_a];
+        if t >= self.cruise.0 && t <= self.cruise.1 {
+            // NaN-safe: a NaN error must show up, not be skipped by `max`.
+            let abs = error.abs();
+            if abs.is_nan() || abs > self.cruise_max_abs_error {
+                self.cruise_max_abs_error = abs;
+            }
+            let (id, iq) = dq_currents(s.theta_rad, self.n_r, i[0], i[1]);
+            self.cruise_sum_id += id;
+            self.cruise_sum_iq += iq;
+            self.cruise_n += 1;
+        }
+        if t >= self.final_from {
+            self.final_sum_error += error;
+            self.final_n += 1;
+        }
+        // The voltage in this sample was applied over the interval that ends here: average
+        // power over the interval by the trapezoid rule on the currents at its ends.
+        if let Some(p) = self.previous_i {
+            let copper = 0.5 * self.r * (p[0] * p[0] + p[1] * p[1] + i[0] * i[0] + i[1] * i[1]);
+            let input = 0.5 * (s.v_a_v * (p[0] + i[0]) + s.v_b_v * (p[1] + i[1]));
+            self.sum_copper += copper;
+            self.sum_input += input;
+            self.intervals += 1;
+        }
+        self.previous_i = Some(i);
+        self.max_abs_voltage = self.max_abs_voltage.max(s.v_a_v.abs()).max(s.v_b_v.abs());
+        self.samples += 1;
+        if s.flags & state_flags::VOLTAGE_LIMITED != 0 {
+            self.limited += 1;
+        }
+        if s.fault != 0 {
+            self.faults += 1;
+        }
+        self.last_time = t;
+    }
+
+    pub fn samples(&self) -> u64 {
+        self.samples
+    }
+
+    pub fn finish(&self, method: Method, mode: &str, wall_time_s: f64) -> RunReport {
+        let mean = |sum: f64, n: u64| if n == 0 { f64::NAN } else { sum / n as f64 };
+        let cruise_mean_iq = mean(self.cruise_sum_iq, self.cruise_n);
+        RunReport {
+            method: method.as_str().to_string(),
+            mode: mode.to_string(),
+            cruise_max_abs_error_rad: self.cruise_max_abs_error,
+            final_error_rad: mean(self.final_sum_error, self.final_n),
+            cruise_mean_id_a: mean(self.cruise_sum_id, self.cruise_n),
+            cruise_mean_iq_a: cruise_mean_iq,
+            cruise_mean_torque_nm: self.k_m * cruise_mean_iq,
+            mean_copper_loss_w: mean(self.sum_copper, self.intervals),
+            mean_input_power_w: mean(self.sum_input, self.intervals),
+            max_abs_voltage_v: self.max_abs_voltage,
+            eq7_bound_rad: self.eq7,
+            sim_time_s: self.last_time,
+            wall_time_s,
+            samples: self.samples,
+            voltage_limited_samples: self.limited,
+            fault_samples: self.faults,
+        }
+    }
+}

@@ -1,0 +1,113 @@
+//! The side-by-side table and the JSON document of a set of runs.
+
+use crate::metrics::RunReport;
+use serde::Serialize;
+use std::fmt::Write as _;
+use stepdrive_shared::Scenario;
+
+#[derive(Debug, Serialize)]
+pub struct Document<'a> {
+    pub stepdrive_version: &'static str,
+    pub scenario: &'a Scenario,
+    /// Expected steady error of microstepping at cruise, eq. (7) plus the load term, rad.
+    pub microstepping_expected_cruise_error_rad: f64,
+    /// R τ_L / (K_m V_max N_r): microstepping's final offset under load, rad.
+    pub microstepping_expected_final_error_rad: f64,
+    pub runs: &'a [RunReport],
+}
+
+pub fn document<'a>(s: &'a Scenario, runs: &'a [RunReport]) -> Document<'a> {
+    Document {
+        stepdrive_version: env!("CARGO_PKG_VERSION"),
+        scenario: s,
+        microstepping_expected_cruise_error_rad: expected_microstepping_cruise_error(s),
+        microstepping_expected_final_error_rad: s.load_offset_rad(),
+        runs,
+    }
+}
+
+/// Steady lag of microstepping with ideal current tracking at cruise: the electrical angle
+/// lag δ where (K_m V_max / R) sin δ = B ω_d + τ_L, i.e. (7) plus the load, without the
+/// small-angle approximation.
+pub fn expected_microstepping_cruise_error(s: &Scenario) -> f64 {
+    let m = &s.motor;
+    let needed =
+        m.viscous_friction_nm_s_per_rad * s.trajectory.cruise_velocity_rad_s + s.load.torque_nm;
+    let available = m.torque_constant_nm_per_a * s.gains.v_max_v / m.resistance_ohm;
+    (needed / available).clamp(-1.0, 1.0).asin() / m.n_r()
+}
+
+pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
+    type Row = (&'static str, fn(&RunReport) -> String);
+    let rows: [Row; 14] = [
+        ("mode", |r| r.mode.clone()),
+        ("cruise max |e| [rad]", |r| {
+            format!("{:.3e}", r.cruise_max_abs_error_rad)
+        }),
+        ("final error [rad]", |r| {
+            format!("{:.3e}", r.final_error_rad)
+        }),
+        ("cruise mean i_d [A]", |r| {
+            format!("{:.4}", r.cruise_mean_id_a)
+        }),
+        ("cruise mean i_q [A]", |r| {
+            format!("{:.4}", r.cruise_mean_iq_a)
+        }),
+        ("cruise mean torque [N·m]", |r| {
+            format!("{:.4}", r.cruise_mean_torque_nm)
+        }),
+        ("mean copper loss [W]", |r| {
+            format!("{:.4}", r.mean_copper_loss_w)
+        }),
+        ("mean input power [W]", |r| {
+            format!("{:.4}", r.mean_input_power_w)
+        }),
+        ("max |v| [V]", |r| format!("{:.2}", r.max_abs_voltage_v)),
+        ("eq. (7) bound [rad]", |r| {
+            format!("{:.3e}", r.eq7_bound_rad)
+        }),
+        ("sim time [s]", |r| format!("{:.3}", r.sim_time_s)),
+        ("wall time [s]", |r| format!("{:.3}", r.wall_time_s)),
+        ("samples", |r| r.samples.to_string()),
+        ("limited / faulted samples", |r| {
+            format!("{} / {}", r.voltage_limited_samples, r.fault_samples)
+        }),
+    ];
+    let label_w = rows
+        .iter()
+        .map(|(l, _)| l.chars().count())
+        .max()
+        .unwrap_or(0)
+        + 2;
+    let col_w = 14;
+    let mut out = String::new();
+    let _ = write!(out, "{:label_w$}", "");
+    for r in runs {
+        let _ = write!(out, "{:>col_w$}", r.method);
+    }
+    out.push('\n');
+    for (label, f) in rows.iter() {
+        let pad = label_w - label.chars().count();
+        let _ = write!(out, "{label}{:pad$}", "");
+        for r in runs {
+            let _ = write!(out, "{:>col_w$}", f(r));
+        }
+        out.push('\n');
+    }
+    if let Some(r) = runs.iter().find(|r| r.wall_time_s > 0.0) {
+        let _ = writeln!(
+            out,
+            "\nreal-time factor ({}): {:.1}× faster than real time",
+            r.method,
+            r.sim_time_s / r.wall_time_s
+        );
+    }
+    let _ = writeln!(
+        out,
+        "microstepping with ideal current tracking: cruise error ≈ {:.3e} rad (eq. 7 {:.3e} + load), final offset {:.3e} rad",
+        expected_microstepping_cruise_error(s),
+        s.eq7_bound_rad(),
+        s.load_offset_rad()
+    );
+    out
+}

@@ -1,0 +1,106 @@
+//! Messages exchanged over iceoryx2. All are fixed-size `#[repr(C)]` plain data in SI units
+//! (rad, rad/s, rad/s², A, V, N·m, s). iceoryx2 checks compatibility by type name, size and
+//! alignment only, so every type carries a schema version in its name: bump it whenever a
+//! field changes, even one that fits in padding.
+
+use iceoryx2::prelude::ZeroCopySend;
+
+/// Sequence value meaning "no such sample/command".
+pub const NONE_SEQ: u64 = u64::MAX;
+
+/// Bits of [`DriveState::flags`].
+pub mod state_flags {
+    /// Last sample of the run: loops that see it finish and exit.
+    pub const LAST: u32 = 1 << 0;
+    /// The applied voltage was clamped to ±V_bus on at least one phase.
+    pub const VOLTAGE_LIMITED: u32 = 1 << 1;
+}
+
+/// Bits of [`DriveState::fault`]. A fault is latched by the process that drives the motor.
+pub mod fault_bits {
+    /// A command arrived with a non-finite voltage; outputs are off.
+    pub const BAD_COMMAND: u32 = 1 << 0;
+    /// No command arrived in time (realtime/hardware modes).
+    pub const COMMAND_TIMEOUT: u32 = 1 << 1;
+}
+
+/// Plant (or drive bridge) → everyone: the measured state at sample `seq`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("stepdrive.DriveState.v1")]
+pub struct DriveState {
+    /// Sample index k (0, 1, 2, ... from the start of the run).
+    pub seq: u64,
+    /// Sample instant t_k in seconds since the start of the run (virtual time in lockstep).
+    pub sample_time_s: f64,
+    /// CLOCK_MONOTONIC at publication, nanoseconds.
+    pub publish_time_ns: u64,
+    /// Sequence number of the command whose voltage was applied over (t_{k-1}, t_k],
+    /// or [`NONE_SEQ`] if none was (outputs off).
+    pub applied_command_seq: u64,
+    pub theta_rad: f64,
+    pub omega_rad_s: f64,
+    pub i_a_a: f64,
+    pub i_b_a: f64,
+    /// Phase voltages actually applied over (t_{k-1}, t_k], after the bus limit.
+    pub v_a_v: f64,
+    pub v_b_v: f64,
+    pub bus_voltage_v: f64,
+    /// [`state_flags`] bits.
+    pub flags: u32,
+    /// [`fault_bits`] bits; zero when healthy.
+    pub fault: u32,
+}
+
+/// Current loop → plant: phase voltages computed from sample `answers_seq`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("stepdrive.DriveCommand.v1")]
+pub struct DriveCommand {
+    /// Command sequence number; equals `answers_seq` in lockstep.
+    pub seq: u64,
+    /// The [`DriveState::seq`] this command was computed from.
+    pub answers_seq: u64,
+    /// Sample instant of that state, seconds.
+    pub sample_time_s: f64,
+    /// CLOCK_MONOTONIC when that state was published (copied), nanoseconds.
+    pub state_publish_time_ns: u64,
+    /// CLOCK_MONOTONIC at publication of this command, nanoseconds.
+    pub publish_time_ns: u64,
+    pub v_a_v: f64,
+    pub v_b_v: f64,
+    /// Reference currents the loop is steering to (for monitoring).
+    pub i_a_ref_a: f64,
+    pub i_b_ref_a: f64,
+}
+
+/// Position/torque loop → current loop: torque demand and the trajectory segment that
+/// holds until the next tick.
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("stepdrive.TorqueSetpoint.v1")]
+pub struct TorqueSetpoint {
+    /// Tick counter of the position loop.
+    pub seq: u64,
+    /// The [`DriveState::seq`] this setpoint was computed from.
+    pub from_state_seq: u64,
+    /// Sample instant of that state (the segment's origin), seconds.
+    pub sample_time_s: f64,
+    /// CLOCK_MONOTONIC at publication, nanoseconds.
+    pub publish_time_ns: u64,
+    /// Desired position, velocity, acceleration at `sample_time_s`; the current loop
+    /// extrapolates θ_d between ticks with them (the baselines need θ_d at 20 kHz).
+    pub theta_d_rad: f64,
+    pub omega_d_rad_s: f64,
+    pub alpha_d_rad_s2: f64,
+    /// Torque demand of eq. (12), N·m (unused by the baselines).
+    pub torque_nm: f64,
+}
+
+impl TorqueSetpoint {
+    /// Desired position at time `t_s`, extrapolated along this segment.
+    pub fn theta_d_at(&self, t_s: f64) -> f64 {
+        let dt = t_s - self.sample_time_s;
+        self.theta_d_rad + self.omega_d_rad_s * dt + 0.5 * self.alpha_d_rad_s2 * dt * dt
+    }
+}

@@ -1,0 +1,580 @@
+//! One scenario: motor parameters (Table I by default), load, supply, controller gains,
+//! loop rates, trajectory and metric windows. Loads from TOML and validates itself; every
+//! error names the offending field.
+
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+
+/// Largest compute delay (in current-loop periods) the sampled current loop is designed for.
+pub const MAX_COMPUTE_DELAY_PERIODS: u32 = 4;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ScenarioError {
+    #[error("cannot read scenario file {path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("scenario file {path} is not valid: {message}")]
+    Parse { path: PathBuf, message: String },
+    #[error("scenario field `{field}` {message}")]
+    Invalid {
+        field: &'static str,
+        message: String,
+    },
+    #[error("cannot serialise scenario: {0}")]
+    Serialise(String),
+}
+
+/// Two-phase PM stepper parameters of eq. (1). Defaults: Table I (Oriental Motor PK266-01B).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MotorParams {
+    /// Phase inductance L, H.
+    pub inductance_h: f64,
+    /// Phase resistance R, Ω.
+    pub resistance_ohm: f64,
+    /// Rotor inertia J, kg·m².
+    pub inertia_kg_m2: f64,
+    /// Torque constant K_m, N·m/A (also the back-EMF constant, V·s/rad).
+    pub torque_constant_nm_per_a: f64,
+    /// Number of rotor teeth N_r.
+    pub rotor_teeth: u32,
+    /// Viscous friction B, N·m·s/rad.
+    pub viscous_friction_nm_s_per_rad: f64,
+}
+
+impl Default for MotorParams {
+    fn default() -> Self {
+        Self {
+            inductance_h: 40e-3,
+            resistance_ohm: 14.8,
+            inertia_kg_m2: 8e-5,
+            torque_constant_nm_per_a: 0.5,
+            rotor_teeth: 50,
+            viscous_friction_nm_s_per_rad: 5e-3,
+        }
+    }
+}
+
+impl MotorParams {
+    pub fn n_r(&self) -> f64 {
+        f64::from(self.rotor_teeth)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LoadParams {
+    /// Constant load torque τ_L opposing +θ, N·m. Known to the controller, as in the paper.
+    pub torque_nm: f64,
+}
+
+impl Default for LoadParams {
+    fn default() -> Self {
+        Self { torque_nm: 0.01 }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct DriveParams {
+    /// Supply voltage; each phase voltage is limited to ±V_bus.
+    pub bus_voltage_v: f64,
+}
+
+impl Default for DriveParams {
+    fn default() -> Self {
+        Self {
+            bus_voltage_v: 24.0,
+        }
+    }
+}
+
+/// Controller gains, continuous-time as in Table I.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Gains {
+    /// k_1 of eq. (12), 1/s.
+    pub k1: f64,
+    /// k_2 of eq. (12), N·m·s/rad.
+    pub k2: f64,
+    /// k_3 of eq. (22): designed current-error decay rate, 1/s.
+    pub k3_per_s: f64,
+    /// V_max of eqs. (2), (39): microstepping voltage amplitude, V.
+    pub v_max_v: f64,
+    /// ρ of eq. (39): the baseline's current-error decay rate, 1/s.
+    pub rho_per_s: f64,
+}
+
+impl Default for Gains {
+    fn default() -> Self {
+        Self {
+            k1: 0.01,
+            k2: 0.01,
+            k3_per_s: 30_000.0,
+            v_max_v: 6.5,
+            rho_per_s: 30_000.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Rates {
+    /// Plant sample rate = current-loop rate, Hz.
+    pub current_loop_hz: f64,
+    /// Position/torque-loop rate, Hz; must divide `current_loop_hz`.
+    pub position_loop_hz: f64,
+    /// Periods between the sample a voltage is computed from and the period it is applied in
+    /// (1 = a PWM drive: computed from sample k, applied over (t_{k+1}, t_{k+2}]).
+    pub compute_delay_periods: u32,
+    /// RK4 sub-steps per plant sample.
+    pub plant_substeps: u32,
+}
+
+impl Default for Rates {
+    fn default() -> Self {
+        Self {
+            current_loop_hz: 20_000.0,
+            position_loop_hz: 2_000.0,
+            compute_delay_periods: 1,
+            plant_substeps: 4,
+        }
+    }
+}
+
+/// Trapezoidal velocity profile from rest at θ = 0: accelerate, cruise, decelerate, hold.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct TrajectoryParams {
+    pub cruise_velocity_rad_s: f64,
+    pub accel_s: f64,
+    pub cruise_s: f64,
+    pub decel_s: f64,
+    pub hold_s: f64,
+}
+
+impl Default for TrajectoryParams {
+    fn default() -> Self {
+        Self {
+            cruise_velocity_rad_s: 13.13,
+            accel_s: 0.5,
+            cruise_s: 1.0,
+            decel_s: 0.5,
+            hold_s: 0.5,
+        }
+    }
+}
+
+/// Windows the metrics are taken over.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MetricWindows {
+    /// Settled constant-velocity window [start, end], s.
+    pub cruise_start_s: f64,
+    pub cruise_end_s: f64,
+    /// The final error is the mean of θ_d − θ over this last span of the run, s.
+    pub final_window_s: f64,
+}
+
+impl Default for MetricWindows {
+    fn default() -> Self {
+        Self {
+            cruise_start_s: 0.9,
+            cruise_end_s: 1.5,
+            final_window_s: 0.1,
+        }
+    }
+}
+
+/// Everything a run needs. `Scenario::default()` is the paper's Section V scenario.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Scenario {
+    pub name: String,
+    pub motor: MotorParams,
+    pub load: LoadParams,
+    pub drive: DriveParams,
+    pub gains: Gains,
+    pub rates: Rates,
+    pub trajectory: TrajectoryParams,
+    pub metrics: MetricWindows,
+}
+
+impl Default for Scenario {
+    fn default() -> Self {
+        Self {
+            name: "paper-section-v".to_string(),
+            motor: MotorParams::default(),
+            load: LoadParams::default(),
+            drive: DriveParams::default(),
+            gains: Gains::default(),
+            rates: Rates::default(),
+            trajectory: TrajectoryParams::default(),
+            metrics: MetricWindows::default(),
+        }
+    }
+}
+
+fn positive(field: &'static str, v: f64) -> Result<(), ScenarioError> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(ScenarioError::Invalid {
+            field,
+            message: format!("must be a positive finite number (got {v})"),
+        })
+    }
+}
+
+fn non_negative(field: &'static str, v: f64) -> Result<(), ScenarioError> {
+    if v.is_finite() && v >= 0.0 {
+        Ok(())
+    } else {
+        Err(ScenarioError::Invalid {
+            field,
+            message: format!("must be a finite number ≥ 0 (got {v})"),
+        })
+    }
+}
+
+fn finite(field: &'static str, v: f64) -> Result<(), ScenarioError> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(ScenarioError::Invalid {
+            field,
+            message: format!("must be finite (got {v})"),
+        })
+    }
+}
+
+fn invalid(field: &'static str, message: String) -> ScenarioError {
+    ScenarioError::Invalid { field, message }
+}
+
+impl Scenario {
+    /// Reads and validates a TOML scenario. Absent fields take their defaults; unknown
+    /// fields are errors (a typo must not silently fall back to a default).
+    pub fn from_toml_file(path: &Path) -> Result<Self, ScenarioError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ScenarioError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml_str(&text).map_err(|e| match e {
+            ScenarioError::Parse { message, .. } => ScenarioError::Parse {
+                path: path.to_path_buf(),
+                message,
+            },
+            other => other,
+        })
+    }
+
+    pub fn from_toml_str(text: &str) -> Result<Self, ScenarioError> {
+        let scenario: Scenario = toml::from_str(text).map_err(|e| ScenarioError::Parse {
+            path: PathBuf::from("<string>"),
+            message: e.to_string(),
+        })?;
+        scenario.validate()?;
+        Ok(scenario)
+    }
+
+    pub fn to_toml_string(&self) -> Result<String, ScenarioError> {
+        toml::to_string(self).map_err(|e| ScenarioError::Serialise(e.to_string()))
+    }
+
+    pub fn validate(&self) -> Result<(), ScenarioError> {
+        let m = &self.motor;
+        positive("motor.inductance_h", m.inductance_h)?;
+        positive("motor.resistance_ohm", m.resistance_ohm)?;
+        positive("motor.inertia_kg_m2", m.inertia_kg_m2)?;
+        positive("motor.torque_constant_nm_per_a", m.torque_constant_nm_per_a)?;
+        if m.rotor_teeth == 0 {
+            return Err(invalid("motor.rotor_teeth", "must be at least 1".into()));
+        }
+        non_negative(
+            "motor.viscous_friction_nm_s_per_rad",
+            m.viscous_friction_nm_s_per_rad,
+        )?;
+        finite("load.torque_nm", self.load.torque_nm)?;
+        positive("drive.bus_voltage_v", self.drive.bus_voltage_v)?;
+
+        let g = &self.gains;
+        positive("gains.k1", g.k1)?;
+        positive("gains.k2", g.k2)?;
+        positive("gains.k3_per_s", g.k3_per_s)?;
+        positive("gains.v_max_v", g.v_max_v)?;
+        positive("gains.rho_per_s", g.rho_per_s)?;
+        if g.v_max_v > self.drive.bus_voltage_v {
+            return Err(invalid(
+                "gains.v_max_v",
+                format!(
+                    "({} V) exceeds drive.bus_voltage_v ({} V): the drive cannot apply it",
+                    g.v_max_v, self.drive.bus_voltage_v
+                ),
+            ));
+        }
+
+        let r = &self.rates;
+        positive("rates.current_loop_hz", r.current_loop_hz)?;
+        positive("rates.position_loop_hz", r.position_loop_hz)?;
+        if r.position_loop_hz > r.current_loop_hz {
+            return Err(invalid(
+                "rates.position_loop_hz",
+                format!(
+                    "({} Hz) must not exceed rates.current_loop_hz ({} Hz)",
+                    r.position_loop_hz, r.current_loop_hz
+                ),
+            ));
+        }
+        let ratio = r.current_loop_hz / r.position_loop_hz;
+        if (ratio - ratio.round()).abs() > 1e-9 * ratio {
+            return Err(invalid(
+                "rates.position_loop_hz",
+                format!(
+                    "must divide rates.current_loop_hz exactly (ratio {} / {} = {ratio} is not an integer)",
+                    r.current_loop_hz, r.position_loop_hz
+                ),
+            ));
+        }
+        if r.compute_delay_periods > MAX_COMPUTE_DELAY_PERIODS {
+            return Err(invalid(
+                "rates.compute_delay_periods",
+                format!(
+                    "must be 0..={MAX_COMPUTE_DELAY_PERIODS} (got {})",
+                    r.compute_delay_periods
+                ),
+            ));
+        }
+        if !(1..=1000).contains(&r.plant_substeps) {
+            return Err(invalid(
+                "rates.plant_substeps",
+                format!("must be 1..=1000 (got {})", r.plant_substeps),
+            ));
+        }
+
+        let t = &self.trajectory;
+        finite("trajectory.cruise_velocity_rad_s", t.cruise_velocity_rad_s)?;
+        non_negative("trajectory.accel_s", t.accel_s)?;
+        non_negative("trajectory.cruise_s", t.cruise_s)?;
+        non_negative("trajectory.decel_s", t.decel_s)?;
+        non_negative("trajectory.hold_s", t.hold_s)?;
+        let duration = self.duration_s();
+        if duration <= 0.0 {
+            return Err(invalid(
+                "trajectory",
+                "phases must add up to a positive duration".into(),
+            ));
+        }
+        if self.sample_count() > 1_000_000_000 {
+            return Err(invalid(
+                "rates.current_loop_hz",
+                format!("gives more than 1e9 samples over {duration} s"),
+            ));
+        }
+
+        let w = &self.metrics;
+        non_negative("metrics.cruise_start_s", w.cruise_start_s)?;
+        non_negative("metrics.cruise_end_s", w.cruise_end_s)?;
+        if w.cruise_end_s <= w.cruise_start_s {
+            return Err(invalid(
+                "metrics.cruise_end_s",
+                format!(
+                    "({}) must be after metrics.cruise_start_s ({})",
+                    w.cruise_end_s, w.cruise_start_s
+                ),
+            ));
+        }
+        if w.cruise_end_s > duration {
+            return Err(invalid(
+                "metrics.cruise_end_s",
+                format!(
+                    "({}) is past the end of the run ({duration} s)",
+                    w.cruise_end_s
+                ),
+            ));
+        }
+        positive("metrics.final_window_s", w.final_window_s)?;
+        if w.final_window_s > duration {
+            return Err(invalid(
+                "metrics.final_window_s",
+                format!(
+                    "({}) is longer than the run ({duration} s)",
+                    w.final_window_s
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Length of the run: the trajectory's phases added up, s.
+    pub fn duration_s(&self) -> f64 {
+        let t = &self.trajectory;
+        t.accel_s + t.cruise_s + t.decel_s + t.hold_s
+    }
+
+    /// Current-loop sample period T_s, s.
+    pub fn sample_period_s(&self) -> f64 {
+        1.0 / self.rates.current_loop_hz
+    }
+
+    /// Current-loop samples per position-loop tick.
+    pub fn rate_ratio(&self) -> u64 {
+        (self.rates.current_loop_hz / self.rates.position_loop_hz).round() as u64
+    }
+
+    /// Samples in the run, k = 0 ..= duration / T_s.
+    pub fn sample_count(&self) -> u64 {
+        (self.duration_s() * self.rates.current_loop_hz).round() as u64 + 1
+    }
+
+    /// Sample instant t_k. Computed as k·T_s from the integer k, never accumulated, so every
+    /// process agrees on it bit for bit.
+    pub fn sample_time(&self, k: u64) -> f64 {
+        k as f64 / self.rates.current_loop_hz
+    }
+
+    /// Eq. (7): the least steady error of microstepping at the cruise velocity, rad.
+    pub fn eq7_bound_rad(&self) -> f64 {
+        let m = &self.motor;
+        (m.resistance_ohm * m.viscous_friction_nm_s_per_rad * self.trajectory.cruise_velocity_rad_s
+            / (m.torque_constant_nm_per_a * self.gains.v_max_v * m.n_r()))
+        .abs()
+    }
+
+    /// The load's share of the microstepping steady error, R τ_L / (K_m V_max N_r), rad.
+    pub fn load_offset_rad(&self) -> f64 {
+        let m = &self.motor;
+        m.resistance_ohm * self.load.torque_nm
+            / (m.torque_constant_nm_per_a * self.gains.v_max_v * m.n_r())
+    }
+}
+
+/// Which control method the current loop runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Method {
+    /// Torque modulation (12) + commutation (17) + current tracking (22).
+    Proposed,
+    /// Lyapunov-based microstepping, eq. (39).
+    Lyapunov,
+    /// Open-loop microstepping voltages, eq. (2).
+    OpenLoop,
+}
+
+impl Method {
+    pub const ALL: [Method; 3] = [Method::Proposed, Method::Lyapunov, Method::OpenLoop];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Method::Proposed => "proposed",
+            Method::Lyapunov => "lyapunov",
+            Method::OpenLoop => "open_loop",
+        }
+    }
+}
+
+impl std::fmt::Display for Method {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "proposed" => Ok(Method::Proposed),
+            "lyapunov" => Ok(Method::Lyapunov),
+            "open_loop" | "open-loop" => Ok(Method::OpenLoop),
+            other => Err(format!(
+                "unknown method `{other}` (expected proposed, lyapunov or open_loop)"
+            )),
+        }
+    }
+}
+
+/// Timing mode of a run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Mode {
+    /// Virtual time: the plant waits for each command; bit-identical results.
+    Lockstep,
+}
+
+impl Mode {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Mode::Lockstep => "lockstep",
+        }
+    }
+}
+
+impl FromStr for Mode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "lockstep" => Ok(Mode::Lockstep),
+            "realtime" | "hardware" => Err(format!(
+                "mode `{s}` is not implemented yet (only lockstep is; see the README's roadmap)"
+            )),
+            other => Err(format!("unknown mode `{other}` (expected lockstep)")),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn default_scenario_is_valid_and_round_trips_through_toml() {
+        let s = Scenario::default();
+        s.validate().expect("defaults valid");
+        let text = s.to_toml_string().expect("serialise");
+        assert_eq!(Scenario::from_toml_str(&text).expect("parse"), s);
+        assert_eq!(s.sample_count(), 50_001);
+        assert_eq!(s.rate_ratio(), 10);
+    }
+
+    #[test]
+    fn eq7_numbers_match_the_notes() {
+        let s = Scenario::default();
+        assert!((s.eq7_bound_rad() - 5.98e-3).abs() < 0.01e-3);
+        assert!((s.load_offset_rad() - 0.91e-3).abs() < 0.01e-3);
+    }
+
+    fn err_of(text: &str) -> String {
+        Scenario::from_toml_str(text)
+            .expect_err("must be rejected")
+            .to_string()
+    }
+
+    #[test]
+    fn bad_fields_are_named() {
+        assert!(err_of("[motor]\nresistance_ohm = -1.0").contains("motor.resistance_ohm"));
+        assert!(err_of("[motor]\ninductance_h = 0.0").contains("motor.inductance_h"));
+        assert!(err_of("[motor]\ninertia_kg_m2 = nan").contains("motor.inertia_kg_m2"));
+        assert!(err_of("[motor]\ntorque_constant_nm_per_a = inf")
+            .contains("motor.torque_constant_nm_per_a"));
+        assert!(err_of("[rates]\nposition_loop_hz = 3000.0").contains("rates.position_loop_hz"));
+        assert!(err_of("[rates]\ncompute_delay_periods = 9").contains("compute_delay_periods"));
+        assert!(err_of("[load]\ntorque_nm = nan").contains("load.torque_nm"));
+        assert!(err_of("[metrics]\ncruise_end_s = 9.0").contains("metrics.cruise_end_s"));
+        // A typo is an error naming the unknown key, not a silent default.
+        assert!(err_of("[motor]\nresistanse_ohm = 1.0").contains("resistanse_ohm"));
+        // A wrong type is reported with its key.
+        assert!(err_of("[gains]\nk1 = \"fast\"").contains("k1"));
+    }
+
+    #[test]
+    fn method_names_parse() {
+        for m in Method::ALL {
+            assert_eq!(m.as_str().parse::<Method>(), Ok(m));
+        }
+        assert!("pid".parse::<Method>().is_err());
+    }
+}

@@ -1,0 +1,275 @@
+//! Service names and the one place that opens them, so every process opens every service
+//! with identical settings (iceoryx2 treats an opener's settings as minimum requirements).
+
+use crate::messages::{DriveCommand, DriveState, TorqueSetpoint};
+use iceoryx2::port::publisher::Publisher;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::publish_subscribe::PortFactory;
+use iceoryx2::service::port_factory::PortFactory as _;
+use std::fmt::Debug;
+use std::time::{Duration, Instant};
+
+pub use iceoryx2::prelude::ZeroCopySend as Message;
+
+pub type Ipc = ipc::Service;
+pub type Topic<T> = PortFactory<Ipc, T, ()>;
+pub type Pub<T> = Publisher<Ipc, T, ()>;
+pub type Sub<T> = Subscriber<Ipc, T, ()>;
+
+pub const DEFAULT_INSTANCE: &str = "stepdrive";
+
+/// Subscriber queue depths. The monitor's is deep because in lockstep it must see every
+/// sample (the publisher waits for it rather than drop one) while it drains at a low rate.
+pub const MONITOR_BUFFER: usize = 8192;
+pub const LOOP_BUFFER: usize = 16;
+
+#[derive(Debug, thiserror::Error)]
+pub enum IpcError {
+    #[error("invalid instance name `{0}`: use 1-48 characters from A-Z a-z 0-9 . _ -")]
+    BadInstance(String),
+    #[error("{context}: {message}")]
+    Iceoryx { context: String, message: String },
+}
+
+fn ipc_err(context: impl Into<String>, e: impl Debug) -> IpcError {
+    IpcError::Iceoryx {
+        context: context.into(),
+        message: format!("{e:?}"),
+    }
+}
+
+/// Service names of one stack. Two stacks with different instance names never see each
+/// other.
+#[derive(Debug, Clone)]
+pub struct ServiceNames {
+    pub instance: String,
+}
+
+impl ServiceNames {
+    pub fn new(instance: &str) -> Result<Self, IpcError> {
+        let ok = !instance.is_empty()
+            && instance.len() <= 48
+            && instance
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
+        if ok {
+            Ok(Self {
+                instance: instance.to_string(),
+            })
+        } else {
+            Err(IpcError::BadInstance(instance.to_string()))
+        }
+    }
+    /// Plant → all, every sample.
+    pub fn drive_state(&self) -> String {
+        format!("{}/drive/state", self.instance)
+    }
+    /// Current loop → plant, every sample.
+    pub fn drive_command(&self) -> String {
+        format!("{}/drive/command", self.instance)
+    }
+    /// Position loop → current loop, every tick.
+    pub fn torque_setpoint(&self) -> String {
+        format!("{}/control/setpoint", self.instance)
+    }
+}
+
+/// iceoryx2 configuration built in code: without it iceoryx2 would silently read a
+/// `config/iceoryx2.toml` from the working directory or the user's home.
+pub fn iceoryx_config() -> Config {
+    Config::default()
+}
+
+/// A process's node and the three topics of the stack.
+pub struct Topics {
+    pub node: Node<Ipc>,
+    pub names: ServiceNames,
+    pub state: Topic<DriveState>,
+    pub command: Topic<DriveCommand>,
+    pub setpoint: Topic<TorqueSetpoint>,
+}
+
+/// Settings of one topic; the same for every opener.
+struct Qos {
+    max_publishers: usize,
+    max_subscribers: usize,
+    max_buffer: usize,
+}
+
+fn open_topic<T: Debug + ZeroCopySend + 'static>(
+    node: &Node<Ipc>,
+    name: &str,
+    qos: &Qos,
+) -> Result<Topic<T>, IpcError> {
+    let service_name: ServiceName = name
+        .try_into()
+        .map_err(|e| ipc_err(format!("service name `{name}`"), e))?;
+    // Two processes starting together may race to create the service; the loser sees a
+    // transient error and retries.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    loop {
+        let result = node
+            .service_builder(&service_name)
+            .publish_subscribe::<T>()
+            .max_publishers(qos.max_publishers)
+            .max_subscribers(qos.max_subscribers)
+            .subscriber_max_buffer_size(qos.max_buffer)
+            .history_size(0)
+            // Lockstep: a full queue makes the publisher wait, never drop a sample.
+            .enable_safe_overflow(false)
+            .open_or_create();
+        match result {
+            Ok(t) => return Ok(t),
+            Err(e) if Instant::now() < deadline => {
+                tracing::debug!(service = name, error = ?e, "service not ready yet, retrying");
+                std::thread::sleep(Duration::from_millis(5));
+            }
+            Err(e) => return Err(ipc_err(format!("cannot open service `{name}`"), e)),
+        }
+    }
+}
+
+impl Topics {
+    /// Creates this process's node (named `role`) and opens the stack's services.
+    pub fn open(instance: &str, role: &str) -> Result<Self, IpcError> {
+        let names = ServiceNames::new(instance)?;
+        let node_name: NodeName = format!("{instance}.{role}")
+            .as_str()
+            .try_into()
+            .map_err(|e| ipc_err("node name", e))?;
+        let node = NodeBuilder::new()
+            .name(&node_name)
+            .config(&iceoryx_config())
+            // We handle SIGINT/SIGTERM ourselves (`poll::install_termination_handler`).
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Ipc>()
+            .map_err(|e| ipc_err("cannot create iceoryx2 node", e))?;
+        let state = open_topic::<DriveState>(
+            &node,
+            &names.drive_state(),
+            &Qos {
+                max_publishers: 1,
+                max_subscribers: 8,
+                max_buffer: MONITOR_BUFFER,
+            },
+        )?;
+        let command = open_topic::<DriveCommand>(
+            &node,
+            &names.drive_command(),
+            &Qos {
+                max_publishers: 1,
+                max_subscribers: 8,
+                max_buffer: MONITOR_BUFFER,
+            },
+        )?;
+        let setpoint = open_topic::<TorqueSetpoint>(
+            &node,
+            &names.torque_setpoint(),
+            &Qos {
+                max_publishers: 1,
+                max_subscribers: 8,
+                max_buffer: MONITOR_BUFFER,
+            },
+        )?;
+        Ok(Self {
+            node,
+            names,
+            state,
+            command,
+            setpoint,
+        })
+    }
+}
+
+pub fn publisher<T: Debug + ZeroCopySend + 'static>(
+    topic: &Topic<T>,
+    what: &str,
+) -> Result<Pub<T>, IpcError> {
+    topic
+        .publisher_builder()
+        .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+        .create()
+        .map_err(|e| {
+            ipc_err(
+                format!(
+                    "cannot create {what} publisher (is another one running on this instance?)"
+                ),
+                e,
+            )
+        })
+}
+
+pub fn subscriber<T: Debug + ZeroCopySend + 'static>(
+    topic: &Topic<T>,
+    what: &str,
+    buffer: usize,
+) -> Result<Sub<T>, IpcError> {
+    topic
+        .subscriber_builder()
+        .buffer_size(buffer)
+        .create()
+        .map_err(|e| ipc_err(format!("cannot create {what} subscriber"), e))
+}
+
+/// Publishes a copy of `value` (the messages are a few dozen bytes; a copy into the loaned
+/// shared-memory slot is what zero-copy means here).
+pub fn send<T: Debug + ZeroCopySend + Copy + 'static>(
+    publisher: &Pub<T>,
+    value: T,
+) -> Result<(), IpcError> {
+    publisher
+        .send_copy(value)
+        .map(|_| ())
+        .map_err(|e| ipc_err("send failed", e))
+}
+
+/// Non-blocking receive of the next queued sample, copied out.
+pub fn try_receive<T: Debug + ZeroCopySend + Copy + 'static>(
+    subscriber: &Sub<T>,
+) -> Result<Option<T>, IpcError> {
+    match subscriber.receive() {
+        Ok(Some(sample)) => Ok(Some(*sample.payload())),
+        Ok(None) => Ok(None),
+        Err(e) => Err(ipc_err("receive failed", e)),
+    }
+}
+
+/// Removes what crashed processes left behind (nodes, ports, shared memory). Call it
+/// before starting a stack and after its processes have been reaped.
+pub fn cleanup_dead_nodes() -> usize {
+    let config = iceoryx_config();
+    let mut removed = 0;
+    let result = Node::<Ipc>::list(&config, |state| {
+        if let NodeState::Dead(view) = state {
+            match view.try_remove_stale_resources() {
+                Ok(()) => removed += 1,
+                Err(e) => tracing::warn!(error = ?e, "could not remove a dead node's resources"),
+            }
+        }
+        CallbackProgression::Continue
+    });
+    if let Err(e) = result {
+        tracing::warn!(error = ?e, "could not list iceoryx2 nodes");
+    }
+    removed
+}
+
+/// Establishes a publisher's connections to the subscribers present now, so the first
+/// real sample does not pay for `shm_open`/`mmap`.
+pub fn connect<T: Debug + ZeroCopySend + 'static>(publisher: &Pub<T>) -> Result<(), IpcError> {
+    use iceoryx2::port::update_connections::UpdateConnections;
+    publisher
+        .update_connections()
+        .map_err(|e| ipc_err("cannot connect publisher", e))
+}
+
+/// Publishers currently attached to a topic.
+pub fn publisher_count<T: Debug + ZeroCopySend + 'static>(topic: &Topic<T>) -> usize {
+    topic.dynamic_config().number_of_publishers()
+}
+
+/// Subscribers currently attached to a topic.
+pub fn subscriber_count<T: Debug + ZeroCopySend + 'static>(topic: &Topic<T>) -> usize {
+    topic.dynamic_config().number_of_subscribers()
+}

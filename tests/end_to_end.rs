@@ -1,0 +1,379 @@
+//! End-to-end tests: they start the real `stepdrive` binary, whose plant, position loop and
+//! current loop run as separate processes talking through iceoryx2. Each test uses its own
+//! instance name, so tests running in parallel never see each other's services.
+
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+const EXE: &str = env!("CARGO_BIN_EXE_stepdrive");
+
+/// A short version of the paper's scenario: 0.7 s, cruise window after the transients.
+const SHORT: &str = r#"
+name = "short"
+[trajectory]
+accel_s = 0.1
+cruise_s = 0.35
+decel_s = 0.1
+hold_s = 0.15
+[metrics]
+cruise_start_s = 0.3
+cruise_end_s = 0.45
+final_window_s = 0.05
+"#;
+
+struct TempDir(PathBuf);
+
+impl TempDir {
+    fn new(test: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("stepdrive-e2e-{}-{test}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("create temp dir");
+        Self(dir)
+    }
+    fn file(&self, name: &str, text: &str) -> PathBuf {
+        let p = self.0.join(name);
+        std::fs::write(&p, text).expect("write temp file");
+        p
+    }
+    fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+fn instance(test: &str) -> String {
+    format!("e2e-{}-{test}", std::process::id())
+}
+
+fn stepdrive(args: &[&str]) -> Output {
+    Command::new(EXE)
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("run stepdrive")
+}
+
+fn read_json(path: &Path) -> Value {
+    let text = std::fs::read_to_string(path).expect("read JSON output");
+    serde_json::from_str(&text).expect("valid JSON")
+}
+
+fn run_of<'a>(doc: &'a Value, method: &str) -> &'a Value {
+    doc["runs"]
+        .as_array()
+        .expect("runs array")
+        .iter()
+        .find(|r| r["method"] == method)
+        .unwrap_or_else(|| panic!("no {method} run in {doc}"))
+}
+
+fn num(run: &Value, key: &str) -> f64 {
+    run[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key} missing in {run}"))
+}
+
+/// PIDs of live processes whose command line contains `needle`.
+fn processes_with(needle: &str) -> Vec<u32> {
+    let mut found = Vec::new();
+    let me = std::process::id();
+    for entry in std::fs::read_dir("/proc").expect("read /proc").flatten() {
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        if pid == me {
+            continue;
+        }
+        let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
+            continue;
+        };
+        let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
+        // Zombies have an empty cmdline; only live processes count.
+        if cmdline.contains(needle) {
+            found.push(pid);
+        }
+    }
+    found
+}
+
+fn wait_with_timeout(child: &mut Child, timeout: Duration) -> std::process::ExitStatus {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            return status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("process did not exit within {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+fn wait_until(timeout: Duration, mut cond: impl FnMut() -> bool) -> bool {
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline {
+        if cond() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    cond()
+}
+
+#[test]
+fn three_processes_track_and_reproduce_the_reference_simulation() {
+    let dir = TempDir::new("track");
+    let scenario = dir.file("short.toml", SHORT);
+    let json = dir.path("run.json");
+    let sim_json = dir.path("sim.json");
+    let inst = instance("track");
+    let out = stepdrive(&[
+        "run",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--method",
+        "proposed,lyapunov",
+        "--instance",
+        &inst,
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "run failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let table = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        table.contains("proposed") && table.contains("lyapunov"),
+        "{table}"
+    );
+
+    let doc = read_json(&json);
+    let proposed = run_of(&doc, "proposed");
+    let lyapunov = run_of(&doc, "lyapunov");
+    assert_eq!(proposed["mode"], "lockstep");
+    assert_eq!(proposed["samples"].as_u64(), Some(14_001));
+    assert!(
+        num(proposed, "cruise_max_abs_error_rad") <= 1e-4,
+        "{proposed}"
+    );
+    assert!(num(proposed, "final_error_rad").abs() <= 1e-5, "{proposed}");
+    assert!(
+        num(proposed, "cruise_mean_id_a").abs() <= 0.005,
+        "{proposed}"
+    );
+    assert_eq!(proposed["fault_samples"].as_u64(), Some(0));
+    // The baseline lags by (7) plus the load term and keeps the load offset at rest.
+    let expected = num(&doc, "microstepping_expected_cruise_error_rad");
+    let err = num(lyapunov, "cruise_max_abs_error_rad");
+    assert!((err - expected).abs() < 0.05 * expected, "{lyapunov}");
+    let offset = num(&doc, "microstepping_expected_final_error_rad");
+    assert!(
+        (num(lyapunov, "final_error_rad") - offset).abs() < 0.05 * offset,
+        "{lyapunov}"
+    );
+    assert!(num(lyapunov, "mean_copper_loss_w") > 10.0 * num(proposed, "mean_copper_loss_w"));
+
+    // The processes, talking only through iceoryx2, reproduce the single-process reference
+    // simulation bit for bit (all figures but wall time).
+    let out = stepdrive(&[
+        "simulate",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--method",
+        "proposed,lyapunov",
+        "--json",
+        sim_json.to_str().unwrap(),
+    ]);
+    assert!(out.status.success());
+    let mut sim = read_json(&sim_json);
+    let mut ipc = doc.clone();
+    for d in [&mut sim, &mut ipc] {
+        for r in d["runs"].as_array_mut().unwrap() {
+            r["wall_time_s"] = Value::Null;
+        }
+    }
+    assert_eq!(
+        ipc, sim,
+        "multi-process run differs from the in-process reference"
+    );
+}
+
+#[test]
+fn processes_started_by_hand_find_each_other() {
+    let dir = TempDir::new("byhand");
+    let scenario = dir.file("short.toml", SHORT);
+    let inst = instance("byhand");
+    let common = [
+        "--instance",
+        &inst,
+        "--scenario",
+        scenario.to_str().unwrap(),
+    ];
+    let spawn = |role: &str, extra: &[&str]| {
+        Command::new(EXE)
+            .arg(role)
+            .args(common)
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn")
+    };
+    // Started in the "wrong" order on purpose: the plant waits for the loops.
+    let mut plant = spawn("plant", &[]);
+    std::thread::sleep(Duration::from_millis(200));
+    let mut current = spawn("current-loop", &["--method", "lyapunov"]);
+    let mut position = spawn("position-loop", &[]);
+    for (name, child) in [
+        ("plant", &mut plant),
+        ("current-loop", &mut current),
+        ("position-loop", &mut position),
+    ] {
+        let status = wait_with_timeout(child, Duration::from_secs(120));
+        let mut log = String::new();
+        use std::io::Read;
+        child
+            .stderr
+            .take()
+            .unwrap()
+            .read_to_string(&mut log)
+            .unwrap();
+        assert!(status.success(), "{name} failed: {log}");
+        assert!(
+            log.contains("done"),
+            "{name} did not report completion: {log}"
+        );
+    }
+}
+
+#[test]
+fn scenario_with_a_bad_field_fails_naming_it() {
+    let dir = TempDir::new("bad");
+    for (text, field) in [
+        ("[motor]\nresistance_ohm = -14.8\n", "motor.resistance_ohm"),
+        (
+            "[rates]\nposition_loop_hz = 3000.0\n",
+            "rates.position_loop_hz",
+        ),
+        ("[motor]\ninductanse_h = 0.04\n", "inductanse_h"),
+    ] {
+        let path = dir.file("bad.toml", text);
+        for cmd in ["run", "simulate", "plant"] {
+            let out = stepdrive(&[cmd, "--scenario", path.to_str().unwrap()]);
+            let stderr = String::from_utf8_lossy(&out.stderr);
+            assert_eq!(out.status.code(), Some(1), "{cmd} with {text:?}: {stderr}");
+            assert!(
+                stderr.contains(field),
+                "{cmd}: error does not name {field}: {stderr}"
+            );
+            assert!(!stderr.contains("panicked"), "{stderr}");
+        }
+    }
+    let out = stepdrive(&["run", "--scenario", "/nonexistent/stepdrive.toml"]);
+    assert_eq!(out.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&out.stderr).contains("/nonexistent/stepdrive.toml"));
+}
+
+/// A long run the supervision tests can interrupt.
+const LONG: &str = "[trajectory]\nhold_s = 300.0\n";
+
+fn start_long_run(dir: &TempDir, inst: &str) -> Child {
+    let scenario = dir.file("long.toml", LONG);
+    let child = Command::new(EXE)
+        .args([
+            "run",
+            "--method",
+            "proposed",
+            "--instance",
+            inst,
+            "--scenario",
+        ])
+        .arg(&scenario)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn run");
+    // Wait until all three stack processes are up.
+    let role_up = |role: &str| {
+        processes_with(inst).iter().any(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .map(|c| String::from_utf8_lossy(&c).contains(role))
+                .unwrap_or(false)
+        })
+    };
+    assert!(
+        wait_until(Duration::from_secs(30), || {
+            role_up("\0plant\0") && role_up("\0current-loop\0") && role_up("\0position-loop\0")
+        }),
+        "stack did not come up"
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    child
+}
+
+fn stderr_of(child: &mut Child) -> String {
+    let mut s = String::new();
+    use std::io::Read;
+    if let Some(mut e) = child.stderr.take() {
+        let _ = e.read_to_string(&mut s);
+    }
+    s
+}
+
+#[test]
+fn a_dying_child_fails_the_run_and_leaves_nothing_behind() {
+    let dir = TempDir::new("kill");
+    let inst = instance("kill");
+    let mut run = start_long_run(&dir, &inst);
+    let victim = processes_with(&inst)
+        .into_iter()
+        .find(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .map(|c| String::from_utf8_lossy(&c).contains("\0current-loop\0"))
+                .unwrap_or(false)
+        })
+        .expect("current-loop process");
+    // SAFETY: kill(2) on a PID we just found.
+    unsafe { libc::kill(victim as i32, libc::SIGKILL) };
+    let status = wait_with_timeout(&mut run, Duration::from_secs(30));
+    let stderr = stderr_of(&mut run);
+    assert_eq!(status.code(), Some(1), "{stderr}");
+    assert!(
+        stderr.contains("current-loop"),
+        "error does not name the dead child: {stderr}"
+    );
+    assert!(
+        wait_until(Duration::from_secs(5), || processes_with(&inst).is_empty()),
+        "orphans left: {:?}",
+        processes_with(&inst)
+    );
+}
+
+#[test]
+fn ctrl_c_stops_the_whole_stack() {
+    let dir = TempDir::new("sigint");
+    let inst = instance("sigint");
+    let mut run = start_long_run(&dir, &inst);
+    // SAFETY: kill(2) on our own child.
+    unsafe { libc::kill(run.id() as i32, libc::SIGINT) };
+    let status = wait_with_timeout(&mut run, Duration::from_secs(30));
+    let stderr = stderr_of(&mut run);
+    assert_eq!(status.code(), Some(130), "{stderr}");
+    assert!(stderr.contains("interrupted"), "{stderr}");
+    assert!(
+        wait_until(Duration::from_secs(5), || processes_with(&inst).is_empty()),
+        "orphans left: {:?}",
+        processes_with(&inst)
+    );
+}

@@ -377,3 +377,106 @@ fn ctrl_c_stops_the_whole_stack() {
         processes_with(&inst)
     );
 }
+
+/// Realtime mode end to end. Timing figures depend on the machine, so only structure and
+/// invariants are asserted; the measured numbers belong in `stepdrive latency`.
+#[test]
+fn realtime_run_reports_timing_from_every_loop() {
+    let dir = TempDir::new("realtime");
+    let json = dir.path("rt.json");
+    let scenario = dir.file("short.toml", SHORT);
+    let inst = instance("realtime");
+    let out = stepdrive(&[
+        "run",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--mode",
+        "realtime",
+        "--duration",
+        "1.0",
+        "--method",
+        "proposed",
+        "--instance",
+        &inst,
+        // Ordinary scheduling and no pinning: tests run in parallel on two cores.
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "realtime run failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc = read_json(&json);
+    let run = run_of(&doc, "proposed");
+    assert_eq!(run["mode"], "realtime");
+    let t = &run["timing"];
+    let plant_cycles = t["plant"]["cycles"].as_u64().expect("plant cycles");
+    assert_eq!(plant_cycles, 20_000, "one cycle per sample but the last");
+    assert!(t["current_loop"]["cycles"].as_u64().unwrap() > 0);
+    assert!(t["position_loop"]["cycles"].as_u64().unwrap() > 0);
+    // Every period either got its command or was counted as a miss.
+    let misses = t["deadline_misses"].as_u64().unwrap();
+    assert!(misses <= plant_cycles);
+    let s2a = &t["sensor_to_actuator"];
+    assert!(s2a["count"].as_u64().unwrap() > 0);
+    assert!(s2a["p50_us"].as_f64().unwrap() <= s2a["p99_us"].as_f64().unwrap());
+    assert!(s2a["p99_us"].as_f64().unwrap() <= s2a["max_us"].as_f64().unwrap());
+    assert!(processes_with(&inst).is_empty());
+}
+
+#[test]
+fn latency_session_writes_its_files() {
+    use stepdrive_shared::stats::CyclictestHistogram;
+    let dir = TempDir::new("latency");
+    let out_dir = dir.path("report");
+    let scenario = dir.file("short.toml", SHORT);
+    let inst = instance("latency");
+    let out = stepdrive(&[
+        "latency",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--duration",
+        "1.0",
+        "--baseline-duration",
+        "1",
+        "--instance",
+        &inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+        "--out",
+        out_dir.to_str().unwrap(),
+    ]);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "latency failed: {stderr}");
+    let table = String::from_utf8_lossy(&out.stdout);
+    for row in [
+        "sensor_to_actuator",
+        "state_hop",
+        "pingpong_iceoryx2",
+        "pingpong_uds",
+    ] {
+        assert!(table.contains(row), "no {row} row in:\n{table}");
+    }
+    let doc = read_json(&out_dir.join("latency.json"));
+    let metrics = doc["metrics"].as_array().expect("metrics");
+    for m in metrics {
+        let file = out_dir.join(m["file"].as_str().unwrap());
+        let text = std::fs::read_to_string(&file).expect("histogram file");
+        let h = CyclictestHistogram::parse(&text).expect("cyclictest-compatible");
+        assert_eq!(h.total, m["count"].as_u64().unwrap(), "{}", file.display());
+        assert_eq!(h.bins.iter().sum::<u64>() + h.overflows, h.total);
+    }
+    let has_cyclictest = metrics.iter().any(|m| m["name"] == "cyclictest");
+    let notes = doc["notes"].to_string();
+    assert!(has_cyclictest || notes.contains("cyclictest"), "{notes}");
+    let svg = std::fs::read_to_string(out_dir.join("latency.svg")).expect("plot");
+    assert!(svg.starts_with("<svg") && svg.contains("polyline"));
+    assert!(processes_with(&inst).is_empty());
+}

@@ -8,10 +8,15 @@ use std::fmt::Debug;
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
 use stepdrive_shared::messages::{state_flags, DriveState, TorqueSetpoint};
+use stepdrive_shared::pacer::{sleep_until, Pacer, WaitStrategy};
+use stepdrive_shared::poll::termination_requested;
 use stepdrive_shared::poll::{poll_until, WaitError};
+use stepdrive_shared::rt::RtOptions;
+use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
     connect, publisher, send, subscriber, try_receive, IpcError, Message, Sub, Topics, LOOP_BUFFER,
 };
+use stepdrive_shared::stats::{roles, CycleRecorder, StatsReport};
 use stepdrive_shared::{Method, Scenario};
 
 #[derive(Debug, thiserror::Error)]
@@ -87,7 +92,7 @@ pub fn run_current_loop(
     opts: &LoopOptions,
     method: Method,
 ) -> Result<LoopSummary, ControllerError> {
-    let topics = Topics::open(&opts.instance, "current-loop")?;
+    let topics = Topics::open(&opts.instance, "current-loop", Mode::Lockstep)?;
     // Subscribers first: the plant starts once our command publisher exists.
     let states = subscriber(&topics.state, "drive/state", LOOP_BUFFER)?;
     let setpoints = subscriber(&topics.setpoint, "control/setpoint", LOOP_BUFFER)?;
@@ -129,7 +134,7 @@ pub fn run_current_loop(
 }
 
 pub fn run_position_loop(opts: &LoopOptions) -> Result<LoopSummary, ControllerError> {
-    let topics = Topics::open(&opts.instance, "position-loop")?;
+    let topics = Topics::open(&opts.instance, "position-loop", Mode::Lockstep)?;
     let states = subscriber(&topics.state, "drive/state", LOOP_BUFFER)?;
     let setpoints = publisher(&topics.setpoint, "control/setpoint")?;
     let mut body = PositionLoop::new(&opts.scenario);
@@ -155,4 +160,264 @@ pub fn run_position_loop(opts: &LoopOptions) -> Result<LoopSummary, ControllerEr
     }
     tracing::info!(ticks, "position loop done");
     Ok(LoopSummary { cycles: ticks })
+}
+
+/// Realtime settings of a control loop.
+#[derive(Debug, Clone)]
+pub struct RealtimeLoopOptions {
+    pub wait: WaitStrategy,
+    pub rt: RtOptions,
+}
+
+fn publish_stats(
+    stats_pub: &stepdrive_shared::services::Pub<StatsReport>,
+    stats: &mut StatsReport,
+    is_final: bool,
+) -> Result<(), ControllerError> {
+    stats.is_final = u32::from(is_final);
+    stats.seq += 1;
+    stats.publish_time_ns = monotonic_ns();
+    send(stats_pub, *stats)?;
+    Ok(())
+}
+
+/// What `await_newest` returns: the newest queued message, when it was taken, how many
+/// older ones were skipped, and the timer's wake-up latency if the loop slept on one.
+struct Arrival<T> {
+    message: T,
+    taken_ns: u64,
+    timer_latency_ns: Option<u64>,
+}
+
+/// Polls `sub` until a message arrives, waiting per `wait`: spinning, sleeping in 10 µs
+/// steps, or sleeping on the absolute deadline `margin` before `expected_ns` (the next
+/// sample's deadline) and spinning from there.
+fn await_newest<T: Debug + Copy + Message + 'static>(
+    sub: &Sub<T>,
+    wait: WaitStrategy,
+    expected_ns: u64,
+    timeout: Duration,
+    peer: &'static str,
+    what: &'static str,
+) -> Result<Arrival<T>, ControllerError> {
+    let mut timer_latency_ns = None;
+    if let WaitStrategy::Hybrid { margin_ns } = wait {
+        let target = expected_ns.saturating_sub(margin_ns);
+        if target > monotonic_ns() {
+            sleep_until(target);
+            timer_latency_ns = Some(monotonic_ns().saturating_sub(target));
+        }
+    }
+    let start = monotonic_ns();
+    let timeout_ns = timeout.as_nanos() as u64;
+    let mut polls: u32 = 0;
+    loop {
+        let mut newest = None;
+        while let Some(m) = try_receive(sub)? {
+            newest = Some(m);
+        }
+        if let Some(message) = newest {
+            return Ok(Arrival {
+                message,
+                taken_ns: monotonic_ns(),
+                timer_latency_ns,
+            });
+        }
+        polls = polls.wrapping_add(1);
+        if polls % 256 == 0 || wait == WaitStrategy::Sleep {
+            if termination_requested() {
+                return Err(ControllerError::Terminated);
+            }
+            let now = monotonic_ns();
+            if now - start > timeout_ns {
+                return Err(ControllerError::PeerTimeout {
+                    what,
+                    peer,
+                    timeout,
+                });
+            }
+            if wait == WaitStrategy::Sleep {
+                sleep_until(now + 10_000);
+            }
+        }
+        std::hint::spin_loop();
+    }
+}
+
+/// Realtime current loop: woken by each state sample (by polling, see `await_newest`),
+/// it answers the newest one with the latest setpoint. Its deadline for sample k is the
+/// plant's deadline k + d (the period the answer is applied in).
+pub fn run_current_loop_realtime(
+    opts: &LoopOptions,
+    method: Method,
+    rto: &RealtimeLoopOptions,
+) -> Result<StatsReport, ControllerError> {
+    let topics = Topics::open(&opts.instance, "current-loop", Mode::Realtime)?;
+    let states = subscriber(&topics.state, "drive/state", LOOP_BUFFER)?;
+    let setpoints = subscriber(&topics.setpoint, "control/setpoint", LOOP_BUFFER)?;
+    let commands = publisher(&topics.command, "drive/command")?;
+    let stats_pub = publisher(&topics.stats, "monitor/stats")?;
+    rto.rt
+        .apply()
+        .map_err(|e| ControllerError::Protocol(e.to_string()))?;
+    let s = &opts.scenario;
+    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let answer_budget_ns = period_ns * u64::from(s.rates.compute_delay_periods.max(1));
+    let mut body = CurrentLoop::new(s, method);
+    let mut setpoint = TorqueSetpoint::default();
+    let mut stats = Box::new(StatsReport {
+        role: roles::CURRENT_LOOP,
+        ..Default::default()
+    });
+    tracing::info!(instance = %opts.instance, %method, wait = %rto.wait, "current loop up (realtime)");
+    let mut expected_ns = 0;
+    let mut last_seq: Option<u64> = None;
+    let mut prev_start = 0;
+    loop {
+        let timeout = if last_seq.is_none() {
+            opts.startup_timeout
+        } else {
+            opts.peer_timeout
+        };
+        let arrival = await_newest(
+            &states,
+            rto.wait,
+            expected_ns,
+            timeout,
+            "plant",
+            "drive/state",
+        )?;
+        let (state, start) = (arrival.message, arrival.taken_ns);
+        if let Some(prev) = last_seq {
+            stats.lost += state.seq.saturating_sub(prev + 1);
+            stats.period.record(start - prev_start);
+        } else {
+            connect(&commands)?;
+        }
+        last_seq = Some(state.seq);
+        prev_start = start;
+        // Wake-up latency is the timer's (comparable with cyclictest); a spinning loop has none.
+        if let Some(l) = arrival.timer_latency_ns {
+            stats.wakeup.record(l);
+        }
+        stats
+            .hop
+            .record(start.saturating_sub(state.publish_time_ns));
+        while let Some(sp) = try_receive(&setpoints)? {
+            setpoint = sp;
+        }
+        let mut command = body.on_sample(&state, &setpoint);
+        command.publish_time_ns = monotonic_ns();
+        send(&commands, command)?;
+        let done = monotonic_ns();
+        stats.compute.record(done - start);
+        if done > state.deadline_ns + answer_budget_ns {
+            stats.misses += 1;
+        }
+        stats.cycles += 1;
+        expected_ns = state.deadline_ns + period_ns;
+        if state.flags & state_flags::LAST != 0 {
+            break;
+        }
+        if stats.cycles % 20_000 == 0 {
+            publish_stats(&stats_pub, &mut stats, false)?;
+        }
+    }
+    publish_stats(&stats_pub, &mut stats, true)?;
+    std::thread::sleep(Duration::from_millis(200));
+    tracing::info!(
+        cycles = stats.cycles,
+        misses = stats.misses,
+        "current loop done"
+    );
+    Ok(*stats)
+}
+
+/// Realtime position loop: its own clock at the position rate, started on the plant's
+/// deadline grid shifted by half a current period, reading the newest state at each tick.
+/// It does not chase the plant's re-anchoring: it only needs the newest state.
+pub fn run_position_loop_realtime(
+    opts: &LoopOptions,
+    rto: &RealtimeLoopOptions,
+) -> Result<StatsReport, ControllerError> {
+    let topics = Topics::open(&opts.instance, "position-loop", Mode::Realtime)?;
+    let states = subscriber(&topics.state, "drive/state", LOOP_BUFFER)?;
+    let setpoints = publisher(&topics.setpoint, "control/setpoint")?;
+    let stats_pub = publisher(&topics.stats, "monitor/stats")?;
+    rto.rt
+        .apply()
+        .map_err(|e| ControllerError::Protocol(e.to_string()))?;
+    let s = &opts.scenario;
+    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let tick_ns = period_ns * s.rate_ratio();
+    let mut body = PositionLoop::new(s);
+    let mut stats = Box::new(StatsReport {
+        role: roles::POSITION_LOOP,
+        ..Default::default()
+    });
+    // The first state tells where the plant's deadline grid is.
+    let first = await_newest(
+        &states,
+        WaitStrategy::Sleep,
+        0,
+        opts.startup_timeout,
+        "plant",
+        "drive/state",
+    )?
+    .message;
+    connect(&setpoints)?;
+    let epoch = first.deadline_ns - first.seq * period_ns + period_ns / 2;
+    let mut pacer = Pacer::new(epoch, tick_ns, rto.wait);
+    pacer.skip_to(monotonic_ns());
+    tracing::info!(instance = %opts.instance, wait = %rto.wait, "position loop up (realtime)");
+    let mut latest = first;
+    let mut last_used: Option<u64> = None;
+    let mut recorder = CycleRecorder::new(tick_ns);
+    let mut last_seen_at = monotonic_ns();
+    loop {
+        if termination_requested() {
+            return Err(ControllerError::Terminated);
+        }
+        let tick = pacer.wait();
+        if tick.latency_ns() > tick_ns {
+            stats.overruns += 1;
+            pacer.skip_to(tick.woke_ns);
+        }
+        let mut fresh = false;
+        while let Some(st) = try_receive(&states)? {
+            stats.lost += st.seq.saturating_sub(latest.seq + 1);
+            latest = st;
+            fresh = true;
+        }
+
+        let now = monotonic_ns();
+        if fresh {
+            last_seen_at = now;
+            stats.hop.record(now.saturating_sub(latest.publish_time_ns));
+        } else if now - last_seen_at > opts.peer_timeout.as_nanos() as u64 {
+            return Err(ControllerError::PeerTimeout {
+                what: "drive/state",
+                peer: "plant",
+                timeout: opts.peer_timeout,
+            });
+        }
+        if last_used != Some(latest.seq) {
+            let mut sp = body.on_tick(&latest);
+            sp.publish_time_ns = monotonic_ns();
+            send(&setpoints, sp)?;
+            last_used = Some(latest.seq);
+        }
+        // A miss: the tick finished after the next tick was due.
+        recorder.record(&mut stats, tick.deadline_ns, tick.woke_ns, monotonic_ns());
+        if latest.flags & state_flags::LAST != 0 {
+            break;
+        }
+        if stats.cycles % 2_000 == 0 {
+            publish_stats(&stats_pub, &mut stats, false)?;
+        }
+    }
+    publish_stats(&stats_pub, &mut stats, true)?;
+    std::thread::sleep(Duration::from_millis(200));
+    tracing::info!(ticks = stats.cycles, "position loop done");
+    Ok(*stats)
 }

@@ -8,14 +8,19 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Duration;
 use stepdrive_controller::process::{
-    run_current_loop, run_position_loop, ControllerError, LoopOptions,
+    run_current_loop, run_current_loop_realtime, run_position_loop, run_position_loop_realtime,
+    ControllerError, LoopOptions, RealtimeLoopOptions,
 };
-use stepdrive_monitor::launcher::{run_lockstep, Interrupted, LaunchOptions};
+use stepdrive_monitor::latency::{run_latency, table as latency_table, LatencyOptions};
+use stepdrive_monitor::launcher::{run_stack, Interrupted, LaunchOptions, RoleRt};
 use stepdrive_monitor::metrics::RunReport;
+use stepdrive_monitor::pingpong::PingPongOptions;
 use stepdrive_monitor::report::{document, table};
 use stepdrive_monitor::simulate::simulate;
-use stepdrive_plant::process::{PlantError, PlantOptions};
+use stepdrive_plant::process::{PlantError, PlantOptions, RealtimeOptions};
+use stepdrive_shared::pacer::WaitStrategy;
 use stepdrive_shared::poll::install_termination_handler;
+use stepdrive_shared::rt::{rt_runtime_us, RtOptions, RtThrottlingOff};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::DEFAULT_INSTANCE;
 use stepdrive_shared::{Method, Scenario};
@@ -51,6 +56,53 @@ enum Cmd {
     PositionLoop(ProcessArgs),
     /// Print the default scenario as TOML, or check a scenario file.
     Scenario(ScenarioArgs),
+    /// Latency and jitter of the live stack in realtime mode, beside bare iceoryx2 and
+    /// Unix-socket ping-pong and cyclictest: table, latency.json, cyclictest-compatible
+    /// histograms and a log-y plot in --out DIR.
+    Latency(LatencyArgs),
+    /// Transport baseline process used by `latency` (ping paced like the plant, pong waiting
+    /// like the current loop).
+    #[command(hide = true)]
+    Pingpong(PingpongArgs),
+}
+
+#[derive(Args, Debug)]
+struct LatencyArgs {
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// Directory for latency.json, *.hist and latency.svg.
+    #[arg(long, value_name = "DIR", default_value = "latency-report")]
+    out: PathBuf,
+    /// Length of each baseline (ping-pongs, cyclictest), seconds; default: the run's
+    /// duration, at most 20.
+    #[arg(long, value_name = "S")]
+    baseline_duration: Option<f64>,
+    /// Only measure the stack.
+    #[arg(long)]
+    skip_baselines: bool,
+    #[command(flatten)]
+    stack: StackArgs,
+}
+
+#[derive(Args, Debug)]
+struct PingpongArgs {
+    #[arg(long)]
+    transport: stepdrive_monitor::pingpong::Transport,
+    /// ping or pong.
+    #[arg(long, value_parser = ["ping", "pong"])]
+    role: String,
+    #[arg(long)]
+    endpoint: String,
+    #[arg(long, default_value_t = 50.0)]
+    period_us: f64,
+    #[arg(long, default_value_t = 10.0)]
+    duration: f64,
+    #[arg(long, default_value = "sleep")]
+    wait: WaitStrategy,
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    rt: RtArgs,
 }
 
 fn parse_seconds(s: &str) -> Result<Duration, String> {
@@ -102,6 +154,49 @@ struct ProcessArgs {
     scenario: ScenarioOpt,
     #[command(flatten)]
     timeouts: Timeouts,
+    /// Timing mode: lockstep (virtual time) or realtime (wall clock). All processes of a
+    /// stack must use the same.
+    #[arg(long, default_value = "lockstep")]
+    mode: Mode,
+    /// Realtime: how this loop waits: sleep (clock_nanosleep), spin, or hybrid[:µs]
+    /// (sleep to that margin before the deadline, then spin). Default: spin for the
+    /// current loop, sleep for the others.
+    #[arg(long)]
+    wait: Option<WaitStrategy>,
+    #[command(flatten)]
+    rt: RtArgs,
+}
+
+/// Real-time settings of one process, as cyclictest's -p, -a, -m.
+#[derive(Args, Debug, Clone)]
+struct RtArgs {
+    /// SCHED_FIFO priority (1-99); without it the process stays SCHED_OTHER.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(1..=99))]
+    priority: Option<u8>,
+    /// Pin to this CPU.
+    #[arg(long)]
+    cpu: Option<usize>,
+    /// mlockall and prefault the stack.
+    #[arg(long)]
+    mlock: bool,
+    /// Timer slack in ns (kernel default 50000, a whole 20 kHz period).
+    #[arg(long, value_name = "NS")]
+    timer_slack_ns: Option<u64>,
+    /// Fail if the system refuses a real-time setting instead of warning and going on.
+    #[arg(long)]
+    require_rt: bool,
+}
+
+impl RtArgs {
+    fn options(&self) -> RtOptions {
+        RtOptions {
+            priority: self.priority,
+            cpu: self.cpu,
+            lock_memory: self.mlock,
+            timer_slack_ns: self.timer_slack_ns,
+            require: self.require_rt,
+        }
+    }
 }
 
 impl ProcessArgs {
@@ -119,9 +214,10 @@ impl ProcessArgs {
 struct PlantArgs {
     #[command(flatten)]
     common: ProcessArgs,
-    /// Timing mode. Only `lockstep` (virtual time, plant waits for each command) exists yet.
-    #[arg(long, default_value = "lockstep")]
-    mode: Mode,
+    /// Realtime watchdog: after this many periods in a row without a command the outputs
+    /// go off (zero volts) and a fault is latched (200 = 10 ms at 20 kHz).
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
+    watchdog_periods: u32,
     /// drive/state subscribers to wait for before the first sample: 2 = current and
     /// position loops; 3 adds a monitor.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
@@ -147,14 +243,143 @@ struct RunArgs {
     /// Also write the results as JSON to FILE.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
-    /// Timing mode. Only `lockstep` (virtual time, bit-identical results) exists yet.
+    /// lockstep: virtual time, bit-identical, as fast as possible. realtime: wall clock,
+    /// 20 kHz on absolute deadlines, late commands are held and counted.
     #[arg(long, default_value = "lockstep")]
     mode: Mode,
+    #[command(flatten)]
+    stack: StackArgs,
+}
+
+/// Options of a launched stack.
+#[derive(Args, Debug)]
+struct StackArgs {
     /// Instance namespace of the services.
     #[arg(long, default_value = DEFAULT_INSTANCE)]
     instance: String,
     #[command(flatten)]
     timeouts: Timeouts,
+    /// Run length in seconds; past one pass of the trajectory the move repeats back and forth.
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+    /// Realtime: SCHED_FIFO priority of plant and current loop (position loop: 10 less);
+    /// 0 keeps everything SCHED_OTHER.
+    #[arg(long, default_value_t = 80, value_parser = clap::value_parser!(u8).range(0..=99))]
+    priority: u8,
+    /// Realtime: SCHED_FIFO priority of the current loop alone (default: --priority);
+    /// 0 runs it SCHED_OTHER, which RT throttling does not touch.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=99))]
+    current_priority: Option<u8>,
+    /// Realtime: CPUs as PLANT,CURRENT: the plant and position loop are pinned to the first,
+    /// the (spinning) current loop to the second. `none` disables pinning.
+    #[arg(long, default_value = "0,1")]
+    cpus: String,
+    /// Realtime: do not mlockall.
+    #[arg(long)]
+    no_mlock: bool,
+    /// Realtime: timer slack of every loop, ns.
+    #[arg(long, default_value_t = 1000, value_name = "NS")]
+    timer_slack_ns: u64,
+    /// Fail if the system refuses a real-time setting.
+    #[arg(long)]
+    require_rt: bool,
+    /// Realtime: wait strategy of the plant. hybrid:25 sleeps to 25 µs before each deadline
+    /// and spins the rest, so samples leave on time although a timer wake-up here takes
+    /// ~25 µs (measured: wake-up p50 31 µs with sleep, 3-5 µs with hybrid:25).
+    #[arg(long, default_value = "hybrid:25")]
+    plant_wait: WaitStrategy,
+    /// Realtime: wait strategy of the current loop: sleep to 40 µs before the next sample's
+    /// deadline, then poll. A pure spin would hold a whole CPU and exhaust the RT budget.
+    #[arg(long, default_value = "hybrid:40")]
+    current_wait: WaitStrategy,
+    /// Realtime: wait strategy of the position loop.
+    #[arg(long, default_value = "sleep")]
+    position_wait: WaitStrategy,
+    /// Realtime: `off` sets sched_rt_runtime_us to -1 for the run and restores it after
+    /// (root). With throttling on, SCHED_FIFO tasks lose their CPU up to 50 ms a second
+    /// whenever ordinary tasks want it; see the README's latency section.
+    #[arg(long, default_value = "on", value_parser = ["on", "off"])]
+    rt_throttling: String,
+    /// Realtime: plant watchdog periods (see `stepdrive plant --help`).
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
+    watchdog_periods: u32,
+}
+
+impl StackArgs {
+    /// Applies `--rt-throttling` for the life of the returned guard.
+    fn throttling_guard(&self, mode: Mode) -> Result<Option<RtThrottlingOff>> {
+        if mode != Mode::Realtime {
+            return Ok(None);
+        }
+        if self.rt_throttling == "off" {
+            match RtThrottlingOff::engage() {
+                Ok(g) => return Ok(g),
+                Err(e) if self.require_rt => return Err(e.into()),
+                Err(e) => tracing::warn!("{e}; continuing with RT throttling on"),
+            }
+        }
+        warn_rt_throttling();
+        Ok(None)
+    }
+
+    fn apply_duration(&self, s: &mut Scenario) -> Result<()> {
+        if let Some(d) = self.duration {
+            s.run.duration_s = Some(d);
+            s.validate().context("--duration")?;
+        }
+        Ok(())
+    }
+
+    fn launch_options(&self, mode: Mode) -> Result<LaunchOptions> {
+        let cpus: Option<(usize, usize)> = if self.cpus == "none" {
+            None
+        } else {
+            let parts: Vec<&str> = self.cpus.split(',').collect();
+            match parts.as_slice() {
+                [a, b] => Some((
+                    a.trim().parse().context("--cpus: first CPU")?,
+                    b.trim().parse().context("--cpus: second CPU")?,
+                )),
+                _ => anyhow::bail!("--cpus must be PLANT,CURRENT (e.g. 0,1) or none"),
+            }
+        };
+        let rt = |prio: u8, cpu: Option<usize>| RtOptions {
+            priority: (prio > 0).then_some(prio),
+            cpu,
+            lock_memory: !self.no_mlock,
+            timer_slack_ns: Some(self.timer_slack_ns),
+            require: self.require_rt,
+        };
+        Ok(LaunchOptions {
+            instance: self.instance.clone(),
+            startup_timeout: self.timeouts.startup_timeout_s,
+            peer_timeout: self.timeouts.peer_timeout_s,
+            mode,
+            plant: RoleRt {
+                wait: self.plant_wait,
+                rt: rt(self.priority, cpus.map(|c| c.0)),
+            },
+            current: RoleRt {
+                wait: self.current_wait,
+                rt: rt(
+                    self.current_priority.unwrap_or(self.priority),
+                    cpus.map(|c| c.1),
+                ),
+            },
+            position: RoleRt {
+                wait: self.position_wait,
+                rt: rt(
+                    if self.priority > 10 {
+                        self.priority - 10
+                    } else {
+                        self.priority.min(1)
+                    },
+                    cpus.map(|c| c.0),
+                ),
+            },
+            watchdog_periods: self.watchdog_periods,
+        })
+    }
 }
 
 #[derive(Args, Debug)]
@@ -202,19 +427,18 @@ fn write_outputs(s: &Scenario, runs: &[RunReport], json: Option<&PathBuf>) -> Re
 fn real_main(cli: Cli) -> Result<()> {
     match cli.command {
         Cmd::Run(a) => {
-            let s = a.scenario.load()?;
-            let Mode::Lockstep = a.mode;
-            let opts = LaunchOptions {
-                instance: a.instance.clone(),
-                startup_timeout: a.timeouts.startup_timeout_s,
-                peer_timeout: a.timeouts.peer_timeout_s,
-            };
+            let mut s = a.scenario.load()?;
+            a.stack.apply_duration(&mut s)?;
+            let opts = a.stack.launch_options(a.mode)?;
+            let _throttling = a.stack.throttling_guard(a.mode)?;
             let mut runs = Vec::new();
             for method in &a.methods {
                 tracing::info!(
-                    "{method}: launching plant, position loop and current loop (lockstep)"
+                    "{method}: launching plant, position loop and current loop ({}, {:.1} s)",
+                    a.mode.as_str(),
+                    s.duration_s()
                 );
-                let report = run_lockstep(&s, *method, &opts)
+                let report = run_stack(&s, *method, &opts)
                     .with_context(|| format!("the {method} run failed"))?;
                 runs.push(report);
             }
@@ -227,7 +451,6 @@ fn real_main(cli: Cli) -> Result<()> {
         }
         Cmd::Plant(a) => {
             let lo = a.common.loop_options()?;
-            let Mode::Lockstep = a.mode;
             let opts = PlantOptions {
                 instance: lo.instance,
                 scenario: lo.scenario,
@@ -235,16 +458,96 @@ fn real_main(cli: Cli) -> Result<()> {
                 startup_timeout: lo.startup_timeout,
                 peer_timeout: lo.peer_timeout,
             };
-            stepdrive_plant::process::run_lockstep(&opts)?;
+            match a.common.mode {
+                Mode::Lockstep => {
+                    stepdrive_plant::process::run_lockstep(&opts)?;
+                }
+                Mode::Realtime => {
+                    let rto = RealtimeOptions {
+                        wait: a.common.wait.unwrap_or(WaitStrategy::Sleep),
+                        watchdog_periods: a.watchdog_periods,
+                        rt: a.common.rt.options(),
+                    };
+                    stepdrive_plant::process::run_realtime(&opts, &rto)?;
+                }
+            }
             Ok(())
         }
         Cmd::CurrentLoop(a) => {
-            run_current_loop(&a.common.loop_options()?, a.method)?;
+            let lo = a.common.loop_options()?;
+            match a.common.mode {
+                Mode::Lockstep => {
+                    run_current_loop(&lo, a.method)?;
+                }
+                Mode::Realtime => {
+                    let rto = RealtimeLoopOptions {
+                        wait: a.common.wait.unwrap_or(WaitStrategy::Spin),
+                        rt: a.common.rt.options(),
+                    };
+                    run_current_loop_realtime(&lo, a.method, &rto)?;
+                }
+            }
             Ok(())
         }
         Cmd::PositionLoop(a) => {
-            run_position_loop(&a.loop_options()?)?;
+            let lo = a.loop_options()?;
+            match a.mode {
+                Mode::Lockstep => {
+                    run_position_loop(&lo)?;
+                }
+                Mode::Realtime => {
+                    let rto = RealtimeLoopOptions {
+                        wait: a.wait.unwrap_or(WaitStrategy::Sleep),
+                        rt: a.rt.options(),
+                    };
+                    run_position_loop_realtime(&lo, &rto)?;
+                }
+            }
             Ok(())
+        }
+        Cmd::Latency(a) => {
+            let mut s = a.scenario.load()?;
+            if a.stack.duration.is_none() {
+                s.run.duration_s = Some(60.0);
+            }
+            a.stack.apply_duration(&mut s)?;
+            let launch = a.stack.launch_options(Mode::Realtime)?;
+            let _throttling = a.stack.throttling_guard(Mode::Realtime)?;
+            let baseline = a.baseline_duration.unwrap_or(s.duration_s().min(20.0));
+            let baseline_duration = parse_seconds(&baseline.to_string())
+                .map_err(anyhow::Error::msg)
+                .context("--baseline-duration")?;
+            let opts = LatencyOptions {
+                out: a.out.clone(),
+                baseline_duration,
+                launch,
+                skip_baselines: a.skip_baselines,
+            };
+            let report = run_latency(&s, &opts)?;
+            write_outputs(&s, std::slice::from_ref(&report.run), None)?;
+            println!();
+            print!("{}", latency_table(&report));
+            println!(
+                "written: {}/latency.json, latency.svg, *.hist",
+                a.out.display()
+            );
+            Ok(())
+        }
+        Cmd::Pingpong(a) => {
+            if !(a.period_us.is_finite() && a.period_us >= 1.0) {
+                anyhow::bail!("--period-us must be ≥ 1");
+            }
+            let duration = parse_seconds(&a.duration.to_string()).map_err(anyhow::Error::msg)?;
+            stepdrive_monitor::pingpong::run(&PingPongOptions {
+                transport: a.transport,
+                endpoint: a.endpoint,
+                ping: a.role == "ping",
+                period_ns: (a.period_us * 1000.0).round() as u64,
+                duration,
+                wait: a.wait,
+                rt: a.rt.options(),
+                out: a.out,
+            })
         }
         Cmd::Scenario(a) => {
             match a.check {
@@ -263,6 +566,21 @@ fn real_main(cli: Cli) -> Result<()> {
             }
             Ok(())
         }
+    }
+}
+
+/// RT throttling takes a spinning SCHED_FIFO task off its CPU for up to 50 ms a second
+/// when ordinary tasks want that CPU; say so once.
+fn warn_rt_throttling() {
+    match rt_runtime_us() {
+        Some(-1) => {}
+        Some(us) => tracing::info!(
+            "RT throttling is on (sched_rt_runtime_us = {us}): SCHED_FIFO tasks may lose their CPU \
+             for {} ms a second when ordinary tasks need it (--rt-throttling off disables it for \
+             the run; see the README)",
+            (1_000_000 - us) / 1000
+        ),
+        None => {}
     }
 }
 

@@ -35,6 +35,9 @@ pub struct RunReport {
     pub voltage_limited_samples: u64,
     /// Samples that carried a fault bit.
     pub fault_samples: u64,
+    /// Realtime only: loop timing, deadline misses, latencies.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub timing: Option<crate::timing::TimingReport>,
 }
 
 /// Accumulates [`RunReport`] figures one state sample at a time; no allocation per sample.
@@ -94,9 +97,14 @@ impl Metrics {
 
     pub fn push(&mut self, s: &DriveState) {
         let t = s.sample_time_s;
-        let error = self.trajectory.at(t).theta - s.theta_rad;
+        let reference = self.trajectory.at(t);
+        let error = reference.theta - s.theta_rad;
         let i = [s.i_a_a, s.i_b_a];
-        if t >= self.cruise.0 && t <= self.cruise.1 {
+        // The cruise window applies to every pass of a repeating move; on the way back the
+        // torque and i_q are negative, so they are taken along the direction of motion.
+        let (tau, mirrored) = self.trajectory.phase(t);
+        let direction = if mirrored { -1.0 } else { 1.0 };
+        if tau >= self.cruise.0 && tau <= self.cruise.1 {
             // NaN-safe: a NaN error must show up, not be skipped by `max`.
             let abs = error.abs();
             if abs.is_nan() || abs > self.cruise_max_abs_error {
@@ -104,7 +112,7 @@ impl Metrics {
             }
             let (id, iq) = dq_currents(s.theta_rad, self.n_r, i[0], i[1]);
             self.cruise_sum_id += id;
-            self.cruise_sum_iq += iq;
+            self.cruise_sum_iq += direction * iq;
             self.cruise_n += 1;
         }
         if t >= self.final_from {
@@ -156,6 +164,7 @@ impl Metrics {
             samples: self.samples,
             voltage_limited_samples: self.limited,
             fault_samples: self.faults,
+            timing: None,
         }
     }
 }

@@ -94,7 +94,46 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         }
         out.push('\n');
     }
-    if let Some(r) = runs.iter().find(|r| r.wall_time_s > 0.0) {
+    for r in runs {
+        let Some(t) = &r.timing else { continue };
+        let _ = writeln!(
+            out,
+            "\n{} realtime timing: deadline misses {} ({:.3} %), late commands discarded {}, plant overruns {}",
+            r.method,
+            t.deadline_misses,
+            t.deadline_miss_pct,
+            t.late_commands_discarded,
+            t.plant.as_ref().map_or(0, |p| p.overruns)
+        );
+        let line = |name: &str, p: Option<&crate::timing::Percentiles>| match p {
+            Some(p) if p.count > 0 => format!(
+                "  {name:<34} p50 {:>7.1} µs  p99 {:>7.1} µs  p99.9 {:>8.1} µs  max {:>9.1} µs\n",
+                p.p50_us, p.p99_us, p.p99_9_us, p.max_us
+            ),
+            _ => String::new(),
+        };
+        out += &line("sensor → actuator", t.sensor_to_actuator.as_ref());
+        out += &line(
+            "plant wake-up latency",
+            t.plant.as_ref().map(|p| &p.wakeup_latency),
+        );
+        out += &line(
+            "current-loop timer wake-up latency",
+            t.current_loop.as_ref().map(|c| &c.wakeup_latency),
+        );
+        out += &line(
+            "state hop (iceoryx2)",
+            t.current_loop.as_ref().map(|c| &c.input_hop),
+        );
+        out += &line(
+            "position-loop wake-up latency",
+            t.position_loop.as_ref().map(|p| &p.wakeup_latency),
+        );
+    }
+    if let Some(r) = runs
+        .iter()
+        .find(|r| r.wall_time_s > 0.0 && r.timing.is_none())
+    {
         let _ = writeln!(
             out,
             "\nreal-time factor ({}): {:.1}× faster than real time",

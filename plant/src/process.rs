@@ -2,15 +2,21 @@
 //! for exactly the command its delay line needs, integrates one period, and repeats.
 //! Nothing is dropped and nothing depends on timing, so runs are bit-identical.
 
-use crate::sim::PlantSim;
+use crate::sim::{CommandSlot, PlantSim, Selection};
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
+use stepdrive_shared::messages::fault_bits;
 use stepdrive_shared::messages::DriveCommand;
+use stepdrive_shared::pacer::{Pacer, WaitStrategy};
+use stepdrive_shared::poll::termination_requested;
 use stepdrive_shared::poll::{poll_until, WaitError};
+use stepdrive_shared::rt::RtOptions;
+use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
     connect, publisher, publisher_count, send, subscriber, subscriber_count, try_receive, IpcError,
     Topics, LOOP_BUFFER,
 };
+use stepdrive_shared::stats::{roles, CycleRecorder, StatsReport};
 use stepdrive_shared::Scenario;
 
 #[derive(Debug, thiserror::Error)]
@@ -47,11 +53,9 @@ pub struct PlantSummary {
 /// Commands may arrive ahead of the one the delay line needs; keep a few by sequence number.
 const PENDING: usize = 8;
 
-pub fn run_lockstep(opts: &PlantOptions) -> Result<PlantSummary, PlantError> {
-    let topics = Topics::open(&opts.instance, "plant")?;
-    let commands = subscriber(&topics.command, "drive/command", LOOP_BUFFER)?;
-    let states = publisher(&topics.state, "drive/state")?;
-
+/// Waits until the current loop, the position loop and `wait_subscribers` state
+/// subscribers are attached.
+fn wait_for_stack(topics: &Topics, opts: &PlantOptions) -> Result<(), PlantError> {
     tracing::info!(
         instance = %opts.instance,
         waiting_for = opts.wait_subscribers,
@@ -80,6 +84,15 @@ pub fn run_lockstep(opts: &PlantOptions) -> Result<PlantSummary, PlantError> {
         WaitError::Terminated => PlantError::Terminated,
         WaitError::Source(e) => e,
     })?;
+    Ok(())
+}
+
+pub fn run_lockstep(opts: &PlantOptions) -> Result<PlantSummary, PlantError> {
+    let topics = Topics::open(&opts.instance, "plant", Mode::Lockstep)?;
+    let commands = subscriber(&topics.command, "drive/command", LOOP_BUFFER)?;
+    let states = publisher(&topics.state, "drive/state")?;
+
+    wait_for_stack(&topics, opts)?;
     connect(&states)?;
 
     let mut sim = PlantSim::new(&opts.scenario);
@@ -140,4 +153,140 @@ pub fn run_lockstep(opts: &PlantOptions) -> Result<PlantSummary, PlantError> {
     wait_for(n - 1, true)?;
     tracing::info!(samples = n, "plant done");
     Ok(PlantSummary { samples: n })
+}
+
+/// Realtime settings of the plant.
+#[derive(Debug, Clone)]
+pub struct RealtimeOptions {
+    pub wait: WaitStrategy,
+    /// Misses in a row after which the outputs go off and a fault is latched.
+    pub watchdog_periods: u32,
+    pub rt: RtOptions,
+}
+
+/// Publishes stats about once a second (every this many samples at 20 kHz).
+const STATS_EVERY: u64 = 20_000;
+
+/// Realtime: the plant publishes sample k at its absolute deadline epoch + k·T and never
+/// waits for anyone. The command for (t_k, t_{k+1}] is the one answering sample k − d; if
+/// it has not arrived when the period starts, the previous voltage is held and a miss
+/// counted; if it arrives later it is discarded. If the host freezes the plant for more than
+/// a period, simulated time pauses (the schedule is re-anchored) and an overrun is counted.
+pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsReport, PlantError> {
+    let topics = Topics::open(&opts.instance, "plant", Mode::Realtime)?;
+    let commands = subscriber(&topics.command, "drive/command", LOOP_BUFFER)?;
+    let states = publisher(&topics.state, "drive/state")?;
+    let stats_pub = publisher(&topics.stats, "monitor/stats")?;
+    rto.rt
+        .apply()
+        .map_err(|e| PlantError::Protocol(e.to_string()))?;
+    wait_for_stack(&topics, opts)?;
+    connect(&states)?;
+
+    let s = &opts.scenario;
+    let n = s.sample_count();
+    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let delay = u64::from(s.rates.compute_delay_periods);
+    let mut sim = PlantSim::new(s);
+    let mut slot = CommandSlot::default();
+    // Heap-allocated once: the report is ~90 KB.
+    let mut stats = Box::new(StatsReport {
+        role: roles::PLANT,
+        ..Default::default()
+    });
+    // Start a little in the future so every process is in its loop at the first deadline.
+    let epoch = monotonic_ns() + 20_000_000;
+    let mut pacer = Pacer::new(epoch, period_ns, rto.wait);
+    let mut recorder = CycleRecorder::new(period_ns);
+    tracing::info!(samples = n, wait = %rto.wait, "running realtime");
+
+    let mut paused_ns = 0u64;
+    while sim.sample_index() < n {
+        if termination_requested() {
+            return Err(PlantError::Terminated);
+        }
+        let k = sim.sample_index();
+        let tick = pacer.wait();
+        let last = k + 1 == n;
+        let mut state = sim.state(last);
+        state.deadline_ns = tick.deadline_ns;
+        state.publish_time_ns = monotonic_ns();
+        send(&states, state)?;
+        if last {
+            break;
+        }
+        // Everything that arrived since the last period.
+        let next_needed = k.saturating_sub(delay);
+        while let Some(c) = try_receive(&commands)? {
+            let now = monotonic_ns();
+            stats.hop.record(now.saturating_sub(c.publish_time_ns));
+            stats
+                .sensor_to_actuator
+                .record(c.publish_time_ns.saturating_sub(c.state_publish_time_ns));
+            slot.offer(c, next_needed);
+        }
+        match sim.needed_command() {
+            None => sim.advance(None),
+            Some(needed) => match slot.take(needed) {
+                Selection::Apply(c) => sim.advance(Some(&c)),
+                Selection::Hold => {
+                    if slot.consecutive_misses >= rto.watchdog_periods {
+                        if sim.state(false).fault & fault_bits::COMMAND_TIMEOUT == 0 {
+                            tracing::error!(
+                                periods = slot.consecutive_misses,
+                                "no command for the watchdog's periods: outputs off, fault latched"
+                            );
+                        }
+                        sim.trip(fault_bits::COMMAND_TIMEOUT);
+                    }
+                    sim.advance_hold();
+                }
+            },
+        }
+        // The next deadline already past means the host held us up for more than a period.
+        // The simulated drive is hardware that does not stall, so its time pauses with us:
+        // the schedule is re-anchored one period from now and an overrun is counted (the
+        // stall stays visible in the wake-up and period figures). Catching up instead would
+        // publish samples back to back and charge the current loop for periods it was
+        // never given.
+        let now = monotonic_ns();
+        let next_deadline = pacer.deadline(sim.sample_index());
+        if now > next_deadline {
+            stats.overruns += 1;
+            paused_ns += now - next_deadline;
+            pacer.reanchor(sim.sample_index(), now + period_ns);
+        }
+        // The plant's misses are the commands it lacked (`slot`); its own lateness shows as
+        // overruns, so the recorder's miss count is not used here.
+        recorder.record(&mut stats, tick.deadline_ns, tick.woke_ns, monotonic_ns());
+        if stats.cycles % STATS_EVERY == 0 {
+            stats.misses = slot.misses;
+            stats.late_discarded = slot.late_discarded;
+            stats.seq += 1;
+            stats.publish_time_ns = monotonic_ns();
+            send(&stats_pub, *stats)?;
+        }
+    }
+    if stats.overruns > 0 {
+        tracing::warn!(
+            stalls = stats.overruns,
+            paused_ms = paused_ns as f64 * 1e-6,
+            "the host stalled the plant; simulated time paused through the stalls"
+        );
+    }
+    stats.misses = slot.misses;
+    stats.late_discarded = slot.late_discarded;
+    stats.is_final = 1;
+    stats.seq += 1;
+    stats.publish_time_ns = monotonic_ns();
+    send(&stats_pub, *stats)?;
+    // Give the monitor time to take the final report before our publisher goes away.
+    std::thread::sleep(Duration::from_millis(200));
+    tracing::info!(
+        samples = n,
+        misses = slot.misses,
+        overruns = stats.overruns,
+        "plant done"
+    );
+    Ok(*stats)
 }

@@ -71,9 +71,37 @@ impl PlantSim {
             v_a_v: self.applied[0],
             v_b_v: self.applied[1],
             bus_voltage_v: self.bus_v,
+            deadline_ns: 0,
             flags: self.flags | if last { state_flags::LAST } else { 0 },
             fault: self.fault,
         }
+    }
+
+    /// Latches a fault: outputs are off from the next period on, until the process restarts.
+    pub fn trip(&mut self, fault_bit: u32) {
+        self.fault |= fault_bit;
+    }
+
+    /// Realtime: the command for this period is missing. Holds the previous voltage (zero if
+    /// faulted) over (t_k, t_{k+1}] and flags the sample.
+    pub fn advance_hold(&mut self) {
+        let v = if self.fault == 0 {
+            self.applied
+        } else {
+            [0.0; 2]
+        };
+        let seq = if self.fault == 0 {
+            self.applied_seq
+        } else {
+            NONE_SEQ
+        };
+        self.x = self
+            .motor
+            .integrate(&self.x, v, self.tau_l, self.period, self.substeps);
+        self.applied = v;
+        self.applied_seq = seq;
+        self.flags = state_flags::COMMAND_HELD;
+        self.k += 1;
     }
 
     /// Integrates over (t_k, t_{k+1}] with `command` (the one [`Self::needed_command`] named,
@@ -107,6 +135,65 @@ impl PlantSim {
     }
 }
 
+/// What the realtime plant does for one period.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Selection {
+    /// The command computed for this period arrived in time.
+    Apply(DriveCommand),
+    /// It did not: hold the previous voltage (a deadline miss).
+    Hold,
+}
+
+/// Realtime command selection, kept apart from IPC so its rules are testable: the command
+/// for a period is the one answering sample k − d; one that arrives after its period was
+/// decided is discarded and counted, never applied to a later period.
+#[derive(Debug, Clone, Default)]
+pub struct CommandSlot {
+    pending: [Option<DriveCommand>; 8],
+    /// Periods whose command was missing (previous voltage held).
+    pub misses: u64,
+    /// Commands that arrived after their period and were dropped unapplied.
+    pub late_discarded: u64,
+    /// Misses in a row, for the watchdog.
+    pub consecutive_misses: u32,
+}
+
+impl CommandSlot {
+    /// Offers a received command. `next_needed` is the first sample whose command has not
+    /// been decided yet; anything older is late.
+    pub fn offer(&mut self, c: DriveCommand, next_needed: u64) {
+        if c.answers_seq < next_needed {
+            self.late_discarded += 1;
+            return;
+        }
+        let slot = &mut self.pending[(c.answers_seq % 8) as usize];
+        if slot.is_some_and(|old| old.answers_seq >= c.answers_seq) {
+            return;
+        }
+        *slot = Some(c);
+    }
+
+    /// Decides the period whose command answers sample `needed`.
+    pub fn take(&mut self, needed: u64) -> Selection {
+        let slot = &mut self.pending[(needed % 8) as usize];
+        match slot.take() {
+            Some(c) if c.answers_seq == needed => {
+                self.consecutive_misses = 0;
+                Selection::Apply(c)
+            }
+            other => {
+                // A newer command parked in this slot stays for its own period.
+                if other.is_some_and(|c| c.answers_seq > needed) {
+                    *slot = other;
+                }
+                self.misses += 1;
+                self.consecutive_misses = self.consecutive_misses.saturating_add(1);
+                Selection::Hold
+            }
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -136,6 +223,59 @@ mod tests {
         assert_eq!((st.v_a_v, st.v_b_v), (24.0, -3.0));
         assert_ne!(st.flags & state_flags::VOLTAGE_LIMITED, 0);
         assert_eq!(st.seq, 2);
+    }
+
+    /// A late command is held and counted, never applied to the wrong period.
+    #[test]
+    fn late_command_is_held_counted_and_never_applied() {
+        let s = Scenario::default();
+        let mut p = PlantSim::new(&s);
+        let mut slot = CommandSlot::default();
+        p.advance(None); // period (0,1]: delay line filling
+                         // Period (1,2] needs cmd 0: it arrived in time.
+        slot.offer(cmd(0, 1.0, 2.0), 0);
+        let Selection::Apply(c) = slot.take(0) else {
+            panic!("cmd 0 was on time")
+        };
+        p.advance(Some(&c));
+        assert_eq!(p.state(false).applied_command_seq, 0);
+        // Period (2,3] needs cmd 1: missing, so cmd 0's voltage is held and a miss counted.
+        assert_eq!(slot.take(1), Selection::Hold);
+        p.advance_hold();
+        let st = p.state(false);
+        assert_eq!((st.v_a_v, st.v_b_v, st.applied_command_seq), (1.0, 2.0, 0));
+        assert_ne!(st.flags & state_flags::COMMAND_HELD, 0);
+        assert_eq!(slot.misses, 1);
+        // cmd 1 shows up now, late: discarded. cmd 2 is on time and is what period (3,4] gets.
+        slot.offer(cmd(1, 9.0, 9.0), 2);
+        slot.offer(cmd(2, 3.0, 4.0), 2);
+        assert_eq!(slot.late_discarded, 1);
+        let Selection::Apply(c) = slot.take(2) else {
+            panic!("cmd 2 was on time")
+        };
+        assert_eq!(c.answers_seq, 2);
+        p.advance(Some(&c));
+        let st = p.state(false);
+        assert_eq!((st.v_a_v, st.v_b_v, st.applied_command_seq), (3.0, 4.0, 2));
+        assert_eq!(slot.consecutive_misses, 0);
+        // Commands that arrive early wait for their own period.
+        slot.offer(cmd(4, 5.0, 5.0), 3);
+        assert_eq!(slot.take(3), Selection::Hold);
+        assert!(matches!(slot.take(4), Selection::Apply(c) if c.answers_seq == 4));
+    }
+
+    #[test]
+    fn tripped_plant_holds_zero() {
+        let mut p = PlantSim::new(&Scenario::default());
+        p.advance(None);
+        p.advance(Some(&cmd(0, 5.0, 5.0)));
+        p.trip(fault_bits::COMMAND_TIMEOUT);
+        p.advance_hold();
+        let st = p.state(false);
+        assert_eq!((st.v_a_v, st.v_b_v), (0.0, 0.0));
+        assert_eq!(st.fault, fault_bits::COMMAND_TIMEOUT);
+        p.advance(Some(&cmd(2, 5.0, 5.0)));
+        assert_eq!(p.state(false).v_a_v, 0.0);
     }
 
     #[test]

@@ -6,9 +6,12 @@
 pub mod clock;
 pub mod frames;
 pub mod messages;
+pub mod pacer;
 pub mod poll;
+pub mod rt;
 pub mod scenario;
 pub mod services;
+pub mod stats;
 pub mod trajectory;
 
 pub use messages::{DriveCommand, DriveState, TorqueSetpoint};

@@ -14,20 +14,23 @@ pub mod state_flags {
     pub const LAST: u32 = 1 << 0;
     /// The applied voltage was clamped to ±V_bus on at least one phase.
     pub const VOLTAGE_LIMITED: u32 = 1 << 1;
+    /// Realtime: the command for the last period was missing; the previous one was held.
+    pub const COMMAND_HELD: u32 = 1 << 2;
 }
 
 /// Bits of [`DriveState::fault`]. A fault is latched by the process that drives the motor.
 pub mod fault_bits {
     /// A command arrived with a non-finite voltage; outputs are off.
     pub const BAD_COMMAND: u32 = 1 << 0;
-    /// No command arrived in time (realtime/hardware modes).
+    /// No command arrived for the watchdog's number of periods (realtime/hardware modes);
+    /// outputs are off until reset.
     pub const COMMAND_TIMEOUT: u32 = 1 << 1;
 }
 
 /// Plant (or drive bridge) → everyone: the measured state at sample `seq`.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
-#[type_name("stepdrive.DriveState.v1")]
+#[type_name("stepdrive.DriveState.v2")]
 pub struct DriveState {
     /// Sample index k (0, 1, 2, ... from the start of the run).
     pub seq: u64,
@@ -35,6 +38,9 @@ pub struct DriveState {
     pub sample_time_s: f64,
     /// CLOCK_MONOTONIC at publication, nanoseconds.
     pub publish_time_ns: u64,
+    /// Realtime: the absolute CLOCK_MONOTONIC deadline of this sample, ns (0 in lockstep).
+    /// Every loop derives its deadline grid from it.
+    pub deadline_ns: u64,
     /// Sequence number of the command whose voltage was applied over (t_{k-1}, t_k],
     /// or [`NONE_SEQ`] if none was (outputs off).
     pub applied_command_seq: u64,

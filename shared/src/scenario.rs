@@ -190,6 +190,15 @@ impl Default for MetricWindows {
     }
 }
 
+/// Length of a run. By default one pass of the trajectory; a longer run repeats the move
+/// back and forth (forward, back to θ = 0, forward, ...).
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct RunParams {
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub duration_s: Option<f64>,
+}
+
 /// Everything a run needs. `Scenario::default()` is the paper's Section V scenario.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -202,6 +211,7 @@ pub struct Scenario {
     pub rates: Rates,
     pub trajectory: TrajectoryParams,
     pub metrics: MetricWindows,
+    pub run: RunParams,
 }
 
 impl Default for Scenario {
@@ -215,6 +225,7 @@ impl Default for Scenario {
             rates: Rates::default(),
             trajectory: TrajectoryParams::default(),
             metrics: MetricWindows::default(),
+            run: RunParams::default(),
         }
     }
 }
@@ -362,13 +373,16 @@ impl Scenario {
         non_negative("trajectory.cruise_s", t.cruise_s)?;
         non_negative("trajectory.decel_s", t.decel_s)?;
         non_negative("trajectory.hold_s", t.hold_s)?;
-        let duration = self.duration_s();
-        if duration <= 0.0 {
+        if self.profile_s() <= 0.0 {
             return Err(invalid(
                 "trajectory",
                 "phases must add up to a positive duration".into(),
             ));
         }
+        if let Some(d) = self.run.duration_s {
+            positive("run.duration_s", d)?;
+        }
+        let duration = self.duration_s();
         if self.sample_count() > 1_000_000_000 {
             return Err(invalid(
                 "rates.current_loop_hz",
@@ -410,10 +424,15 @@ impl Scenario {
         Ok(())
     }
 
-    /// Length of the run: the trajectory's phases added up, s.
-    pub fn duration_s(&self) -> f64 {
+    /// One pass of the trajectory: its phases added up, s.
+    pub fn profile_s(&self) -> f64 {
         let t = &self.trajectory;
         t.accel_s + t.cruise_s + t.decel_s + t.hold_s
+    }
+
+    /// Length of the run, s: `run.duration_s`, or one pass of the trajectory.
+    pub fn duration_s(&self) -> f64 {
+        self.run.duration_s.unwrap_or_else(|| self.profile_s())
     }
 
     /// Current-loop sample period T_s, s.
@@ -503,12 +522,15 @@ impl FromStr for Method {
 pub enum Mode {
     /// Virtual time: the plant waits for each command; bit-identical results.
     Lockstep,
+    /// Wall clock: the plant publishes on absolute deadlines and never waits.
+    Realtime,
 }
 
 impl Mode {
     pub fn as_str(self) -> &'static str {
         match self {
             Mode::Lockstep => "lockstep",
+            Mode::Realtime => "realtime",
         }
     }
 }
@@ -518,10 +540,13 @@ impl FromStr for Mode {
     fn from_str(s: &str) -> Result<Self, Self::Err> {
         match s {
             "lockstep" => Ok(Mode::Lockstep),
-            "realtime" | "hardware" => Err(format!(
-                "mode `{s}` is not implemented yet (only lockstep is; see the README's roadmap)"
+            "realtime" => Ok(Mode::Realtime),
+            "hardware" => {
+                Err("mode `hardware` is not implemented yet (see the README's roadmap)".to_string())
+            }
+            other => Err(format!(
+                "unknown mode `{other}` (expected lockstep or realtime)"
             )),
-            other => Err(format!("unknown mode `{other}` (expected lockstep)")),
         }
     }
 }

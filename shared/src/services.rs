@@ -2,6 +2,8 @@
 //! with identical settings (iceoryx2 treats an opener's settings as minimum requirements).
 
 use crate::messages::{DriveCommand, DriveState, TorqueSetpoint};
+use crate::scenario::Mode;
+use crate::stats::StatsReport;
 use iceoryx2::port::publisher::Publisher;
 use iceoryx2::port::subscriber::Subscriber;
 use iceoryx2::prelude::*;
@@ -73,6 +75,10 @@ impl ServiceNames {
     pub fn torque_setpoint(&self) -> String {
         format!("{}/control/setpoint", self.instance)
     }
+    /// Every loop → monitor: timing statistics, ~1 Hz and at exit.
+    pub fn stats(&self) -> String {
+        format!("{}/monitor/stats", self.instance)
+    }
 }
 
 /// iceoryx2 configuration built in code: without it iceoryx2 would silently read a
@@ -88,6 +94,8 @@ pub struct Topics {
     pub state: Topic<DriveState>,
     pub command: Topic<DriveCommand>,
     pub setpoint: Topic<TorqueSetpoint>,
+    pub stats: Topic<StatsReport>,
+    pub mode: Mode,
 }
 
 /// Settings of one topic; the same for every opener.
@@ -95,6 +103,9 @@ struct Qos {
     max_publishers: usize,
     max_subscribers: usize,
     max_buffer: usize,
+    /// Lockstep: false, a full queue makes the publisher wait and nothing is ever dropped.
+    /// Realtime: true, the oldest queued sample is overwritten and nobody blocks the plant.
+    safe_overflow: bool,
 }
 
 fn open_topic<T: Debug + ZeroCopySend + 'static>(
@@ -116,8 +127,7 @@ fn open_topic<T: Debug + ZeroCopySend + 'static>(
             .max_subscribers(qos.max_subscribers)
             .subscriber_max_buffer_size(qos.max_buffer)
             .history_size(0)
-            // Lockstep: a full queue makes the publisher wait, never drop a sample.
-            .enable_safe_overflow(false)
+            .enable_safe_overflow(qos.safe_overflow)
             .open_or_create();
         match result {
             Ok(t) => return Ok(t),
@@ -131,8 +141,10 @@ fn open_topic<T: Debug + ZeroCopySend + 'static>(
 }
 
 impl Topics {
-    /// Creates this process's node (named `role`) and opens the stack's services.
-    pub fn open(instance: &str, role: &str) -> Result<Self, IpcError> {
+    /// Creates this process's node (named `role`) and opens the stack's services with the
+    /// settings of `mode` (all processes of a stack must run the same mode).
+    pub fn open(instance: &str, role: &str, mode: Mode) -> Result<Self, IpcError> {
+        let safe_overflow = mode != Mode::Lockstep;
         let names = ServiceNames::new(instance)?;
         let node_name: NodeName = format!("{instance}.{role}")
             .as_str()
@@ -152,6 +164,7 @@ impl Topics {
                 max_publishers: 1,
                 max_subscribers: 8,
                 max_buffer: MONITOR_BUFFER,
+                safe_overflow,
             },
         )?;
         let command = open_topic::<DriveCommand>(
@@ -161,6 +174,7 @@ impl Topics {
                 max_publishers: 1,
                 max_subscribers: 8,
                 max_buffer: MONITOR_BUFFER,
+                safe_overflow,
             },
         )?;
         let setpoint = open_topic::<TorqueSetpoint>(
@@ -170,6 +184,17 @@ impl Topics {
                 max_publishers: 1,
                 max_subscribers: 8,
                 max_buffer: MONITOR_BUFFER,
+                safe_overflow,
+            },
+        )?;
+        let stats = open_topic::<StatsReport>(
+            &node,
+            &names.stats(),
+            &Qos {
+                max_publishers: 8,
+                max_subscribers: 4,
+                max_buffer: 16,
+                safe_overflow: true,
             },
         )?;
         Ok(Self {
@@ -178,6 +203,8 @@ impl Topics {
             state,
             command,
             setpoint,
+            stats,
+            mode,
         })
     }
 }

@@ -1,5 +1,6 @@
 //! Trapezoidal velocity profile of Section V: rest at θ = 0, constant acceleration to the
-//! cruise velocity, cruise, constant deceleration to rest, hold.
+//! cruise velocity, cruise, constant deceleration to rest, hold. Past its end the move
+//! repeats back and forth: odd passes run it mirrored, back to θ = 0.
 
 use crate::scenario::TrajectoryParams;
 
@@ -24,6 +25,7 @@ pub struct Trapezoid {
     theta1: f64,
     theta2: f64,
     theta3: f64,
+    period: f64,
 }
 
 impl Trapezoid {
@@ -47,6 +49,36 @@ impl Trapezoid {
             theta1,
             theta2,
             theta3,
+            period: t3 + p.hold_s,
+        }
+    }
+
+    /// Length of one pass, s.
+    pub fn period(&self) -> f64 {
+        self.period
+    }
+
+    /// Time within the current pass and whether that pass runs mirrored.
+    pub fn phase(&self, t: f64) -> (f64, bool) {
+        if t < self.period || self.period <= 0.0 {
+            return (t, false);
+        }
+        let pass = (t / self.period).floor();
+        (t - pass * self.period, pass as u64 % 2 == 1)
+    }
+
+    /// The reference at time `t`, repeating back and forth after the first pass.
+    pub fn at(&self, t: f64) -> Reference {
+        let (tau, mirrored) = self.phase(t);
+        let r = self.one_pass(tau);
+        if mirrored {
+            Reference {
+                theta: self.theta3 - r.theta,
+                omega: -r.omega,
+                alpha: -r.alpha,
+            }
+        } else {
+            r
         }
     }
 
@@ -55,7 +87,7 @@ impl Trapezoid {
         self.theta3
     }
 
-    pub fn at(&self, t: f64) -> Reference {
+    fn one_pass(&self, t: f64) -> Reference {
         if t <= 0.0 {
             Reference::default()
         } else if t < self.t1 {
@@ -114,5 +146,9 @@ mod tests {
         assert!((tr.final_position() - 13.13 * 1.5).abs() < 1e-12);
         assert_eq!(tr.at(1.0).omega, 13.13);
         assert_eq!(tr.at(2.4).omega, 0.0);
+        // Second pass runs back to zero; third starts again from zero.
+        assert_eq!(tr.at(3.5).omega, -13.13);
+        assert!((tr.at(5.0).theta).abs() < 1e-12);
+        assert!((tr.at(6.0).omega - 13.13).abs() < 1e-12);
     }
 }

@@ -1,0 +1,132 @@
+//! Timing figures of a realtime run, from the processes' own fixed-size histograms.
+
+use serde::Serialize;
+use stepdrive_shared::stats::{Histogram, StatsReport};
+use stepdrive_shared::Scenario;
+
+/// Summary of one histogram in µs.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct Percentiles {
+    pub count: u64,
+    pub min_us: f64,
+    pub p50_us: f64,
+    pub p90_us: f64,
+    pub p99_us: f64,
+    pub p99_9_us: f64,
+    pub p99_99_us: f64,
+    pub max_us: f64,
+    pub mean_us: f64,
+}
+
+impl Percentiles {
+    pub fn of(h: &Histogram) -> Self {
+        let q = |p: f64| h.quantile_ns(p).map_or(f64::NAN, |v| v as f64 / 1000.0);
+        Self {
+            count: h.count,
+            min_us: if h.count == 0 {
+                f64::NAN
+            } else {
+                h.min_ns as f64 / 1000.0
+            },
+            p50_us: q(0.5),
+            p90_us: q(0.9),
+            p99_us: q(0.99),
+            p99_9_us: q(0.999),
+            p99_99_us: q(0.9999),
+            max_us: if h.count == 0 {
+                f64::NAN
+            } else {
+                h.max_ns as f64 / 1000.0
+            },
+            mean_us: h.mean_ns() / 1000.0,
+        }
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LoopTiming {
+    pub cycles: u64,
+    pub misses: u64,
+    pub miss_pct: f64,
+    pub overruns: u64,
+    pub lost: u64,
+    pub period: Percentiles,
+    pub wakeup_latency: Percentiles,
+    pub compute: Percentiles,
+    /// Publish → receive of the loop's main input (plant: commands, taken at its next
+    /// period; current loop: states, while polling; position loop: newest state at its tick).
+    pub input_hop: Percentiles,
+}
+
+impl LoopTiming {
+    fn of(r: &StatsReport) -> Self {
+        Self {
+            cycles: r.cycles,
+            misses: r.misses,
+            miss_pct: if r.cycles == 0 {
+                f64::NAN
+            } else {
+                100.0 * r.misses as f64 / r.cycles as f64
+            },
+            overruns: r.overruns,
+            lost: r.lost,
+            period: Percentiles::of(&r.period),
+            wakeup_latency: Percentiles::of(&r.wakeup),
+            compute: Percentiles::of(&r.compute),
+            input_hop: Percentiles::of(&r.hop),
+        }
+    }
+}
+
+/// The timing section of a realtime run's report.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TimingReport {
+    pub current_loop_hz: f64,
+    /// Periods in which the plant had no command and held the previous one: the current
+    /// loop's deadline misses as the motor sees them.
+    pub deadline_misses: u64,
+    pub deadline_miss_pct: f64,
+    /// Commands that arrived after their period and were dropped unapplied.
+    pub late_commands_discarded: u64,
+    /// State sample published → answering command published.
+    pub sensor_to_actuator: Option<Percentiles>,
+    pub plant: Option<LoopTiming>,
+    pub current_loop: Option<LoopTiming>,
+    pub position_loop: Option<LoopTiming>,
+    /// State samples the (low-rate) monitor did not see.
+    pub monitor_lost_samples: u64,
+    #[serde(skip)]
+    pub raw: [Option<Box<StatsReport>>; 3],
+}
+
+impl TimingReport {
+    pub fn new(
+        s: &Scenario,
+        plant: Option<Box<StatsReport>>,
+        current: Option<Box<StatsReport>>,
+        position: Option<Box<StatsReport>>,
+        monitor_lost: u64,
+    ) -> Self {
+        let (misses, pct, late) = plant.as_ref().map_or((0, f64::NAN, 0), |p| {
+            (
+                p.misses,
+                100.0 * p.misses as f64 / p.cycles.max(1) as f64,
+                p.late_discarded,
+            )
+        });
+        Self {
+            current_loop_hz: s.rates.current_loop_hz,
+            deadline_misses: misses,
+            deadline_miss_pct: pct,
+            late_commands_discarded: late,
+            sensor_to_actuator: plant
+                .as_ref()
+                .map(|p| Percentiles::of(&p.sensor_to_actuator)),
+            plant: plant.as_deref().map(LoopTiming::of),
+            current_loop: current.as_deref().map(LoopTiming::of),
+            position_loop: position.as_deref().map(LoopTiming::of),
+            monitor_lost_samples: monitor_lost,
+            raw: [plant, current, position],
+        }
+    }
+}

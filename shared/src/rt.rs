@@ -1,0 +1,179 @@
+//! Real-time setup in cyclictest's spirit (`-p`, `-a`, `-m`): SCHED_FIFO priority, CPU
+//! affinity, mlockall with a prefaulted stack, timer slack. A refusal is reported once,
+//! clearly, and the process goes on, unless `require` is set.
+
+use serde::{Deserialize, Serialize};
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct RtOptions {
+    /// SCHED_FIFO priority 1..=99; `None` keeps SCHED_OTHER.
+    pub priority: Option<u8>,
+    /// Pin to this CPU.
+    pub cpu: Option<usize>,
+    /// mlockall(MCL_CURRENT | MCL_FUTURE) and prefault 512 KiB of stack.
+    pub lock_memory: bool,
+    /// prctl(PR_SET_TIMERSLACK) in ns (the kernel default is 50 µs, a whole period here).
+    pub timer_slack_ns: Option<u64>,
+    /// Fail instead of warning when the system refuses a setting.
+    pub require: bool,
+}
+
+#[derive(Debug, thiserror::Error)]
+#[error("real-time setting refused: {0}")]
+pub struct RtError(pub String);
+
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct RtApplied {
+    pub fifo: bool,
+    pub pinned: bool,
+    pub locked: bool,
+    pub slack: bool,
+}
+
+fn refuse(require: bool, what: String) -> Result<(), RtError> {
+    if require {
+        Err(RtError(what))
+    } else {
+        tracing::warn!("{what}; continuing without it (use --require-rt to make this fatal)");
+        Ok(())
+    }
+}
+
+#[inline(never)]
+fn prefault_stack() {
+    let mut buf = [0u8; 512 * 1024];
+    for i in (0..buf.len()).step_by(4096) {
+        // SAFETY: in-bounds volatile write keeps the touch from being optimised away.
+        unsafe { std::ptr::write_volatile(buf.as_mut_ptr().add(i), 1) };
+    }
+    std::hint::black_box(&buf);
+}
+
+impl RtOptions {
+    /// Applies the settings to the calling thread/process.
+    pub fn apply(&self) -> Result<RtApplied, RtError> {
+        let mut applied = RtApplied::default();
+        if let Some(ns) = self.timer_slack_ns {
+            // SAFETY: plain prctl with integer arguments.
+            let rc = unsafe { libc::prctl(libc::PR_SET_TIMERSLACK, ns.max(1) as libc::c_ulong) };
+            if rc == 0 {
+                applied.slack = true;
+            } else {
+                refuse(
+                    self.require,
+                    format!("timer slack {ns} ns: {}", std::io::Error::last_os_error()),
+                )?;
+            }
+        }
+        if self.lock_memory {
+            // SAFETY: mlockall has no memory-safety preconditions.
+            let rc = unsafe { libc::mlockall(libc::MCL_CURRENT | libc::MCL_FUTURE) };
+            if rc == 0 {
+                prefault_stack();
+                applied.locked = true;
+            } else {
+                refuse(
+                    self.require,
+                    format!("mlockall: {}", std::io::Error::last_os_error()),
+                )?;
+            }
+        }
+        if let Some(cpu) = self.cpu {
+            // SAFETY: cpu_set_t is plain data; CPU_SET bounds-checks against its size.
+            let rc = unsafe {
+                let mut set: libc::cpu_set_t = std::mem::zeroed();
+                if cpu >= 8 * std::mem::size_of::<libc::cpu_set_t>() {
+                    -1
+                } else {
+                    libc::CPU_SET(cpu, &mut set);
+                    libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
+                }
+            };
+            if rc == 0 {
+                applied.pinned = true;
+            } else {
+                refuse(
+                    self.require,
+                    format!("CPU affinity {cpu}: {}", std::io::Error::last_os_error()),
+                )?;
+            }
+        }
+        if let Some(prio) = self.priority {
+            let param = libc::sched_param {
+                sched_priority: i32::from(prio.clamp(1, 99)),
+            };
+            // SAFETY: valid sched_param for the calling process.
+            let rc = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+            if rc == 0 {
+                applied.fifo = true;
+            } else {
+                refuse(
+                    self.require,
+                    format!(
+                        "SCHED_FIFO priority {prio}: {}",
+                        std::io::Error::last_os_error()
+                    ),
+                )?;
+            }
+        }
+        Ok(applied)
+    }
+
+    /// Command-line form, for passing the same settings to a child process.
+    pub fn to_args(&self) -> Vec<String> {
+        let mut a = Vec::new();
+        if let Some(p) = self.priority {
+            a.extend(["--priority".to_string(), p.to_string()]);
+        }
+        if let Some(c) = self.cpu {
+            a.extend(["--cpu".to_string(), c.to_string()]);
+        }
+        if self.lock_memory {
+            a.push("--mlock".to_string());
+        }
+        if let Some(s) = self.timer_slack_ns {
+            a.extend(["--timer-slack-ns".to_string(), s.to_string()]);
+        }
+        if self.require {
+            a.push("--require-rt".to_string());
+        }
+        a
+    }
+}
+
+/// `/proc/sys/kernel/sched_rt_runtime_us`: −1 means no RT throttling.
+pub fn rt_runtime_us() -> Option<i64> {
+    std::fs::read_to_string("/proc/sys/kernel/sched_rt_runtime_us")
+        .ok()
+        .and_then(|s| s.trim().parse().ok())
+}
+
+const RT_RUNTIME: &str = "/proc/sys/kernel/sched_rt_runtime_us";
+
+/// Turns RT throttling off (`sched_rt_runtime_us = -1`) until dropped, then restores the
+/// previous value. Needs root; the caller decides whether a refusal is fatal.
+pub struct RtThrottlingOff {
+    previous: i64,
+}
+
+impl RtThrottlingOff {
+    pub fn engage() -> Result<Option<Self>, RtError> {
+        let previous =
+            rt_runtime_us().ok_or_else(|| RtError(format!("cannot read {RT_RUNTIME}")))?;
+        if previous == -1 {
+            return Ok(None);
+        }
+        std::fs::write(RT_RUNTIME, "-1")
+            .map_err(|e| RtError(format!("cannot write -1 to {RT_RUNTIME}: {e}")))?;
+        tracing::info!("RT throttling off for this run (was {previous} µs); restored at exit");
+        Ok(Some(Self { previous }))
+    }
+}
+
+impl Drop for RtThrottlingOff {
+    fn drop(&mut self) {
+        if let Err(e) = std::fs::write(RT_RUNTIME, self.previous.to_string()) {
+            tracing::error!("could not restore {RT_RUNTIME} to {}: {e}", self.previous);
+        }
+    }
+}

@@ -378,6 +378,23 @@ fn ctrl_c_stops_the_whole_stack() {
     );
 }
 
+/// A 1 s realtime stack on the short scenario, with ordinary scheduling and no pinning:
+/// tests run in parallel on two cores.
+fn realtime_test_args<'a>(scenario: &'a Path, inst: &'a str) -> Vec<&'a str> {
+    vec![
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--duration",
+        "1.0",
+        "--instance",
+        inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+    ]
+}
+
 /// Realtime mode end to end. Timing figures depend on the machine, so only structure and
 /// invariants are asserted; the measured numbers belong in `stepdrive latency`.
 #[test]
@@ -386,26 +403,10 @@ fn realtime_run_reports_timing_from_every_loop() {
     let json = dir.path("rt.json");
     let scenario = dir.file("short.toml", SHORT);
     let inst = instance("realtime");
-    let out = stepdrive(&[
-        "run",
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--mode",
-        "realtime",
-        "--duration",
-        "1.0",
-        "--method",
-        "proposed",
-        "--instance",
-        &inst,
-        // Ordinary scheduling and no pinning: tests run in parallel on two cores.
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+    let mut args = vec!["run", "--mode", "realtime", "--method", "proposed"];
+    args.extend(realtime_test_args(&scenario, &inst));
+    args.extend(["--json", json.to_str().unwrap()]);
+    let out = stepdrive(&args);
     assert!(
         out.status.success(),
         "realtime run failed: {}",
@@ -436,23 +437,10 @@ fn latency_session_writes_its_files() {
     let out_dir = dir.path("report");
     let scenario = dir.file("short.toml", SHORT);
     let inst = instance("latency");
-    let out = stepdrive(&[
-        "latency",
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--duration",
-        "1.0",
-        "--baseline-duration",
-        "1",
-        "--instance",
-        &inst,
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
-        "--out",
-        out_dir.to_str().unwrap(),
-    ]);
+    let mut args = vec!["latency", "--baseline-duration", "1"];
+    args.extend(realtime_test_args(&scenario, &inst));
+    args.extend(["--out", out_dir.to_str().unwrap()]);
+    let out = stepdrive(&args);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "latency failed: {stderr}");
     let table = String::from_utf8_lossy(&out.stdout);

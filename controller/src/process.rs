@@ -14,7 +14,8 @@ use stepdrive_shared::poll::{poll_until, WaitError};
 use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
-    connect, publisher, send, subscriber, try_receive, IpcError, Message, Sub, Topics, LOOP_BUFFER,
+    connect, publish_stats, publisher, send, subscriber, try_receive, IpcError, Message, Sub,
+    Topics, LOOP_BUFFER,
 };
 use stepdrive_shared::stats::{roles, CycleRecorder, StatsReport};
 use stepdrive_shared::{Method, Scenario};
@@ -169,18 +170,6 @@ pub struct RealtimeLoopOptions {
     pub rt: RtOptions,
 }
 
-fn publish_stats(
-    stats_pub: &stepdrive_shared::services::Pub<StatsReport>,
-    stats: &mut StatsReport,
-    is_final: bool,
-) -> Result<(), ControllerError> {
-    stats.is_final = u32::from(is_final);
-    stats.seq += 1;
-    stats.publish_time_ns = monotonic_ns();
-    send(stats_pub, *stats)?;
-    Ok(())
-}
-
 /// What `await_newest` returns: the newest queued message, when it was taken, how many
 /// older ones were skipped, and the timer's wake-up latency if the loop slept on one.
 struct Arrival<T> {
@@ -324,7 +313,6 @@ pub fn run_current_loop_realtime(
         }
     }
     publish_stats(&stats_pub, &mut stats, true)?;
-    std::thread::sleep(Duration::from_millis(200));
     tracing::info!(
         cycles = stats.cycles,
         misses = stats.misses,
@@ -417,7 +405,6 @@ pub fn run_position_loop_realtime(
         }
     }
     publish_stats(&stats_pub, &mut stats, true)?;
-    std::thread::sleep(Duration::from_millis(200));
     tracing::info!(ticks = stats.cycles, "position loop done");
     Ok(*stats)
 }

@@ -366,22 +366,36 @@ pub fn table(r: &LatencyReport) -> String {
     out
 }
 
+/// Distributions drawn in the plot: the latencies that share one scale (periods, the
+/// plant's command pick-up and the 2 kHz loop are in the table and files, not the plot).
+const PLOTTED: [&str; 7] = [
+    "cyclictest",
+    "current_loop_wakeup",
+    "plant_wakeup",
+    "sensor_to_actuator",
+    "state_hop",
+    "pingpong_iceoryx2",
+    "pingpong_uds",
+];
+
 /// Log-y latency histogram in the OSADL style: x = latency (µs, 1 µs bins), y = samples.
 fn svg_plot(r: &LatencyReport) -> String {
+    let plotted: Vec<&Metric> = PLOTTED
+        .iter()
+        .filter_map(|n| r.metrics.iter().find(|m| m.name == *n))
+        .collect();
     let (w, h, left, bottom, top, right) = (900.0, 520.0, 70.0, 50.0, 30.0, 260.0);
     let plot_w = w - left - right;
     let plot_h = h - top - bottom;
-    let x_max = r
-        .metrics
+    let x_max = plotted
         .iter()
-        .map(|m| m.percentiles.p99_99_us)
+        .map(|m| m.percentiles.p99_9_us)
         .filter(|v| v.is_finite())
         .fold(50.0f64, f64::max)
-        .min(2000.0)
+        .min(1000.0)
         .ceil();
     let bins = x_max as usize + 1;
-    let y_max = r
-        .metrics
+    let y_max = plotted
         .iter()
         .flat_map(|m| m.histogram.microsecond_bins(bins).0)
         .max()
@@ -445,7 +459,7 @@ fn svg_plot(r: &LatencyReport) -> String {
         s,
         r##"<rect x="{left}" y="{top}" width="{plot_w}" height="{plot_h}" fill="none" stroke="#333"/>"##
     );
-    for (i, m) in r.metrics.iter().enumerate() {
+    for (i, m) in plotted.iter().enumerate() {
         let color = colors[i % colors.len()];
         let (counts, _) = m.histogram.microsecond_bins(bins);
         let mut pts = String::new();

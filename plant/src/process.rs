@@ -13,8 +13,8 @@ use stepdrive_shared::poll::{poll_until, WaitError};
 use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
-    connect, publisher, publisher_count, send, subscriber, subscriber_count, try_receive, IpcError,
-    Topics, LOOP_BUFFER,
+    connect, publish_stats, publisher, publisher_count, send, subscriber, subscriber_count,
+    try_receive, IpcError, Topics, LOOP_BUFFER,
 };
 use stepdrive_shared::stats::{roles, CycleRecorder, StatsReport};
 use stepdrive_shared::Scenario;
@@ -262,9 +262,7 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
         if stats.cycles % STATS_EVERY == 0 {
             stats.misses = slot.misses;
             stats.late_discarded = slot.late_discarded;
-            stats.seq += 1;
-            stats.publish_time_ns = monotonic_ns();
-            send(&stats_pub, *stats)?;
+            publish_stats(&stats_pub, &mut stats, false)?;
         }
     }
     if stats.overruns > 0 {
@@ -276,12 +274,7 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
     }
     stats.misses = slot.misses;
     stats.late_discarded = slot.late_discarded;
-    stats.is_final = 1;
-    stats.seq += 1;
-    stats.publish_time_ns = monotonic_ns();
-    send(&stats_pub, *stats)?;
-    // Give the monitor time to take the final report before our publisher goes away.
-    std::thread::sleep(Duration::from_millis(200));
+    publish_stats(&stats_pub, &mut stats, true)?;
     tracing::info!(
         samples = n,
         misses = slot.misses,

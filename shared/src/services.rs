@@ -157,36 +157,16 @@ impl Topics {
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Ipc>()
             .map_err(|e| ipc_err("cannot create iceoryx2 node", e))?;
-        let state = open_topic::<DriveState>(
-            &node,
-            &names.drive_state(),
-            &Qos {
-                max_publishers: 1,
-                max_subscribers: 8,
-                max_buffer: MONITOR_BUFFER,
-                safe_overflow,
-            },
-        )?;
-        let command = open_topic::<DriveCommand>(
-            &node,
-            &names.drive_command(),
-            &Qos {
-                max_publishers: 1,
-                max_subscribers: 8,
-                max_buffer: MONITOR_BUFFER,
-                safe_overflow,
-            },
-        )?;
-        let setpoint = open_topic::<TorqueSetpoint>(
-            &node,
-            &names.torque_setpoint(),
-            &Qos {
-                max_publishers: 1,
-                max_subscribers: 8,
-                max_buffer: MONITOR_BUFFER,
-                safe_overflow,
-            },
-        )?;
+        // One writer per control topic; room for the loops, a monitor and tools.
+        let control = Qos {
+            max_publishers: 1,
+            max_subscribers: 8,
+            max_buffer: MONITOR_BUFFER,
+            safe_overflow,
+        };
+        let state = open_topic::<DriveState>(&node, &names.drive_state(), &control)?;
+        let command = open_topic::<DriveCommand>(&node, &names.drive_command(), &control)?;
+        let setpoint = open_topic::<TorqueSetpoint>(&node, &names.torque_setpoint(), &control)?;
         let stats = open_topic::<StatsReport>(
             &node,
             &names.stats(),
@@ -299,4 +279,21 @@ pub fn publisher_count<T: Debug + ZeroCopySend + 'static>(topic: &Topic<T>) -> u
 /// Subscribers currently attached to a topic.
 pub fn subscriber_count<T: Debug + ZeroCopySend + 'static>(topic: &Topic<T>) -> usize {
     topic.dynamic_config().number_of_subscribers()
+}
+
+/// Publishes a loop's statistics. The final report is followed by a short linger so the
+/// monitor (draining at ~1 kHz) takes it before this process's publisher goes away.
+pub fn publish_stats(
+    publisher: &Pub<StatsReport>,
+    stats: &mut StatsReport,
+    is_final: bool,
+) -> Result<(), IpcError> {
+    stats.is_final = u32::from(is_final);
+    stats.seq += 1;
+    stats.publish_time_ns = crate::clock::monotonic_ns();
+    send(publisher, *stats)?;
+    if is_final {
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    Ok(())
 }

@@ -107,7 +107,8 @@ impl Histogram {
     }
 
     /// Counts per 1 µs bin for bins 0..`bins` (cyclictest's layout) and the overflow count.
-    /// Buckets wider than 1 µs (values ≥ 64 µs) go to the bin of their midpoint.
+    /// Above 64 µs a bucket is wider than 1 µs; its count is spread evenly over the bins it
+    /// covers (the remainder to the lowest), so totals are exact and no comb appears.
     pub fn microsecond_bins(&self, bins: usize) -> (Vec<u64>, u64) {
         let mut out = vec![0u64; bins];
         let mut overflow = 0;
@@ -116,11 +117,16 @@ impl Histogram {
                 continue;
             }
             let (low, high) = bucket_range(i);
-            let us = ((low + high) / 2 / 1000) as usize;
-            if us < bins {
-                out[us] += c;
-            } else {
-                overflow += c;
+            let first = (low / 1000) as usize;
+            let last = ((high - 1) / 1000) as usize;
+            let width = (last - first + 1) as u64;
+            for (j, bin) in (first..=last).enumerate() {
+                let share = c / width + u64::from((j as u64) < c % width);
+                if bin < bins {
+                    out[bin] += share;
+                } else {
+                    overflow += share;
+                }
             }
         }
         (out, overflow)

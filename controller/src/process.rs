@@ -244,11 +244,13 @@ pub fn run_current_loop_realtime(
     let topics = Topics::open(&opts.instance, "current-loop", Mode::Realtime)?;
     let states = subscriber(&topics.state, "drive/state", LOOP_BUFFER)?;
     let setpoints = subscriber(&topics.setpoint, "control/setpoint", LOOP_BUFFER)?;
-    let commands = publisher(&topics.command, "drive/command")?;
     let stats_pub = publisher(&topics.stats, "monitor/stats")?;
+    // Real-time setup (mlockall faults in every mapped segment) before the command
+    // publisher exists: the plant starts its clock once it sees that publisher.
     rto.rt
         .apply()
         .map_err(|e| ControllerError::Protocol(e.to_string()))?;
+    let commands = publisher(&topics.command, "drive/command")?;
     let s = &opts.scenario;
     let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
     let answer_budget_ns = period_ns * u64::from(s.rates.compute_delay_periods.max(1));
@@ -330,11 +332,12 @@ pub fn run_position_loop_realtime(
 ) -> Result<StatsReport, ControllerError> {
     let topics = Topics::open(&opts.instance, "position-loop", Mode::Realtime)?;
     let states = subscriber(&topics.state, "drive/state", LOOP_BUFFER)?;
-    let setpoints = publisher(&topics.setpoint, "control/setpoint")?;
     let stats_pub = publisher(&topics.stats, "monitor/stats")?;
+    // As in the current loop: set up before the publisher the plant waits for.
     rto.rt
         .apply()
         .map_err(|e| ControllerError::Protocol(e.to_string()))?;
+    let setpoints = publisher(&topics.setpoint, "control/setpoint")?;
     let s = &opts.scenario;
     let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
     let tick_ns = period_ns * s.rate_ratio();

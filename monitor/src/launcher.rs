@@ -255,7 +255,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     let topics = Topics::open(&opts.instance, "monitor", opts.mode)
         .context("cannot attach the monitor to the stack's services")?;
     let states = subscriber(&topics.state, "drive/state", MONITOR_BUFFER)?;
-    let stats_sub = subscriber(&topics.stats, "monitor/stats", 16)?;
+    let stats_sub = subscriber(&topics.stats, "monitor/stats", 4)?;
     let role_args = |role: &RoleRt| if realtime { role.args() } else { Vec::new() };
 
     let mut children = Vec::with_capacity(3);

@@ -49,7 +49,16 @@ enum Link {
     Uds {
         socket: UnixDatagram,
         peer: PathBuf,
+        own: PathBuf,
     },
+}
+
+impl Drop for Link {
+    fn drop(&mut self) {
+        if let Link::Uds { own, .. } = self {
+            let _ = std::fs::remove_file(own);
+        }
+    }
 }
 
 const MSG: usize = std::mem::size_of::<DriveState>();
@@ -124,6 +133,7 @@ impl Link {
                 Ok(Link::Uds {
                     socket,
                     peer: socket_path(endpoint, peer),
+                    own: path,
                 })
             }
         }
@@ -135,7 +145,7 @@ impl Link {
                 send(tx, *m)?;
                 Ok(true)
             }
-            Link::Uds { socket, peer } => match socket.send_to(&encode(m), &*peer) {
+            Link::Uds { socket, peer, .. } => match socket.send_to(&encode(m), &*peer) {
                 Ok(_) => Ok(true),
                 // The peer is not bound yet, or its queue is full: the message is dropped,
                 // as a realtime publisher would.

@@ -157,10 +157,11 @@ impl Topics {
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Ipc>()
             .map_err(|e| ipc_err("cannot create iceoryx2 node", e))?;
-        // One writer per control topic; room for the loops, a monitor and tools.
+        // One writer per control topic; room for the loops, a monitor and a tool. Every
+        // subscriber slot costs the publisher MONITOR_BUFFER samples of shared memory.
         let control = Qos {
             max_publishers: 1,
-            max_subscribers: 8,
+            max_subscribers: 4,
             max_buffer: MONITOR_BUFFER,
             safe_overflow,
         };
@@ -170,10 +171,11 @@ impl Topics {
         let stats = open_topic::<StatsReport>(
             &node,
             &names.stats(),
+            // A report is ~90 KB: keep the queues short.
             &Qos {
-                max_publishers: 8,
-                max_subscribers: 4,
-                max_buffer: 16,
+                max_publishers: 4,
+                max_subscribers: 2,
+                max_buffer: 4,
                 safe_overflow: true,
             },
         )?;

@@ -346,16 +346,9 @@ pub fn run_position_loop_realtime(
         role: roles::POSITION_LOOP,
         ..Default::default()
     });
-    // The first state tells where the plant's deadline grid is.
-    let first = await_newest(
-        &states,
-        WaitStrategy::Sleep,
-        0,
-        opts.startup_timeout,
-        "plant",
-        "drive/state",
-    )?
-    .message;
+    // The first state tells where the plant's deadline grid is (a cheap back-off poll:
+    // at this priority a 10 µs sleep loop would crowd the plant's CPU while it starts).
+    let first = receive_next(&states, opts.startup_timeout, "drive/state", "plant")?;
     connect(&setpoints)?;
     let epoch = first.deadline_ns - first.seq * period_ns + period_ns / 2;
     let mut pacer = Pacer::new(epoch, tick_ns, rto.wait);

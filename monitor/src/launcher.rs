@@ -35,6 +35,8 @@ pub struct LaunchOptions {
     pub position: RoleRt,
     /// Plant watchdog: misses in a row before outputs go off.
     pub watchdog_periods: u32,
+    /// Hardware mode: the drive; `None` starts an emulated drive on loopback.
+    pub drive: Option<std::net::SocketAddr>,
 }
 
 /// How one realtime process waits and which real-time settings it asks for.
@@ -125,7 +127,7 @@ impl Supervised {
         Ok(self.status)
     }
 
-    fn signal(&self, sig: libc::c_int) {
+    pub(crate) fn signal(&self, sig: libc::c_int) {
         if self.status.is_none() {
             // SAFETY: plain kill(2) on our own, not yet reaped child.
             unsafe { libc::kill(self.child.id() as libc::pid_t, sig) };
@@ -218,7 +220,8 @@ impl Drop for ScenarioFile {
 
 /// Runs one method of one scenario on three processes and returns its report.
 pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<RunReport> {
-    let realtime = opts.mode == Mode::Realtime;
+    let realtime = opts.mode != Mode::Lockstep;
+    let hardware = opts.mode == Mode::Hardware;
     if realtime && opts.plant.rt.priority.is_some() {
         // An ordinary task waking at 1 kHz is run ahead of SCHED_FIFO tasks by the kernel's
         // fair server; at FIFO 1 the monitor waits for the loops instead (measured: the
@@ -258,15 +261,42 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     let stats_sub = subscriber(&topics.stats, "monitor/stats", 4)?;
     let role_args = |role: &RoleRt| if realtime { role.args() } else { Vec::new() };
 
-    let mut children = Vec::with_capacity(3);
+    let mut children = Vec::with_capacity(4);
     let mut plant_args = common.clone();
     plant_args.extend(["--wait-subscribers".to_string(), "3".to_string()]);
-    plant_args.extend(role_args(&opts.plant));
-    if realtime {
-        plant_args.extend([
-            "--watchdog-periods".to_string(),
-            opts.watchdog_periods.to_string(),
-        ]);
+    if hardware {
+        let drive = match opts.drive {
+            Some(d) => d,
+            None => {
+                let d = free_loopback_port()?;
+                let mut emu = vec![
+                    "--listen".to_string(),
+                    d.to_string(),
+                    "--scenario".to_string(),
+                    file.path().display().to_string(),
+                    "--watchdog-periods".to_string(),
+                    opts.watchdog_periods.min(u32::from(u16::MAX)).to_string(),
+                ];
+                emu.extend(opts.plant.args());
+                children.push(Supervised::spawn("emulate-drive", &emu)?);
+                d
+            }
+        };
+        // The bridge polls its socket: one priority below the drive's clock on its CPU, so
+        // it takes each sample as soon as the drive has sent it.
+        let mut bridge = opts.plant.clone();
+        bridge.rt.priority = bridge.rt.priority.map(|p| p.saturating_sub(1).max(1));
+        plant_args.extend(["--backend".to_string(), "udp".to_string()]);
+        plant_args.extend(["--drive".to_string(), drive.to_string()]);
+        plant_args.extend(bridge.rt.to_args());
+    } else {
+        plant_args.extend(role_args(&opts.plant));
+        if realtime {
+            plant_args.extend([
+                "--watchdog-periods".to_string(),
+                opts.watchdog_periods.to_string(),
+            ]);
+        }
     }
     children.push(Supervised::spawn("plant", &plant_args)?);
     let mut pl_args = common.clone();
@@ -367,6 +397,10 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     }
 
     let mut failures = Vec::new();
+    if hardware && opts.drive.is_none() {
+        // The emulated drive runs until told to stop; the bridge has disabled it.
+        children[0].signal(libc::SIGTERM);
+    }
     for child in children.iter_mut() {
         let status = child.finish(Duration::from_secs(10));
         drain_stats(&stats_sub, &mut latest, &mut finals)?;
@@ -410,6 +444,12 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         ));
     }
     Ok(report)
+}
+
+/// A loopback UDP address no one is using right now, for the emulated drive.
+fn free_loopback_port() -> Result<std::net::SocketAddr> {
+    let probe = std::net::UdpSocket::bind("127.0.0.1:0").context("cannot find a free UDP port")?;
+    Ok(probe.local_addr()?)
 }
 
 fn drain_stats(

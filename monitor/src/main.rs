@@ -17,6 +17,8 @@ use stepdrive_monitor::metrics::RunReport;
 use stepdrive_monitor::pingpong::PingPongOptions;
 use stepdrive_monitor::report::{document, table};
 use stepdrive_monitor::simulate::simulate;
+use stepdrive_plant::bridge::{run_bridge, BridgeOptions};
+use stepdrive_plant::emulator::{run_emulator, EmulatorOptions, FaultInjection};
 use stepdrive_plant::process::{PlantError, PlantOptions, RealtimeOptions};
 use stepdrive_shared::pacer::WaitStrategy;
 use stepdrive_shared::poll::install_termination_handler;
@@ -60,6 +62,9 @@ enum Cmd {
     /// Unix-socket ping-pong and cyclictest: table, latency.json, cyclictest-compatible
     /// histograms and a log-y plot in --out DIR.
     Latency(LatencyArgs),
+    /// A stand-in driver board: the motor model behind the drive wire protocol
+    /// (docs/drive-protocol.md) on UDP, with its own sample clock and fault injection.
+    EmulateDrive(EmulateArgs),
     /// Transport baseline process used by `latency` (ping paced like the plant, pong waiting
     /// like the current loop).
     #[command(hide = true)]
@@ -82,6 +87,44 @@ struct LatencyArgs {
     skip_baselines: bool,
     #[command(flatten)]
     stack: StackArgs,
+}
+
+#[derive(Args, Debug)]
+struct EmulateArgs {
+    /// UDP address to listen on for the bridge.
+    #[arg(long, default_value = "127.0.0.1:7700")]
+    listen: std::net::SocketAddr,
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// How the drive's clock waits for its deadlines (see `run --help`).
+    #[arg(long, default_value = "hybrid:25")]
+    wait: WaitStrategy,
+    /// Periods without a valid command before outputs go off and a fault latches.
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u16).range(1..))]
+    watchdog_periods: u16,
+    /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
+    #[arg(long, value_name = "S")]
+    duration: Option<f64>,
+    /// Fault injection: drop every N-th sample frame.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    drop_every: u64,
+    /// Fault injection: corrupt one bit of every N-th sample frame.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    corrupt_every: u64,
+    /// Fault injection: send every N-th sample frame after the next one.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    reorder_every: u64,
+    /// Fault injection: send every N-th sample frame twice.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    duplicate_every: u64,
+    /// Fault injection: stop sending samples after S seconds of running.
+    #[arg(long, value_name = "S")]
+    stop_after: Option<f64>,
+    /// Fault injection: latch an over-current fault after S seconds of running.
+    #[arg(long, value_name = "S")]
+    overcurrent_after: Option<f64>,
+    #[command(flatten)]
+    rt: RtArgs,
 }
 
 #[derive(Args, Debug)]
@@ -218,6 +261,20 @@ struct PlantArgs {
     /// go off (zero volts) and a fault is latched (200 = 10 ms at 20 kHz).
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
     watchdog_periods: u32,
+    /// sim: the motor model. udp: a bridge to a drive at --drive speaking
+    /// docs/drive-protocol.md (hardware mode). serial: not implemented yet.
+    #[arg(long, default_value = "sim", value_parser = ["sim", "udp", "serial"])]
+    backend: String,
+    /// The drive's UDP address (backend udp).
+    #[arg(long, value_name = "ADDR:PORT")]
+    drive: Option<std::net::SocketAddr>,
+    /// Bridge: periods without a valid sample before it publishes a fault and stops
+    /// forwarding commands.
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
+    silence_periods: u32,
+    /// Bridge: bandwidth of the encoder velocity observer, Hz.
+    #[arg(long, default_value_t = 400.0)]
+    observer_hz: f64,
     /// drive/state subscribers to wait for before the first sample: 2 = current and
     /// position loops; 3 adds a monitor.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
@@ -300,6 +357,9 @@ struct StackArgs {
     /// whenever ordinary tasks want it; see the README's latency section.
     #[arg(long, default_value = "on", value_parser = ["on", "off"])]
     rt_throttling: String,
+    /// Hardware mode: the drive's UDP address; without it an emulated drive is started.
+    #[arg(long, value_name = "ADDR:PORT")]
+    drive: Option<std::net::SocketAddr>,
     /// Realtime: plant watchdog periods (see `stepdrive plant --help`).
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
     watchdog_periods: u32,
@@ -381,6 +441,7 @@ impl StackArgs {
                 ),
             },
             watchdog_periods: self.watchdog_periods,
+            drive: self.drive,
         })
     }
 }
@@ -461,9 +522,30 @@ fn real_main(cli: Cli) -> Result<()> {
                 startup_timeout: lo.startup_timeout,
                 peer_timeout: lo.peer_timeout,
             };
+            if a.backend == "serial" {
+                anyhow::bail!("--backend serial is not implemented yet (UDP is; see the README)");
+            }
+            if a.backend == "udp" {
+                let drive = a.drive.context("--backend udp needs --drive ADDR:PORT")?;
+                if !(a.observer_hz.is_finite() && a.observer_hz > 0.0) {
+                    anyhow::bail!("--observer-hz must be a positive number");
+                }
+                let b = BridgeOptions {
+                    drive,
+                    rt: a.common.rt.options(),
+                    silence_periods: a.silence_periods,
+                    observer_hz: a.observer_hz,
+                    offset_counts: None,
+                };
+                run_bridge(&opts, &b)?;
+                return Ok(());
+            }
             match a.common.mode {
                 Mode::Lockstep => {
                     stepdrive_plant::process::run_lockstep(&opts)?;
+                }
+                Mode::Hardware => {
+                    anyhow::bail!("the plant in hardware mode is a bridge: add --backend udp --drive ADDR:PORT");
                 }
                 Mode::Realtime => {
                     let rto = RealtimeOptions {
@@ -482,7 +564,7 @@ fn real_main(cli: Cli) -> Result<()> {
                 Mode::Lockstep => {
                     run_current_loop(&lo, a.method)?;
                 }
-                Mode::Realtime => {
+                Mode::Realtime | Mode::Hardware => {
                     let rto = RealtimeLoopOptions {
                         wait: a.common.wait.unwrap_or(WaitStrategy::Spin),
                         rt: a.common.rt.options(),
@@ -498,7 +580,7 @@ fn real_main(cli: Cli) -> Result<()> {
                 Mode::Lockstep => {
                     run_position_loop(&lo)?;
                 }
-                Mode::Realtime => {
+                Mode::Realtime | Mode::Hardware => {
                     let rto = RealtimeLoopOptions {
                         wait: a.wait.unwrap_or(WaitStrategy::Sleep),
                         rt: a.rt.options(),
@@ -534,6 +616,31 @@ fn real_main(cli: Cli) -> Result<()> {
                 "written: {}/latency.json, latency.svg, *.hist",
                 a.out.display()
             );
+            Ok(())
+        }
+        Cmd::EmulateDrive(a) => {
+            let scenario = a.scenario.load()?;
+            let duration = match a.duration {
+                Some(d) => Some(parse_seconds(&d.to_string()).map_err(anyhow::Error::msg)?),
+                None => None,
+            };
+            run_emulator(&EmulatorOptions {
+                listen: a.listen,
+                scenario,
+                wait: a.wait,
+                rt: a.rt.options(),
+                watchdog_periods: a.watchdog_periods,
+                inject: FaultInjection {
+                    drop_every: a.drop_every,
+                    corrupt_every: a.corrupt_every,
+                    reorder_every: a.reorder_every,
+                    duplicate_every: a.duplicate_every,
+                    stop_after_s: a.stop_after,
+                    overcurrent_after_s: a.overcurrent_after,
+                },
+                duration,
+            })
+            .context("emulated drive")?;
             Ok(())
         }
         Cmd::Pingpong(a) => {

@@ -112,6 +112,17 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             ),
             _ => String::new(),
         };
+        if r.mode == "hardware" {
+            let _ = writeln!(
+                out,
+                "  drive link: CRC errors {}, bad/duplicate/out-of-order frames {}, rejected commands {}, samples lost {}",
+                t.crc_errors,
+                t.bad_frames,
+                t.rejected_commands,
+                t.plant.as_ref().map_or(0, |p| p.lost)
+            );
+            out += &line("round trip bridge → drive → bridge", t.round_trip.as_ref());
+        }
         out += &line("sensor → actuator", t.sensor_to_actuator.as_ref());
         out += &line(
             "plant wake-up latency",

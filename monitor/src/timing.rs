@@ -95,6 +95,13 @@ pub struct TimingReport {
     pub position_loop: Option<LoopTiming>,
     /// State samples the (low-rate) monitor did not see.
     pub monitor_lost_samples: u64,
+    /// Hardware mode: frames from the drive dropped for a CRC mismatch / as malformed,
+    /// duplicate or out of order; commands not sent (non-finite or beyond the bus).
+    pub crc_errors: u64,
+    pub bad_frames: u64,
+    pub rejected_commands: u64,
+    /// Hardware mode: command frame sent → reported applied by the drive.
+    pub round_trip: Option<Percentiles>,
     #[serde(skip)]
     pub raw: [Option<Box<StatsReport>>; 3],
 }
@@ -126,6 +133,13 @@ impl TimingReport {
             current_loop: current.as_deref().map(LoopTiming::of),
             position_loop: position.as_deref().map(LoopTiming::of),
             monitor_lost_samples: monitor_lost,
+            crc_errors: plant.as_ref().map_or(0, |p| p.crc_errors),
+            bad_frames: plant.as_ref().map_or(0, |p| p.bad_frames),
+            rejected_commands: plant.as_ref().map_or(0, |p| p.rejected_commands),
+            round_trip: plant
+                .as_ref()
+                .filter(|p| p.round_trip.count > 0)
+                .map(|p| Percentiles::of(&p.round_trip)),
             raw: [plant, current, position],
         }
     }

@@ -2,6 +2,10 @@
 //! supply limit and compute delay ([`sim`]), and the process that serves it over iceoryx2
 //! ([`process`]).
 
+pub mod bridge;
+pub mod drive_protocol;
+pub mod drive_units;
+pub mod emulator;
 pub mod model;
 pub mod process;
 pub mod sim;

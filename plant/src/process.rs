@@ -55,7 +55,7 @@ const PENDING: usize = 8;
 
 /// Waits until the current loop, the position loop and `wait_subscribers` state
 /// subscribers are attached.
-fn wait_for_stack(topics: &Topics, opts: &PlantOptions) -> Result<(), PlantError> {
+pub(crate) fn wait_for_stack(topics: &Topics, opts: &PlantOptions) -> Result<(), PlantError> {
     tracing::info!(
         instance = %opts.instance,
         waiting_for = opts.wait_subscribers,

@@ -25,6 +25,11 @@ pub mod fault_bits {
     /// No command arrived for the watchdog's number of periods (realtime/hardware modes);
     /// outputs are off until reset.
     pub const COMMAND_TIMEOUT: u32 = 1 << 1;
+    /// Hardware: the drive reported a latched fault (its bits are in the upper 16 bits).
+    pub const DRIVE_FAULT: u32 = 1 << 2;
+    /// Hardware: no valid sample from the drive for the bridge's watchdog periods; the
+    /// bridge stopped forwarding commands.
+    pub const DRIVE_SILENT: u32 = 1 << 3;
 }
 
 /// Plant (or drive bridge) → everyone: the measured state at sample `seq`.

@@ -524,6 +524,8 @@ pub enum Mode {
     Lockstep,
     /// Wall clock: the plant publishes on absolute deadlines and never waits.
     Realtime,
+    /// Realtime with the plant replaced by a bridge to a drive; the drive's clock paces.
+    Hardware,
 }
 
 impl Mode {
@@ -531,6 +533,7 @@ impl Mode {
         match self {
             Mode::Lockstep => "lockstep",
             Mode::Realtime => "realtime",
+            Mode::Hardware => "hardware",
         }
     }
 }
@@ -541,11 +544,9 @@ impl FromStr for Mode {
         match s {
             "lockstep" => Ok(Mode::Lockstep),
             "realtime" => Ok(Mode::Realtime),
-            "hardware" => {
-                Err("mode `hardware` is not implemented yet (see the README's roadmap)".to_string())
-            }
+            "hardware" => Ok(Mode::Hardware),
             other => Err(format!(
-                "unknown mode `{other}` (expected lockstep or realtime)"
+                "unknown mode `{other}` (expected lockstep, realtime or hardware)"
             )),
         }
     }

@@ -250,7 +250,7 @@ pub mod roles {
 /// A loop's timing statistics, published at ~1 Hz and once more (`is_final`) at exit.
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
 #[repr(C)]
-#[type_name("stepdrive.StatsReport.v1")]
+#[type_name("stepdrive.StatsReport.v2")]
 pub struct StatsReport {
     pub role: u32,
     pub is_final: u32,
@@ -268,6 +268,12 @@ pub struct StatsReport {
     pub lost: u64,
     /// Plant: commands that arrived after their period and were discarded unapplied.
     pub late_discarded: u64,
+    /// Bridge: frames from the drive dropped for a CRC mismatch.
+    pub crc_errors: u64,
+    /// Bridge: frames dropped as malformed, duplicate or out of order.
+    pub bad_frames: u64,
+    /// Bridge: commands not sent because they were non-finite or beyond the bus voltage.
+    pub rejected_commands: u64,
     /// Actual interval between successive cycles.
     pub period: Histogram,
     /// Wake-up latency against the absolute deadline.
@@ -278,6 +284,9 @@ pub struct StatsReport {
     pub hop: Histogram,
     /// Plant only: sample publish → answering command published (sensor to actuator).
     pub sensor_to_actuator: Histogram,
+    /// Bridge only: command frame sent → the drive reports it applied (bridge → drive →
+    /// bridge round trip, including the wait for the drive's next period).
+    pub round_trip: Histogram,
 }
 
 /// The per-cycle bookkeeping every periodic loop does, kept free of any clock so that it

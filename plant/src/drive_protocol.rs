@@ -1,0 +1,622 @@
+//! The drive wire protocol, version 1 (`docs/drive-protocol.md` is the specification; this
+//! module is its reference codec). Frames are little-endian with fixed fields:
+//!
+//! ```text
+//! 0  u16 magic 0x5344      2  u8 version (1)     3  u8 kind
+//! 4  u32 seq (sender's frame counter, +1 per frame)
+//! 8  u64 timestamp_ns (sender's monotonic clock)
+//! 16 u16 payload_len       18 payload            18+n u32 CRC-32 of bytes 0..18+n
+//! ```
+//!
+//! CRC-32/ISO-HDLC: polynomial 0x04C11DB7 (reflected 0xEDB88320), init 0xFFFFFFFF,
+//! reflected in and out, final XOR 0xFFFFFFFF; check value of "123456789" is 0xCBF43926.
+//! On UDP one datagram is one frame; on serial frames are COBS-encoded and end in 0x00.
+
+use thiserror::Error;
+
+pub const MAGIC: u16 = 0x5344;
+pub const VERSION: u8 = 1;
+pub const HEADER_LEN: usize = 18;
+pub const CRC_LEN: usize = 4;
+/// Largest frame of this version (CONFIG): header + 28 + CRC.
+pub const MAX_FRAME: usize = HEADER_LEN + 28 + CRC_LEN;
+
+/// Drive fault bits (SAMPLE.fault_bits, FAULT_REPORT.fault_bits).
+pub mod faults {
+    /// No valid COMMAND for the watchdog's number of periods; outputs off until RESET.
+    pub const WATCHDOG: u16 = 1 << 0;
+    /// Phase current above the drive's limit; outputs off until RESET.
+    pub const OVERCURRENT: u16 = 1 << 1;
+    /// Bus voltage outside the drive's range.
+    pub const BUS_VOLTAGE: u16 = 1 << 2;
+    /// A COMMAND asked for a duty outside ±MAX_DUTY (rejected, not applied).
+    pub const BAD_COMMAND: u16 = 1 << 3;
+}
+
+/// SAMPLE.status bits.
+pub mod status {
+    /// Outputs are enabled (the bridge sent ENABLE and no fault is latched).
+    pub const ENABLED: u16 = 1 << 0;
+    /// The previous period's COMMAND was missing; the drive held the one before.
+    pub const COMMAND_HELD: u16 = 1 << 1;
+}
+
+/// Duty ±32767 means ±100 % of the bus voltage on that phase.
+pub const MAX_DUTY: i16 = 32767;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Sample {
+    /// Multi-turn encoder count (wraps at ±2^31).
+    pub encoder_counts: i32,
+    /// Raw phase-current ADC readings (offset binary).
+    pub adc_a: u16,
+    pub adc_b: u16,
+    /// Raw bus-voltage ADC reading.
+    pub adc_bus: u16,
+    /// Duties applied over the period that ended at this sample.
+    pub duty_a: i16,
+    pub duty_b: i16,
+    /// `seq` of the COMMAND frame applied over that period; 0 if none.
+    pub applied_command_seq: u32,
+    pub fault_bits: u16,
+    pub status: u16,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Command {
+    /// SAMPLE `seq` this command was computed from.
+    pub answers_sample: u32,
+    pub duty_a: i16,
+    pub duty_b: i16,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Action {
+    Enable = 1,
+    Disable = 2,
+    /// Clears latched faults (outputs stay off until ENABLE).
+    Reset = 3,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FaultReport {
+    pub fault_bits: u16,
+    /// SAMPLE seq at which the fault latched.
+    pub at_sample: u32,
+}
+
+/// The drive's scaling, sent after HELLO: everything the bridge needs to convert units.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Config {
+    pub sample_rate_hz: u32,
+    pub counts_per_rev: u32,
+    /// Phase-current scale, µA per ADC count, and the ADC reading at zero current.
+    pub current_ua_per_count: u32,
+    pub current_zero_count: u16,
+    /// Bus-voltage scale, µV per ADC count.
+    pub bus_uv_per_count: u32,
+    pub watchdog_periods: u16,
+    /// +1 if positive encoder counts are positive θ, −1 otherwise.
+    pub encoder_direction: i8,
+    pub reserved: [u8; 7],
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Message {
+    /// drive → host, every period.
+    Sample(Sample),
+    /// host → drive, every period.
+    Command(Command),
+    /// host → drive.
+    Control(Action),
+    /// drive → host, when a fault latches.
+    FaultReport(FaultReport),
+    /// drive → host, answering HELLO.
+    Config(Config),
+    /// host → drive: announces the host (its UDP address) and asks for CONFIG.
+    Hello,
+}
+
+impl Message {
+    pub fn kind(&self) -> u8 {
+        match self {
+            Message::Sample(_) => 1,
+            Message::Command(_) => 2,
+            Message::Control(_) => 3,
+            Message::FaultReport(_) => 4,
+            Message::Config(_) => 5,
+            Message::Hello => 6,
+        }
+    }
+
+    fn payload_len(kind: u8) -> Option<usize> {
+        Some(match kind {
+            1 => 22,
+            2 => 8,
+            3 => 4,
+            4 => 8,
+            5 => 28,
+            6 => 4,
+            _ => return None,
+        })
+    }
+}
+
+/// A decoded frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Frame {
+    pub seq: u32,
+    pub timestamp_ns: u64,
+    pub message: Message,
+}
+
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum DecodeError {
+    #[error("frame of {0} bytes is too short")]
+    TooShort(usize),
+    #[error("bad magic {0:#06x}")]
+    BadMagic(u16),
+    #[error("unsupported protocol version {0}")]
+    BadVersion(u8),
+    #[error("unknown message kind {0}")]
+    BadKind(u8),
+    #[error("kind {kind} needs a {expected}-byte payload, frame says {got}")]
+    BadLength {
+        kind: u8,
+        expected: usize,
+        got: usize,
+    },
+    #[error("frame length {frame} does not match payload length {payload}")]
+    LengthMismatch { frame: usize, payload: usize },
+    #[error("CRC mismatch: frame says {got:#010x}, computed {computed:#010x}")]
+    BadCrc { got: u32, computed: u32 },
+    #[error("invalid control action {0}")]
+    BadAction(u8),
+    #[error("bad COBS encoding")]
+    BadCobs,
+}
+
+const CRC_TABLE: [u32; 256] = {
+    let mut table = [0u32; 256];
+    let mut i = 0;
+    while i < 256 {
+        let mut c = i as u32;
+        let mut k = 0;
+        while k < 8 {
+            c = if c & 1 != 0 {
+                0xEDB8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+            k += 1;
+        }
+        table[i] = c;
+        i += 1;
+    }
+    table
+};
+
+/// CRC-32/ISO-HDLC (the zlib/Ethernet CRC).
+pub fn crc32(data: &[u8]) -> u32 {
+    let mut c = 0xFFFF_FFFFu32;
+    for &b in data {
+        c = CRC_TABLE[((c ^ u32::from(b)) & 0xFF) as usize] ^ (c >> 8);
+    }
+    c ^ 0xFFFF_FFFF
+}
+
+struct Writer<'a> {
+    buf: &'a mut [u8; MAX_FRAME],
+    at: usize,
+}
+
+impl Writer<'_> {
+    fn put(&mut self, bytes: &[u8]) {
+        self.buf[self.at..self.at + bytes.len()].copy_from_slice(bytes);
+        self.at += bytes.len();
+    }
+}
+
+/// Encodes a frame into `buf`; returns its length. No allocation.
+pub fn encode(frame: &Frame, buf: &mut [u8; MAX_FRAME]) -> usize {
+    let kind = frame.message.kind();
+    let len = Message::payload_len(kind).unwrap_or(0);
+    let mut w = Writer { buf, at: 0 };
+    w.put(&MAGIC.to_le_bytes());
+    w.put(&[VERSION, kind]);
+    w.put(&frame.seq.to_le_bytes());
+    w.put(&frame.timestamp_ns.to_le_bytes());
+    w.put(&(len as u16).to_le_bytes());
+    match frame.message {
+        Message::Sample(s) => {
+            w.put(&s.encoder_counts.to_le_bytes());
+            w.put(&s.adc_a.to_le_bytes());
+            w.put(&s.adc_b.to_le_bytes());
+            w.put(&s.adc_bus.to_le_bytes());
+            w.put(&s.duty_a.to_le_bytes());
+            w.put(&s.duty_b.to_le_bytes());
+            w.put(&s.applied_command_seq.to_le_bytes());
+            w.put(&s.fault_bits.to_le_bytes());
+            w.put(&s.status.to_le_bytes());
+        }
+        Message::Command(c) => {
+            w.put(&c.answers_sample.to_le_bytes());
+            w.put(&c.duty_a.to_le_bytes());
+            w.put(&c.duty_b.to_le_bytes());
+        }
+        Message::Control(a) => w.put(&[a as u8, 0, 0, 0]),
+        Message::FaultReport(f) => {
+            w.put(&f.fault_bits.to_le_bytes());
+            w.put(&[0, 0]);
+            w.put(&f.at_sample.to_le_bytes());
+        }
+        Message::Config(c) => {
+            w.put(&c.sample_rate_hz.to_le_bytes());
+            w.put(&c.counts_per_rev.to_le_bytes());
+            w.put(&c.current_ua_per_count.to_le_bytes());
+            w.put(&c.current_zero_count.to_le_bytes());
+            w.put(&c.bus_uv_per_count.to_le_bytes());
+            w.put(&c.watchdog_periods.to_le_bytes());
+            w.put(&c.encoder_direction.to_le_bytes());
+            w.put(&c.reserved);
+        }
+        Message::Hello => w.put(&[VERSION, 0, 0, 0]),
+    }
+    let end = w.at;
+    let crc = crc32(&w.buf[..end]);
+    w.put(&crc.to_le_bytes());
+    w.at
+}
+
+struct Reader<'a> {
+    b: &'a [u8],
+    at: usize,
+}
+
+impl Reader<'_> {
+    fn take<const N: usize>(&mut self) -> [u8; N] {
+        let mut out = [0u8; N];
+        out.copy_from_slice(&self.b[self.at..self.at + N]);
+        self.at += N;
+        out
+    }
+    fn u16(&mut self) -> u16 {
+        u16::from_le_bytes(self.take())
+    }
+    fn i16(&mut self) -> i16 {
+        i16::from_le_bytes(self.take())
+    }
+    fn u32(&mut self) -> u32 {
+        u32::from_le_bytes(self.take())
+    }
+    fn i32(&mut self) -> i32 {
+        i32::from_le_bytes(self.take())
+    }
+}
+
+/// Decodes and checks one frame: length, magic, version, kind, payload length, CRC.
+pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
+    if b.len() < HEADER_LEN + CRC_LEN {
+        return Err(DecodeError::TooShort(b.len()));
+    }
+    let payload = usize::from(u16::from_le_bytes([b[16], b[17]]));
+    if b.len() != HEADER_LEN + payload + CRC_LEN {
+        return Err(DecodeError::LengthMismatch {
+            frame: b.len(),
+            payload,
+        });
+    }
+    let body = &b[..b.len() - CRC_LEN];
+    let got = u32::from_le_bytes([
+        b[b.len() - 4],
+        b[b.len() - 3],
+        b[b.len() - 2],
+        b[b.len() - 1],
+    ]);
+    let computed = crc32(body);
+    if got != computed {
+        return Err(DecodeError::BadCrc { got, computed });
+    }
+    let mut r = Reader { b: body, at: 0 };
+    let magic = r.u16();
+    if magic != MAGIC {
+        return Err(DecodeError::BadMagic(magic));
+    }
+    let [version, kind] = r.take::<2>();
+    if version != VERSION {
+        return Err(DecodeError::BadVersion(version));
+    }
+    let expected = Message::payload_len(kind).ok_or(DecodeError::BadKind(kind))?;
+    if expected != payload {
+        return Err(DecodeError::BadLength {
+            kind,
+            expected,
+            got: payload,
+        });
+    }
+    let seq = r.u32();
+    let timestamp_ns = u64::from_le_bytes(r.take());
+    r.at += 2;
+    let message = match kind {
+        1 => Message::Sample(Sample {
+            encoder_counts: r.i32(),
+            adc_a: r.u16(),
+            adc_b: r.u16(),
+            adc_bus: r.u16(),
+            duty_a: r.i16(),
+            duty_b: r.i16(),
+            applied_command_seq: r.u32(),
+            fault_bits: r.u16(),
+            status: r.u16(),
+        }),
+        2 => Message::Command(Command {
+            answers_sample: r.u32(),
+            duty_a: r.i16(),
+            duty_b: r.i16(),
+        }),
+        3 => {
+            let [a, ..] = r.take::<4>();
+            Message::Control(match a {
+                1 => Action::Enable,
+                2 => Action::Disable,
+                3 => Action::Reset,
+                other => return Err(DecodeError::BadAction(other)),
+            })
+        }
+        4 => {
+            let fault_bits = r.u16();
+            r.at += 2;
+            Message::FaultReport(FaultReport {
+                fault_bits,
+                at_sample: r.u32(),
+            })
+        }
+        5 => Message::Config(Config {
+            sample_rate_hz: r.u32(),
+            counts_per_rev: r.u32(),
+            current_ua_per_count: r.u32(),
+            current_zero_count: r.u16(),
+            bus_uv_per_count: r.u32(),
+            watchdog_periods: r.u16(),
+            encoder_direction: i8::from_le_bytes(r.take()),
+            reserved: r.take(),
+        }),
+        _ => Message::Hello,
+    };
+    Ok(Frame {
+        seq,
+        timestamp_ns,
+        message,
+    })
+}
+
+/// COBS-encodes `data` into `out` (needs `data.len() + data.len()/254 + 2` bytes) and
+/// appends the 0x00 delimiter; returns the encoded length.
+pub fn cobs_encode(data: &[u8], out: &mut [u8]) -> usize {
+    let mut code_at = 0;
+    let mut at = 1;
+    let mut code = 1u8;
+    for &byte in data {
+        if byte == 0 {
+            out[code_at] = code;
+            code_at = at;
+            at += 1;
+            code = 1;
+        } else {
+            out[at] = byte;
+            at += 1;
+            code += 1;
+            if code == 0xFF {
+                out[code_at] = code;
+                code_at = at;
+                at += 1;
+                code = 1;
+            }
+        }
+    }
+    out[code_at] = code;
+    out[at] = 0;
+    at + 1
+}
+
+/// Decodes one COBS frame (without its 0x00 delimiter) into `out`; returns the length.
+pub fn cobs_decode(data: &[u8], out: &mut [u8]) -> Result<usize, DecodeError> {
+    let mut at = 0;
+    let mut n = 0;
+    while at < data.len() {
+        let code = data[at];
+        if code == 0 {
+            return Err(DecodeError::BadCobs);
+        }
+        at += 1;
+        for _ in 1..code {
+            let b = *data.get(at).ok_or(DecodeError::BadCobs)?;
+            if b == 0 {
+                return Err(DecodeError::BadCobs);
+            }
+            *out.get_mut(n).ok_or(DecodeError::BadCobs)? = b;
+            n += 1;
+            at += 1;
+        }
+        if code != 0xFF && at < data.len() {
+            *out.get_mut(n).ok_or(DecodeError::BadCobs)? = 0;
+            n += 1;
+        }
+    }
+    Ok(n)
+}
+
+/// Classifies an incoming sequence number against the last accepted one: only strictly
+/// newer frames are accepted (wrapping comparison, so a u32 counter may roll over).
+pub fn is_newer(seq: u32, last: Option<u32>) -> bool {
+    match last {
+        None => true,
+        Some(l) => {
+            let d = seq.wrapping_sub(l);
+            d != 0 && d < 0x8000_0000
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// The CRC test vectors of docs/drive-protocol.md.
+    #[test]
+    fn crc_vectors() {
+        assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+        assert_eq!(crc32(b""), 0);
+        assert_eq!(crc32(&[0u8]), 0xD202_EF8D);
+        let frame = Frame {
+            seq: 7,
+            timestamp_ns: 1_000,
+            message: Message::Command(Command {
+                answers_sample: 6,
+                duty_a: 1000,
+                duty_b: -1000,
+            }),
+        };
+        let mut buf = [0u8; MAX_FRAME];
+        let n = encode(&frame, &mut buf);
+        assert_eq!(n, 30);
+        assert_eq!(
+            buf[..n],
+            [
+                0x44, 0x53, 0x01, 0x02, 0x07, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x00, 0x00, 0x00, 0x00,
+                0x00, 0x00, 0x08, 0x00, 0x06, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x18, 0xFC, 0x4F, 0xAE,
+                0x51, 0x61
+            ]
+        );
+    }
+
+    #[test]
+    fn cobs_vectors() {
+        let mut out = [0u8; 300];
+        let cases: [(&[u8], &[u8]); 4] = [
+            (&[0x00], &[0x01, 0x01, 0x00]),
+            (&[0x00, 0x00], &[0x01, 0x01, 0x01, 0x00]),
+            (
+                &[0x11, 0x22, 0x00, 0x33],
+                &[0x03, 0x11, 0x22, 0x02, 0x33, 0x00],
+            ),
+            (
+                &[0x11, 0x00, 0x00, 0x00],
+                &[0x02, 0x11, 0x01, 0x01, 0x01, 0x00],
+            ),
+        ];
+        for (raw, enc) in cases {
+            let n = cobs_encode(raw, &mut out);
+            assert_eq!(&out[..n], enc);
+            let mut back = [0u8; 300];
+            let m = cobs_decode(&enc[..enc.len() - 1], &mut back).unwrap();
+            assert_eq!(&back[..m], raw);
+        }
+    }
+
+    fn arb_message() -> impl Strategy<Value = Message> {
+        prop_oneof![
+            (
+                any::<i32>(),
+                any::<u16>(),
+                any::<u16>(),
+                any::<u16>(),
+                any::<i16>(),
+                any::<i16>(),
+                any::<u32>(),
+                any::<u16>(),
+                any::<u16>()
+            )
+                .prop_map(|(e, a, b, bus, da, db, s, f, st)| Message::Sample(Sample {
+                    encoder_counts: e,
+                    adc_a: a,
+                    adc_b: b,
+                    adc_bus: bus,
+                    duty_a: da,
+                    duty_b: db,
+                    applied_command_seq: s,
+                    fault_bits: f,
+                    status: st
+                })),
+            (any::<u32>(), any::<i16>(), any::<i16>()).prop_map(|(s, a, b)| Message::Command(
+                Command {
+                    answers_sample: s,
+                    duty_a: a,
+                    duty_b: b
+                }
+            )),
+            prop_oneof![
+                Just(Action::Enable),
+                Just(Action::Disable),
+                Just(Action::Reset)
+            ]
+            .prop_map(Message::Control),
+            (any::<u16>(), any::<u32>()).prop_map(|(f, s)| Message::FaultReport(FaultReport {
+                fault_bits: f,
+                at_sample: s
+            })),
+            (
+                any::<u32>(),
+                any::<u32>(),
+                any::<u32>(),
+                any::<u16>(),
+                any::<u32>(),
+                any::<u16>(),
+                any::<i8>()
+            )
+                .prop_map(|(r, c, i, z, b, w, d)| Message::Config(Config {
+                    sample_rate_hz: r,
+                    counts_per_rev: c,
+                    current_ua_per_count: i,
+                    current_zero_count: z,
+                    bus_uv_per_count: b,
+                    watchdog_periods: w,
+                    encoder_direction: d,
+                    reserved: [0; 7]
+                })),
+            Just(Message::Hello),
+        ]
+    }
+
+    proptest! {
+        #[test]
+        fn every_kind_round_trips(seq in any::<u32>(), ts in any::<u64>(), message in arb_message()) {
+            let frame = Frame { seq, timestamp_ns: ts, message };
+            let mut buf = [0u8; MAX_FRAME];
+            let n = encode(&frame, &mut buf);
+            prop_assert_eq!(decode(&buf[..n]), Ok(frame));
+            // And through COBS, as on a serial line.
+            let mut enc = [0u8; 2 * MAX_FRAME];
+            let m = cobs_encode(&buf[..n], &mut enc);
+            prop_assert!(!enc[..m - 1].contains(&0));
+            let mut dec = [0u8; MAX_FRAME];
+            let k = cobs_decode(&enc[..m - 1], &mut dec).unwrap();
+            prop_assert_eq!(decode(&dec[..k]), Ok(frame));
+        }
+
+        #[test]
+        fn every_single_bit_corruption_is_detected(seq in any::<u32>(), message in arb_message()) {
+            let frame = Frame { seq, timestamp_ns: 42, message };
+            let mut buf = [0u8; MAX_FRAME];
+            let n = encode(&frame, &mut buf);
+            for bit in 0..n * 8 {
+                let mut bad = buf;
+                bad[bit / 8] ^= 1 << (bit % 8);
+                prop_assert!(decode(&bad[..n]).is_err(), "bit {} undetected", bit);
+            }
+            // Truncated or extended frames are rejected too.
+            prop_assert!(decode(&buf[..n - 1]).is_err());
+            prop_assert!(decode(&buf[..(n + 1).min(MAX_FRAME)]).is_err() || n == MAX_FRAME);
+        }
+    }
+
+    #[test]
+    fn sequence_numbers_accept_only_newer() {
+        assert!(is_newer(5, None));
+        assert!(is_newer(6, Some(5)));
+        assert!(!is_newer(5, Some(5)));
+        assert!(!is_newer(4, Some(5)));
+        assert!(is_newer(0, Some(u32::MAX)));
+    }
+}

@@ -1,0 +1,447 @@
+//! `stepdrive emulate-drive`: a stand-in driver board. The motor model of eq. (1) behind the
+//! wire protocol of `docs/drive-protocol.md`, with its own sample clock, in drive units
+//! (encoder counts, ADC counts, duties), a command watchdog, and fault injection for tests.
+
+use crate::drive_protocol::{
+    decode, encode, faults, is_newer, status, Action, Command, Config, FaultReport, Frame, Message,
+    Sample, MAX_FRAME,
+};
+use crate::drive_units::{default_config, volts_for, Scaling};
+use crate::sim::PlantSim;
+use std::net::{SocketAddr, UdpSocket};
+use std::time::Duration;
+use stepdrive_shared::clock::monotonic_ns;
+use stepdrive_shared::messages::DriveCommand;
+use stepdrive_shared::pacer::{Pacer, WaitStrategy};
+use stepdrive_shared::poll::termination_requested;
+use stepdrive_shared::rt::RtOptions;
+use stepdrive_shared::Scenario;
+
+/// Faults the emulator can inject (0 / `None` = off).
+#[derive(Debug, Clone, Default)]
+pub struct FaultInjection {
+    /// Drop every N-th outgoing SAMPLE.
+    pub drop_every: u64,
+    /// Flip one bit in every N-th outgoing SAMPLE.
+    pub corrupt_every: u64,
+    /// Send every N-th SAMPLE after the next one.
+    pub reorder_every: u64,
+    /// Send every N-th SAMPLE twice.
+    pub duplicate_every: u64,
+    /// Stop sending samples (but keep running) after this many seconds.
+    pub stop_after_s: Option<f64>,
+    /// Latch an over-current fault after this many seconds.
+    pub overcurrent_after_s: Option<f64>,
+}
+
+/// Counters of what the drive received.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct DriveCounters {
+    pub frames_ok: u64,
+    pub bad_frames: u64,
+    pub crc_errors: u64,
+    pub stale_frames: u64,
+    pub commands_applied: u64,
+    pub periods_held: u64,
+}
+
+/// The drive's logic, without sockets or clocks: frames in, samples out.
+pub struct DriveCore {
+    pub config: Config,
+    scaling: Scaling,
+    sim: PlantSim,
+    bus_v: f64,
+    enabled: bool,
+    latched: u16,
+    last_rx_seq: Option<u32>,
+    pending: Option<Command>,
+    pending_seq: u32,
+    held_duty: (i16, i16),
+    held_seq: u32,
+    since_command: u32,
+    tx_seq: u32,
+    pub counters: DriveCounters,
+}
+
+/// What the drive answers to a frame.
+pub enum Reply {
+    Config(Config),
+}
+
+impl DriveCore {
+    pub fn new(s: &Scenario, watchdog_periods: u16) -> Self {
+        let config = default_config(s.rates.current_loop_hz, watchdog_periods);
+        Self {
+            scaling: Scaling::new(&config),
+            config,
+            sim: PlantSim::new(s),
+            bus_v: s.drive.bus_voltage_v,
+            enabled: false,
+            latched: 0,
+            last_rx_seq: None,
+            pending: None,
+            pending_seq: 0,
+            held_duty: (0, 0),
+            held_seq: 0,
+            since_command: 0,
+            tx_seq: 0,
+            counters: DriveCounters::default(),
+        }
+    }
+
+    pub fn latched_faults(&self) -> u16 {
+        self.latched
+    }
+
+    pub fn outputs_on(&self) -> bool {
+        self.enabled && self.latched == 0
+    }
+
+    /// Handles one received datagram. Bad, duplicate and out-of-order frames are counted
+    /// and dropped; nothing from them is applied.
+    pub fn on_frame(&mut self, bytes: &[u8]) -> Option<Reply> {
+        let frame = match decode(bytes) {
+            Ok(f) => f,
+            Err(crate::drive_protocol::DecodeError::BadCrc { .. }) => {
+                self.counters.crc_errors += 1;
+                return None;
+            }
+            Err(_) => {
+                self.counters.bad_frames += 1;
+                return None;
+            }
+        };
+        if !is_newer(frame.seq, self.last_rx_seq) {
+            self.counters.stale_frames += 1;
+            return None;
+        }
+        self.last_rx_seq = Some(frame.seq);
+        self.counters.frames_ok += 1;
+        match frame.message {
+            Message::Command(c) => {
+                // ±MAX_DUTY is the full range; i16::MIN is the one value beyond it.
+                if c.duty_a == i16::MIN || c.duty_b == i16::MIN {
+                    self.latched |= faults::BAD_COMMAND;
+                } else {
+                    self.pending = Some(c);
+                    self.pending_seq = frame.seq;
+                }
+                None
+            }
+            Message::Control(Action::Enable) => {
+                self.enabled = true;
+                None
+            }
+            Message::Control(Action::Disable) => {
+                self.enabled = false;
+                None
+            }
+            Message::Control(Action::Reset) => {
+                self.latched = 0;
+                self.since_command = 0;
+                None
+            }
+            Message::Hello => Some(Reply::Config(self.config)),
+            _ => None,
+        }
+    }
+
+    /// Latches `bits` (e.g. an injected over-current).
+    pub fn trip(&mut self, bits: u16) {
+        self.latched |= bits;
+    }
+
+    /// The sample at the current instant, as a frame.
+    pub fn sample_frame(&mut self, now_ns: u64) -> Frame {
+        let st = self.sim.state(false);
+        let counts = self.scaling.counts(st.theta_rad);
+        let mut status_bits = 0;
+        if self.outputs_on() {
+            status_bits |= status::ENABLED;
+        }
+        if self.since_command > 0 {
+            status_bits |= status::COMMAND_HELD;
+        }
+        let frame = Frame {
+            seq: self.tx_seq,
+            timestamp_ns: now_ns,
+            message: Message::Sample(Sample {
+                encoder_counts: counts as i32,
+                adc_a: self.scaling.adc(st.i_a_a),
+                adc_b: self.scaling.adc(st.i_b_a),
+                adc_bus: self.scaling.bus_adc(self.bus_v),
+                duty_a: self.held_duty.0,
+                duty_b: self.held_duty.1,
+                applied_command_seq: self.held_seq,
+                fault_bits: self.latched,
+                status: status_bits,
+            }),
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        frame
+    }
+
+    /// Decides the duties for the period starting now and integrates the motor over it.
+    /// The command must answer the previous sample (one period of compute delay); without
+    /// one, the previous duties are held; after the watchdog's periods without one, the
+    /// outputs go off and a fault latches. Returns a fault report if one just latched.
+    pub fn run_period(&mut self, sample_seq: u32) -> Option<FaultReport> {
+        let before = self.latched;
+        let wanted = sample_seq.wrapping_sub(1);
+        match self.pending.take() {
+            Some(c) if c.answers_sample == wanted => {
+                self.held_duty = (c.duty_a, c.duty_b);
+                self.held_seq = self.pending_seq;
+                self.since_command = 0;
+                self.counters.commands_applied += 1;
+            }
+            other => {
+                // A command for a later sample waits for its period; older ones are dropped.
+                if let Some(c) = other.filter(|c| is_newer(c.answers_sample, Some(wanted))) {
+                    self.pending = Some(c);
+                }
+                if self.enabled {
+                    self.since_command = self.since_command.saturating_add(1);
+                    self.counters.periods_held += 1;
+                }
+                if self.since_command >= u32::from(self.config.watchdog_periods) {
+                    self.latched |= faults::WATCHDOG;
+                }
+            }
+        }
+        if !self.outputs_on() {
+            self.held_duty = (0, 0);
+        }
+        let v = DriveCommand {
+            v_a_v: volts_for(self.held_duty.0, self.bus_v),
+            v_b_v: volts_for(self.held_duty.1, self.bus_v),
+            ..Default::default()
+        };
+        self.sim.advance(Some(&v));
+        (self.latched != before).then_some(FaultReport {
+            fault_bits: self.latched,
+            at_sample: sample_seq,
+        })
+    }
+}
+
+#[derive(Debug, Clone)]
+pub struct EmulatorOptions {
+    pub listen: SocketAddr,
+    pub scenario: Scenario,
+    pub wait: WaitStrategy,
+    pub rt: RtOptions,
+    pub watchdog_periods: u16,
+    pub inject: FaultInjection,
+    /// Stop after this long (None: until SIGTERM/SIGINT).
+    pub duration: Option<Duration>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum EmulatorError {
+    #[error("socket: {0}")]
+    Io(#[from] std::io::Error),
+    #[error("{0}")]
+    Rt(#[from] stepdrive_shared::rt::RtError),
+}
+
+fn send_frame(sock: &UdpSocket, to: SocketAddr, frame: &Frame, buf: &mut [u8; MAX_FRAME]) {
+    let n = encode(frame, buf);
+    // A full socket buffer drops the frame, as a wire would.
+    let _ = sock.send_to(&buf[..n], to);
+}
+
+pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError> {
+    let sock = UdpSocket::bind(o.listen)?;
+    sock.set_nonblocking(true)?;
+    o.rt.apply()?;
+    let mut core = DriveCore::new(&o.scenario, o.watchdog_periods);
+    let period_ns = (1e9 / o.scenario.rates.current_loop_hz).round() as u64;
+    let mut buf = [0u8; MAX_FRAME];
+    let mut rx = [0u8; 2048];
+    tracing::info!(listen = %o.listen, "emulated drive up; waiting for HELLO");
+    // The host announces itself with HELLO; samples go to whoever sent the last one.
+    let mut host: Option<SocketAddr> = None;
+    let started = monotonic_ns();
+    let mut pacer = Pacer::new(started + period_ns, period_ns, o.wait);
+    let mut reordered: Option<Frame> = None;
+    let mut sample_seq: u32 = 0;
+    let mut running_since: Option<u64> = None;
+    loop {
+        if termination_requested() {
+            break;
+        }
+        let tick = pacer.wait();
+        if let Some(d) = o.duration {
+            if tick.woke_ns - started > d.as_nanos() as u64 {
+                break;
+            }
+        }
+        while let Ok((n, from)) = sock.recv_from(&mut rx) {
+            if let Some(Reply::Config(c)) = core.on_frame(&rx[..n]) {
+                host = Some(from);
+                let f = Frame {
+                    seq: 0,
+                    timestamp_ns: monotonic_ns(),
+                    message: Message::Config(c),
+                };
+                send_frame(&sock, from, &f, &mut buf);
+            }
+        }
+        let Some(to) = host else {
+            pacer.skip_to(monotonic_ns());
+            continue;
+        };
+        let since = *running_since.get_or_insert(tick.woke_ns);
+        let t_s = (tick.woke_ns - since) as f64 * 1e-9;
+        if o.inject.overcurrent_after_s.is_some_and(|a| t_s >= a)
+            && core.latched_faults() & faults::OVERCURRENT == 0
+        {
+            core.trip(faults::OVERCURRENT);
+            tracing::warn!("injected over-current: outputs off, fault latched");
+        }
+        let frame = core.sample_frame(monotonic_ns());
+        let k = u64::from(sample_seq) + 1;
+        let silent = o.inject.stop_after_s.is_some_and(|s| t_s >= s);
+        let every = |n: u64| n > 0 && k % n == 0;
+        if !silent && !every(o.inject.drop_every) {
+            if every(o.inject.corrupt_every) {
+                let n = encode(&frame, &mut buf);
+                buf[n / 2] ^= 0x10;
+                let _ = sock.send_to(&buf[..n], to);
+            } else if every(o.inject.reorder_every) {
+                reordered = Some(frame);
+            } else {
+                send_frame(&sock, to, &frame, &mut buf);
+                if let Some(late) = reordered.take() {
+                    send_frame(&sock, to, &late, &mut buf);
+                }
+                if every(o.inject.duplicate_every) {
+                    send_frame(&sock, to, &frame, &mut buf);
+                }
+            }
+        }
+        if let Some(report) = core.run_period(sample_seq) {
+            tracing::warn!(
+                faults = report.fault_bits,
+                "drive fault latched: outputs off until RESET"
+            );
+            let f = Frame {
+                seq: 0,
+                timestamp_ns: monotonic_ns(),
+                message: Message::FaultReport(report),
+            };
+            send_frame(&sock, to, &f, &mut buf);
+        }
+        sample_seq = sample_seq.wrapping_add(1);
+        // Like the simulated plant: a host stall pauses the drive's time (see plant/process).
+        let now = monotonic_ns();
+        if now > pacer.deadline(u64::from(sample_seq)) {
+            pacer.reanchor(u64::from(sample_seq), now + period_ns);
+        }
+    }
+    let c = core.counters;
+    tracing::info!(?c, faults = core.latched_faults(), "emulated drive stopped");
+    eprintln!(
+        "drive: frames ok {}, CRC errors {}, bad {}, stale {}, commands applied {}, periods held {}, latched faults {:#06x}",
+        c.frames_ok, c.crc_errors, c.bad_frames, c.stale_frames, c.commands_applied, c.periods_held, core.latched_faults()
+    );
+    Ok(c)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frame_bytes(seq: u32, m: Message) -> Vec<u8> {
+        let mut b = [0u8; MAX_FRAME];
+        let n = encode(
+            &Frame {
+                seq,
+                timestamp_ns: 0,
+                message: m,
+            },
+            &mut b,
+        );
+        b[..n].to_vec()
+    }
+
+    fn cmd(answers: u32, d: i16) -> Message {
+        Message::Command(Command {
+            answers_sample: answers,
+            duty_a: d,
+            duty_b: d,
+        })
+    }
+
+    #[test]
+    fn corrupt_stale_and_late_frames_are_never_applied() {
+        let mut d = DriveCore::new(&Scenario::default(), 20);
+        assert!(matches!(
+            d.on_frame(&frame_bytes(1, Message::Hello)),
+            Some(Reply::Config(_))
+        ));
+        d.on_frame(&frame_bytes(2, Message::Control(Action::Enable)));
+        let _ = d.sample_frame(0);
+        d.run_period(0);
+        // A corrupted command: counted, not applied.
+        let mut bad = frame_bytes(3, cmd(0, 1000));
+        bad[20] ^= 1;
+        assert!(d.on_frame(&bad).is_none());
+        assert_eq!(d.counters.crc_errors, 1);
+        d.run_period(1);
+        assert_eq!(d.counters.commands_applied, 0);
+        // A good one for sample 1, applied in the period after sample 2.
+        d.on_frame(&frame_bytes(4, cmd(1, 2000)));
+        // The same frame again (duplicate) and an older one (out of order): dropped.
+        d.on_frame(&frame_bytes(4, cmd(1, 9000)));
+        d.on_frame(&frame_bytes(3, cmd(1, 9000)));
+        assert_eq!(d.counters.stale_frames, 2);
+        d.run_period(2);
+        assert_eq!(d.counters.commands_applied, 1);
+        let Message::Sample(s) = d.sample_frame(0).message else {
+            panic!()
+        };
+        assert_eq!((s.duty_a, s.applied_command_seq), (2000, 4));
+        // A command that answers an old sample arrives late: held, not applied.
+        d.on_frame(&frame_bytes(5, cmd(1, 3000)));
+        d.run_period(3);
+        let Message::Sample(s) = d.sample_frame(0).message else {
+            panic!()
+        };
+        assert_eq!(s.duty_a, 2000);
+        assert_ne!(s.status & status::COMMAND_HELD, 0);
+    }
+
+    #[test]
+    fn watchdog_turns_outputs_off_and_latches_until_reset() {
+        let mut d = DriveCore::new(&Scenario::default(), 20);
+        d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
+        d.run_period(0);
+        d.on_frame(&frame_bytes(2, cmd(0, 5000)));
+        d.run_period(1);
+        let mut report = None;
+        for k in 2..=21 {
+            report = report.or(d.run_period(k));
+        }
+        let r = report.expect("watchdog fault reported");
+        assert_eq!(r.fault_bits & faults::WATCHDOG, faults::WATCHDOG);
+        assert_eq!(r.at_sample, 21);
+        let Message::Sample(s) = d.sample_frame(0).message else {
+            panic!()
+        };
+        assert_eq!((s.duty_a, s.duty_b), (0, 0));
+        // A good command does not clear the latch; RESET + ENABLE does.
+        d.on_frame(&frame_bytes(3, cmd(21, 5000)));
+        d.run_period(22);
+        assert!(!d.outputs_on());
+        d.on_frame(&frame_bytes(4, Message::Control(Action::Reset)));
+        d.on_frame(&frame_bytes(5, cmd(22, 5000)));
+        d.run_period(23);
+        assert!(d.outputs_on());
+        let Message::Sample(s) = d.sample_frame(0).message else {
+            panic!()
+        };
+        assert_eq!(s.duty_a, 5000);
+    }
+}

@@ -697,3 +697,134 @@ fn a_silent_drive_is_reported_by_the_bridge() {
     assert!(stderr.contains("silent"), "{stderr}");
     assert!(processes_with(&inst).is_empty());
 }
+
+/// Two pseudo-terminal pairs joined by a relay thread: a null-modem cable between serial
+/// ports `a` and `b`.
+struct NullModem {
+    a: String,
+    b: String,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    relay: Option<std::thread::JoinHandle<()>>,
+    _slaves: [std::os::fd::OwnedFd; 2],
+}
+
+impl NullModem {
+    fn new() -> Self {
+        use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+        let pty = || -> (OwnedFd, OwnedFd, String) {
+            let (mut m, mut s) = (0, 0);
+            let mut name = [0 as libc::c_char; 128];
+            // SAFETY: valid out-pointers; termios and winsize may be null.
+            let rc = unsafe {
+                libc::openpty(
+                    &mut m,
+                    &mut s,
+                    name.as_mut_ptr(),
+                    std::ptr::null(),
+                    std::ptr::null(),
+                )
+            };
+            assert_eq!(rc, 0, "openpty: {}", std::io::Error::last_os_error());
+            // SAFETY: openpty returned two fresh fds and a NUL-terminated name.
+            unsafe {
+                let mut t: libc::termios = std::mem::zeroed();
+                libc::tcgetattr(s, &mut t);
+                libc::cfmakeraw(&mut t);
+                libc::tcsetattr(s, libc::TCSANOW, &t);
+                let path = std::ffi::CStr::from_ptr(name.as_ptr())
+                    .to_string_lossy()
+                    .into_owned();
+                (OwnedFd::from_raw_fd(m), OwnedFd::from_raw_fd(s), path)
+            }
+        };
+        let (ma, sa, a) = pty();
+        let (mb, sb, b) = pty();
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let flag = stop.clone();
+        let relay = std::thread::spawn(move || {
+            let fds = [ma.as_raw_fd(), mb.as_raw_fd()];
+            let mut buf = [0u8; 4096];
+            while !flag.load(std::sync::atomic::Ordering::Relaxed) {
+                let mut p = fds.map(|fd| libc::pollfd {
+                    fd,
+                    events: libc::POLLIN,
+                    revents: 0,
+                });
+                // SAFETY: two valid pollfds.
+                if unsafe { libc::poll(p.as_mut_ptr(), 2, 20) } <= 0 {
+                    continue;
+                }
+                for (i, pfd) in p.iter().enumerate() {
+                    if pfd.revents & libc::POLLIN != 0 {
+                        // SAFETY: reading/writing valid buffers on our own fds.
+                        let n = unsafe { libc::read(fds[i], buf.as_mut_ptr().cast(), buf.len()) };
+                        if n > 0 {
+                            unsafe { libc::write(fds[1 - i], buf.as_ptr().cast(), n as usize) };
+                        }
+                    }
+                }
+            }
+            drop((ma, mb));
+        });
+        Self {
+            a,
+            b,
+            stop,
+            relay: Some(relay),
+            _slaves: [sa, sb],
+        }
+    }
+}
+
+impl Drop for NullModem {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        if let Some(r) = self.relay.take() {
+            let _ = r.join();
+        }
+    }
+}
+
+#[test]
+fn serial_path_works_over_a_pseudo_terminal_pair() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("serial");
+    let scenario = dir.file("slow.toml", SLOW);
+    let sc = scenario.to_str().unwrap();
+    let inst = instance("serial");
+    let cable = NullModem::new();
+    let mut drive = spawn_logged(&["emulate-drive", "--serial", &cable.a, "--scenario", sc]);
+    let common = ["--mode", "hardware", "--instance", &inst, "--scenario", sc];
+    let mut bridge = Command::new(EXE)
+        .args(["plant", "--backend", "serial", "--port", &cable.b])
+        .args(common)
+        .env("RUST_LOG", "info")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn bridge");
+    let mut position = spawn_logged(&[&["position-loop"][..], &common[..]].concat());
+    let mut current = spawn_logged(&[&["current-loop"][..], &common[..]].concat());
+    let status = wait_with_timeout(&mut bridge, Duration::from_secs(60));
+    let log = stderr_of(&mut bridge);
+    for p in [&mut current, &mut position] {
+        let _ = wait_with_timeout(p, Duration::from_secs(10));
+    }
+    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
+    let drive_log = stderr_of(&mut drive);
+    assert!(status.success(), "bridge failed: {log}\ndrive: {drive_log}");
+    assert!(log.contains("bridge done"), "{log}");
+    assert!(log.contains("crc_errors=0"), "{log}");
+    // Most periods got their command over the serial line (2 kHz, COBS-framed).
+    let applied: u64 = drive_log
+        .split("commands applied ")
+        .nth(1)
+        .and_then(|s| s.split(',').next())
+        .and_then(|s| s.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no drive summary: {drive_log}"));
+    assert!(
+        applied > 1000,
+        "only {applied} commands applied: {drive_log}"
+    );
+}

@@ -17,7 +17,7 @@ use stepdrive_monitor::metrics::RunReport;
 use stepdrive_monitor::pingpong::PingPongOptions;
 use stepdrive_monitor::report::{document, table};
 use stepdrive_monitor::simulate::simulate;
-use stepdrive_plant::bridge::{run_bridge, BridgeOptions};
+use stepdrive_plant::bridge::{run_bridge, BridgeOptions, DriveAddr};
 use stepdrive_plant::emulator::{run_emulator, EmulatorOptions, FaultInjection};
 use stepdrive_plant::process::{PlantError, PlantOptions, RealtimeOptions};
 use stepdrive_shared::pacer::WaitStrategy;
@@ -94,6 +94,9 @@ struct EmulateArgs {
     /// UDP address to listen on for the bridge.
     #[arg(long, default_value = "127.0.0.1:7700")]
     listen: std::net::SocketAddr,
+    /// Speak on this serial line (UART or pseudo-terminal, COBS framing) instead of UDP.
+    #[arg(long, value_name = "PATH")]
+    serial: Option<PathBuf>,
     #[command(flatten)]
     scenario: ScenarioOpt,
     /// How the drive's clock waits for its deadlines (see `run --help`).
@@ -261,13 +264,16 @@ struct PlantArgs {
     /// go off (zero volts) and a fault is latched (200 = 10 ms at 20 kHz).
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
     watchdog_periods: u32,
-    /// sim: the motor model. udp: a bridge to a drive at --drive speaking
-    /// docs/drive-protocol.md (hardware mode). serial: not implemented yet.
+    /// sim: the motor model. udp / serial: a bridge to a drive speaking
+    /// docs/drive-protocol.md at --drive ADDR:PORT / on --port PATH (hardware mode).
     #[arg(long, default_value = "sim", value_parser = ["sim", "udp", "serial"])]
     backend: String,
     /// The drive's UDP address (backend udp).
     #[arg(long, value_name = "ADDR:PORT")]
     drive: Option<std::net::SocketAddr>,
+    /// The drive's serial line, e.g. /dev/ttyACM0 (backend serial; COBS framing).
+    #[arg(long, value_name = "PATH")]
+    port: Option<PathBuf>,
     /// Bridge: periods without a valid sample before it publishes a fault and stops
     /// forwarding commands.
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
@@ -522,11 +528,16 @@ fn real_main(cli: Cli) -> Result<()> {
                 startup_timeout: lo.startup_timeout,
                 peer_timeout: lo.peer_timeout,
             };
-            if a.backend == "serial" {
-                anyhow::bail!("--backend serial is not implemented yet (UDP is; see the README)");
-            }
-            if a.backend == "udp" {
-                let drive = a.drive.context("--backend udp needs --drive ADDR:PORT")?;
+            if a.backend != "sim" {
+                let drive = if a.backend == "udp" {
+                    DriveAddr::Udp(a.drive.context("--backend udp needs --drive ADDR:PORT")?)
+                } else {
+                    DriveAddr::Serial(
+                        a.port
+                            .clone()
+                            .context("--backend serial needs --port PATH")?,
+                    )
+                };
                 if !(a.observer_hz.is_finite() && a.observer_hz > 0.0) {
                     anyhow::bail!("--observer-hz must be a positive number");
                 }
@@ -626,6 +637,7 @@ fn real_main(cli: Cli) -> Result<()> {
             };
             run_emulator(&EmulatorOptions {
                 listen: a.listen,
+                serial: a.serial,
                 scenario,
                 wait: a.wait,
                 rt: a.rt.options(),

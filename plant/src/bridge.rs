@@ -9,6 +9,7 @@ use crate::drive_protocol::{
 };
 use crate::drive_units::{duty_for, volts_for, Scaling, VelocityObserver};
 use crate::process::{wait_for_stack, PlantError, PlantOptions};
+use crate::wire::{SerialPort, Wire};
 use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
@@ -208,9 +209,26 @@ impl DriveLink {
     }
 }
 
+/// Where the drive is.
+#[derive(Debug, Clone)]
+pub enum DriveAddr {
+    Udp(SocketAddr),
+    /// A serial line: a UART (`/dev/ttyACM0`) or a pseudo-terminal.
+    Serial(std::path::PathBuf),
+}
+
+impl std::fmt::Display for DriveAddr {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DriveAddr::Udp(a) => write!(f, "udp://{a}"),
+            DriveAddr::Serial(p) => write!(f, "serial:{}", p.display()),
+        }
+    }
+}
+
 #[derive(Debug, Clone)]
 pub struct BridgeOptions {
-    pub drive: SocketAddr,
+    pub drive: DriveAddr,
     pub rt: RtOptions,
     /// No valid sample for this many periods: publish a fault and stop forwarding.
     pub silence_periods: u32,
@@ -218,21 +236,18 @@ pub struct BridgeOptions {
     pub offset_counts: Option<i64>,
 }
 
-/// Receives one datagram: the first of a batch blocking (up to the socket's timeout), the
-/// rest without waiting. `None` when nothing (more) is there.
-fn recv_frame(sock: &UdpSocket, buf: &mut [u8], first: &mut bool) -> Option<usize> {
-    use std::os::fd::AsRawFd;
-    let flags = if *first { 0 } else { libc::MSG_DONTWAIT };
+/// Receives one frame: the first of a batch waiting up to 1 ms (woken by the kernel when
+/// it lands), the rest without waiting. `None` when nothing (more) is there.
+fn recv_frame(wire: &mut Wire, buf: &mut [u8], first: &mut bool) -> Option<usize> {
+    let wait = if *first { 1 } else { 0 };
     *first = false;
-    // SAFETY: `buf` is valid for `buf.len()` bytes; the fd is the socket's own.
-    let n = unsafe { libc::recv(sock.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len(), flags) };
-    (n >= 0).then_some(n as usize)
+    wire.recv(buf, wait).map(|(n, _)| n)
 }
 
-fn send_frame(sock: &UdpSocket, f: &Frame) {
+fn send_frame(wire: &mut Wire, f: &Frame) {
     let mut buf = [0u8; MAX_FRAME];
     let n = encode(f, &mut buf);
-    let _ = sock.send(&buf[..n]);
+    wire.send(&buf[..n]);
 }
 
 /// Runs the bridge for the scenario's duration (hardware mode).
@@ -244,14 +259,24 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
     let stats_pub = publisher(&topics.stats, "monitor/stats")?;
     b.rt.apply()
         .map_err(|e| PlantError::Protocol(e.to_string()))?;
-    let local = if b.drive.ip().is_loopback() {
-        "127.0.0.1:0"
-    } else {
-        "0.0.0.0:0"
+    let mut wire = match &b.drive {
+        DriveAddr::Udp(addr) => {
+            let local = if addr.ip().is_loopback() {
+                "127.0.0.1:0"
+            } else {
+                "0.0.0.0:0"
+            };
+            let sock = UdpSocket::bind(local).map_err(io)?;
+            sock.connect(addr).map_err(io)?;
+            // Blocking with a short timeout: a waiting recv is woken when a datagram lands.
+            sock.set_read_timeout(Some(Duration::from_millis(1)))
+                .map_err(io)?;
+            Wire::Udp { sock, peer: None }
+        }
+        DriveAddr::Serial(path) => Wire::Serial(SerialPort::open(path).map_err(|e| {
+            PlantError::Protocol(format!("cannot open serial port {}: {e}", path.display()))
+        })?),
     };
-    let sock = UdpSocket::bind(local).map_err(io)?;
-    sock.connect(b.drive).map_err(io)?;
-    sock.set_nonblocking(true).map_err(io)?;
 
     let s = &opts.scenario;
     let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
@@ -273,39 +298,30 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             ));
         }
         if now >= next_hello {
-            send_frame(&sock, &link.hello_frame(now));
+            send_frame(&mut wire, &link.hello_frame(now));
             next_hello = now + 50_000_000;
         }
-        match sock.recv(&mut rx) {
-            Ok(n) => {
-                if let Event::Config(c) = link.on_frame(&rx[..n], now) {
-                    tracing::info!(?c, "drive configuration");
-                    if f64::from(c.sample_rate_hz) != s.rates.current_loop_hz.round() {
-                        return Err(PlantError::Protocol(format!(
-                            "drive samples at {} Hz, the scenario expects {} Hz",
-                            c.sample_rate_hz, s.rates.current_loop_hz
-                        )));
-                    }
+        if let Some((n, _)) = wire.recv(&mut rx, 1) {
+            if let Event::Config(c) = link.on_frame(&rx[..n], now) {
+                tracing::info!(?c, "drive configuration");
+                if f64::from(c.sample_rate_hz) != s.rates.current_loop_hz.round() {
+                    return Err(PlantError::Protocol(format!(
+                        "drive samples at {} Hz, the scenario expects {} Hz",
+                        c.sample_rate_hz, s.rates.current_loop_hz
+                    )));
                 }
             }
-            Err(_) => std::thread::sleep(Duration::from_millis(1)),
         }
     }
     wait_for_stack(&topics, opts)?;
     connect(&states)?;
     // Samples queued while the loops came up are stale: drop them and start the stream
     // (k = 0) with the next one, then enable the drive.
-    while sock.recv(&mut rx).is_ok() {}
-    // From here the first datagram of each period is awaited in a blocking recv (the
-    // kernel wakes us when it lands: no timer, whose wake-up costs ~25 µs here); the 1 ms
-    // timeout keeps the silence watchdog running.
-    sock.set_nonblocking(false).map_err(io)?;
-    sock.set_read_timeout(Some(Duration::from_millis(1)))
-        .map_err(io)?;
+    while wire.recv(&mut rx, 0).is_some() {}
     link.restart();
     let now = monotonic_ns();
-    send_frame(&sock, &link.control_frame(Action::Reset, now));
-    send_frame(&sock, &link.control_frame(Action::Enable, now));
+    send_frame(&mut wire, &link.control_frame(Action::Reset, now));
+    send_frame(&mut wire, &link.control_frame(Action::Enable, now));
 
     let n = s.sample_count();
     let mut stats = Box::new(StatsReport {
@@ -318,7 +334,8 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
     let mut silent = false;
     let silence_ns = u64::from(b.silence_periods) * period_ns;
     tracing::info!(samples = n, drive = %b.drive, "bridge running");
-    // Each period: block until a datagram lands, take everything queued, publish the
+    // Each period: wait (woken by the kernel when a frame lands: no timer, whose wake-up
+    // costs ~25 µs here; at most 1 ms, so the silence watchdog keeps running), take everything queued, publish the
     // newest sample, then poll for the current loop's answer for up to `answer_window` and
     // forward it. Never a continuous spin: the bridge shares a CPU with the drive
     // (emulated) or with the loops.
@@ -332,7 +349,7 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
         // only draw late commands) and the skipped ones show up as lost.
         let mut newest: Option<(DriveState, u64)> = None;
         loop {
-            while let Some(len) = recv_frame(&sock, &mut rx, &mut first_wait) {
+            while let Some(len) = recv_frame(&mut wire, &mut rx, &mut first_wait) {
                 let now = monotonic_ns();
                 match link.on_frame(&rx[..len], now) {
                     Event::State(st) => {
@@ -430,7 +447,7 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
                 }
                 let bus = last_state.map_or(0.0, |st| st.bus_voltage_v);
                 if let Some(f) = link.command_frame(&c, bus, now) {
-                    send_frame(&sock, &f);
+                    send_frame(&mut wire, &f);
                     sent_at[(f.seq % 64) as usize] = (f.seq, monotonic_ns());
                 }
             }
@@ -440,7 +457,10 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             std::hint::spin_loop();
         }
     }
-    send_frame(&sock, &link.control_frame(Action::Disable, monotonic_ns()));
+    send_frame(
+        &mut wire,
+        &link.control_frame(Action::Disable, monotonic_ns()),
+    );
     stats.crc_errors = link.crc_errors;
     stats.bad_frames = link.bad_frames;
     stats.rejected_commands = link.rejected_commands;

@@ -8,6 +8,7 @@ use crate::drive_protocol::{
 };
 use crate::drive_units::{default_config, volts_for, Scaling};
 use crate::sim::PlantSim;
+use crate::wire::{SerialPort, Wire};
 use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
@@ -227,7 +228,10 @@ impl DriveCore {
 
 #[derive(Debug, Clone)]
 pub struct EmulatorOptions {
+    /// UDP address to listen on; ignored when `serial` is given.
     pub listen: SocketAddr,
+    /// Serial line (UART or pseudo-terminal) to use instead of UDP.
+    pub serial: Option<std::path::PathBuf>,
     pub scenario: Scenario,
     pub wait: WaitStrategy,
     pub rt: RtOptions,
@@ -245,23 +249,29 @@ pub enum EmulatorError {
     Rt(#[from] stepdrive_shared::rt::RtError),
 }
 
-fn send_frame(sock: &UdpSocket, to: SocketAddr, frame: &Frame, buf: &mut [u8; MAX_FRAME]) {
+fn send_frame(wire: &mut Wire, frame: &Frame, buf: &mut [u8; MAX_FRAME]) {
     let n = encode(frame, buf);
-    // A full socket buffer drops the frame, as a wire would.
-    let _ = sock.send_to(&buf[..n], to);
+    // A full socket or line buffer drops the frame, as a wire would.
+    wire.send(&buf[..n]);
 }
 
 pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError> {
-    let sock = UdpSocket::bind(o.listen)?;
-    sock.set_nonblocking(true)?;
+    let mut wire = match &o.serial {
+        Some(path) => Wire::Serial(SerialPort::open(path)?),
+        None => {
+            let sock = UdpSocket::bind(o.listen)?;
+            sock.set_nonblocking(true)?;
+            Wire::Udp { sock, peer: None }
+        }
+    };
     o.rt.apply()?;
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods);
     let period_ns = (1e9 / o.scenario.rates.current_loop_hz).round() as u64;
     let mut buf = [0u8; MAX_FRAME];
     let mut rx = [0u8; 2048];
-    tracing::info!(listen = %o.listen, "emulated drive up; waiting for HELLO");
-    // The host announces itself with HELLO; samples go to whoever sent the last one.
-    let mut host: Option<SocketAddr> = None;
+    tracing::info!(listen = %o.listen, serial = ?o.serial, "emulated drive up; waiting for HELLO");
+    // The host announces itself with HELLO; on UDP samples go to whoever sent the last one.
+    let mut connected = false;
     let started = monotonic_ns();
     let mut pacer = Pacer::new(started + period_ns, period_ns, o.wait);
     let mut reordered: Option<Frame> = None;
@@ -277,21 +287,24 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 break;
             }
         }
-        while let Ok((n, from)) = sock.recv_from(&mut rx) {
+        while let Some((n, from)) = wire.recv(&mut rx, 0) {
             if let Some(Reply::Config(c)) = core.on_frame(&rx[..n]) {
-                host = Some(from);
+                if let (Wire::Udp { peer, .. }, Some(from)) = (&mut wire, from) {
+                    *peer = Some(from);
+                }
+                connected = true;
                 let f = Frame {
                     seq: 0,
                     timestamp_ns: monotonic_ns(),
                     message: Message::Config(c),
                 };
-                send_frame(&sock, from, &f, &mut buf);
+                send_frame(&mut wire, &f, &mut buf);
             }
         }
-        let Some(to) = host else {
+        if !connected {
             pacer.skip_to(monotonic_ns());
             continue;
-        };
+        }
         let since = *running_since.get_or_insert(tick.woke_ns);
         let t_s = (tick.woke_ns - since) as f64 * 1e-9;
         if o.inject.overcurrent_after_s.is_some_and(|a| t_s >= a)
@@ -308,16 +321,16 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
             if every(o.inject.corrupt_every) {
                 let n = encode(&frame, &mut buf);
                 buf[n / 2] ^= 0x10;
-                let _ = sock.send_to(&buf[..n], to);
+                wire.send(&buf[..n]);
             } else if every(o.inject.reorder_every) {
                 reordered = Some(frame);
             } else {
-                send_frame(&sock, to, &frame, &mut buf);
+                send_frame(&mut wire, &frame, &mut buf);
                 if let Some(late) = reordered.take() {
-                    send_frame(&sock, to, &late, &mut buf);
+                    send_frame(&mut wire, &late, &mut buf);
                 }
                 if every(o.inject.duplicate_every) {
-                    send_frame(&sock, to, &frame, &mut buf);
+                    send_frame(&mut wire, &frame, &mut buf);
                 }
             }
         }
@@ -331,7 +344,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 timestamp_ns: monotonic_ns(),
                 message: Message::FaultReport(report),
             };
-            send_frame(&sock, to, &f, &mut buf);
+            send_frame(&mut wire, &f, &mut buf);
         }
         sample_seq = sample_seq.wrapping_add(1);
         // Like the simulated plant: a host stall pauses the drive's time (see plant/process).

@@ -9,3 +9,4 @@ pub mod emulator;
 pub mod model;
 pub mod process;
 pub mod sim;
+pub mod wire;

@@ -1,0 +1,186 @@
+//! The byte transports of the drive protocol: UDP (one datagram per frame) and a serial
+//! line (COBS-framed, 0x00-delimited), behind one interface for the bridge and the
+//! emulated drive.
+
+use crate::drive_protocol::{cobs_decode, cobs_encode, MAX_FRAME};
+use std::io;
+use std::net::{SocketAddr, UdpSocket};
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+use std::path::Path;
+
+/// A raw serial line (a UART or a pseudo-terminal), non-blocking, with COBS framing.
+pub struct SerialPort {
+    fd: OwnedFd,
+    rx: Vec<u8>,
+    /// Frames dropped because their COBS encoding was broken.
+    pub framing_errors: u64,
+}
+
+impl SerialPort {
+    pub fn open(path: &Path) -> io::Result<Self> {
+        let c = std::ffi::CString::new(path.as_os_str().as_encoded_bytes())
+            .map_err(|_| io::Error::new(io::ErrorKind::InvalidInput, "NUL in path"))?;
+        // SAFETY: valid C string; the returned fd is owned below.
+        let fd =
+            unsafe { libc::open(c.as_ptr(), libc::O_RDWR | libc::O_NOCTTY | libc::O_NONBLOCK) };
+        if fd < 0 {
+            return Err(io::Error::last_os_error());
+        }
+        // SAFETY: `fd` was just opened and is owned by nobody else.
+        let fd = unsafe { OwnedFd::from_raw_fd(fd) };
+        // Raw 8N1, no echo, no line discipline; the speed matters only on a real UART.
+        // SAFETY: termios is plain data filled by tcgetattr.
+        unsafe {
+            let mut t: libc::termios = std::mem::zeroed();
+            if libc::tcgetattr(fd.as_raw_fd(), &mut t) == 0 {
+                libc::cfmakeraw(&mut t);
+                libc::cfsetspeed(&mut t, libc::B921600);
+                libc::tcsetattr(fd.as_raw_fd(), libc::TCSANOW, &t);
+            }
+        }
+        Ok(Self {
+            fd,
+            rx: Vec::with_capacity(4096),
+            framing_errors: 0,
+        })
+    }
+
+    pub fn send(&mut self, frame: &[u8]) -> io::Result<()> {
+        let mut enc = [0u8; 2 * MAX_FRAME + 2];
+        let n = cobs_encode(frame, &mut enc);
+        let mut at = 0;
+        while at < n {
+            // SAFETY: writing from a valid buffer slice to our own fd.
+            let w = unsafe { libc::write(self.fd.as_raw_fd(), enc[at..n].as_ptr().cast(), n - at) };
+            if w < 0 {
+                let e = io::Error::last_os_error();
+                if e.kind() == io::ErrorKind::WouldBlock {
+                    // A full line buffer drops the rest of the frame; the 0x00 delimiter
+                    // of the next one resynchronises the receiver.
+                    return Ok(());
+                }
+                return Err(e);
+            }
+            at += w as usize;
+        }
+        Ok(())
+    }
+
+    /// Next complete frame (decoded) into `out`, waiting up to `wait_ms` for bytes.
+    pub fn recv(&mut self, out: &mut [u8], wait_ms: i32) -> Option<usize> {
+        loop {
+            if let Some(end) = self.rx.iter().position(|&b| b == 0) {
+                let chunk: Vec<u8> = self.rx.drain(..=end).collect();
+                match cobs_decode(&chunk[..chunk.len() - 1], out) {
+                    Ok(n) if n > 0 => return Some(n),
+                    _ => {
+                        self.framing_errors += 1;
+                        continue;
+                    }
+                }
+            }
+            let mut pfd = libc::pollfd {
+                fd: self.fd.as_raw_fd(),
+                events: libc::POLLIN,
+                revents: 0,
+            };
+            // SAFETY: one valid pollfd.
+            if unsafe { libc::poll(&mut pfd, 1, wait_ms) } <= 0 {
+                return None;
+            }
+            let mut buf = [0u8; 1024];
+            // SAFETY: reading into a valid buffer from our own fd.
+            let r = unsafe { libc::read(self.fd.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
+            if r <= 0 {
+                return None;
+            }
+            self.rx.extend_from_slice(&buf[..r as usize]);
+            // Garbage without a delimiter must not grow without bound.
+            if self.rx.len() > 16 * MAX_FRAME {
+                self.rx.clear();
+                self.framing_errors += 1;
+            }
+        }
+    }
+}
+
+/// Where a drive or a host sends and receives frames.
+pub enum Wire {
+    /// Host side: a socket connected to the drive. Drive side: a bound socket that answers
+    /// whoever sent the last HELLO (`peer`).
+    Udp {
+        sock: UdpSocket,
+        peer: Option<SocketAddr>,
+    },
+    Serial(SerialPort),
+}
+
+impl Wire {
+    /// Receives one frame into `buf`, waiting up to `wait_ms` (0: do not wait).
+    /// Returns its length and, on UDP, its source.
+    pub fn recv(&mut self, buf: &mut [u8], wait_ms: i32) -> Option<(usize, Option<SocketAddr>)> {
+        match self {
+            Wire::Udp { sock, .. } => {
+                let flags = if wait_ms > 0 { 0 } else { libc::MSG_DONTWAIT };
+                let mut addr: libc::sockaddr_storage = unsafe { std::mem::zeroed() };
+                let mut len = std::mem::size_of::<libc::sockaddr_storage>() as libc::socklen_t;
+                // SAFETY: valid buffer and address storage for recvfrom.
+                let n = unsafe {
+                    libc::recvfrom(
+                        sock.as_raw_fd(),
+                        buf.as_mut_ptr().cast(),
+                        buf.len(),
+                        flags,
+                        (&mut addr as *mut libc::sockaddr_storage).cast(),
+                        &mut len,
+                    )
+                };
+                if n < 0 {
+                    return None;
+                }
+                Some((n as usize, sockaddr_to_std(&addr)))
+            }
+            Wire::Serial(p) => p.recv(buf, wait_ms).map(|n| (n, None)),
+        }
+    }
+
+    /// Sends one frame to the peer (dropped if there is none yet or the line is full).
+    pub fn send(&mut self, frame: &[u8]) {
+        match self {
+            Wire::Udp { sock, peer } => {
+                let _ = match peer {
+                    Some(p) => sock.send_to(frame, *p),
+                    None => sock.send(frame),
+                };
+            }
+            Wire::Serial(p) => {
+                let _ = p.send(frame);
+            }
+        }
+    }
+
+    pub fn has_peer(&self) -> bool {
+        match self {
+            Wire::Udp { peer, sock } => peer.is_some() || sock.peer_addr().is_ok(),
+            Wire::Serial(_) => true,
+        }
+    }
+}
+
+fn sockaddr_to_std(a: &libc::sockaddr_storage) -> Option<SocketAddr> {
+    match i32::from(a.ss_family) {
+        libc::AF_INET => {
+            // SAFETY: the family says this storage holds a sockaddr_in.
+            let v4: &libc::sockaddr_in = unsafe { &*(a as *const _ as *const libc::sockaddr_in) };
+            let ip = std::net::Ipv4Addr::from(u32::from_be(v4.sin_addr.s_addr));
+            Some(SocketAddr::new(ip.into(), u16::from_be(v4.sin_port)))
+        }
+        libc::AF_INET6 => {
+            // SAFETY: the family says this storage holds a sockaddr_in6.
+            let v6: &libc::sockaddr_in6 = unsafe { &*(a as *const _ as *const libc::sockaddr_in6) };
+            let ip = std::net::Ipv6Addr::from(v6.sin6_addr.s6_addr);
+            Some(SocketAddr::new(ip.into(), u16::from_be(v6.sin6_port)))
+        }
+        _ => None,
+    }
+}

@@ -485,23 +485,11 @@ fn latency_session_writes_its_files() {
     assert!(processes_with(&inst).is_empty());
 }
 
-/// Hardware-mode tests run the paper's scenario at 2 kHz / 200 Hz: at 20 kHz, five
+/// Hardware-mode tests run the short scenario at 2 kHz / 200 Hz: at 20 kHz, five
 /// processes plus loopback UDP do not fit on this project's 2-core machines (README).
-const SLOW: &str = r#"
-name = "slow-2khz"
-[rates]
-current_loop_hz = 2000.0
-position_loop_hz = 200.0
-[trajectory]
-accel_s = 0.1
-cruise_s = 0.35
-decel_s = 0.1
-hold_s = 0.15
-[metrics]
-cruise_start_s = 0.3
-cruise_end_s = 0.45
-final_window_s = 0.05
-"#;
+fn slow_scenario() -> String {
+    format!("{SHORT}\n[rates]\ncurrent_loop_hz = 2000.0\nposition_loop_hz = 200.0\n")
+}
 
 fn free_udp_port() -> u16 {
     std::net::UdpSocket::bind("127.0.0.1:0")
@@ -546,7 +534,7 @@ fn hardware_run(scenario: &Path, inst: &str, json: &Path, extra: &[&str]) -> Out
 fn hardware_mode_runs_against_the_emulated_drive() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("hwrun");
-    let scenario = dir.file("slow.toml", SLOW);
+    let scenario = dir.file("slow.toml", &slow_scenario());
     let json = dir.path("hw.json");
     let inst = instance("hwrun");
     let out = hardware_run(&scenario, &inst, &json, &[]);
@@ -571,7 +559,7 @@ fn hardware_mode_runs_against_the_emulated_drive() {
 fn corrupted_frames_are_counted_and_not_applied() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("hwcrc");
-    let scenario = dir.file("slow.toml", SLOW);
+    let scenario = dir.file("slow.toml", &slow_scenario());
     let json = dir.path("hw.json");
     let inst = instance("hwcrc");
     let port = free_udp_port().to_string();
@@ -614,7 +602,10 @@ fn corrupted_frames_are_counted_and_not_applied() {
 fn killing_the_current_loop_turns_the_drive_outputs_off() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("hwkill");
-    let scenario = dir.file("long.toml", &format!("{SLOW}\n[run]\nduration_s = 60.0\n"));
+    let scenario = dir.file(
+        "long.toml",
+        &format!("{}\n[run]\nduration_s = 60.0\n", slow_scenario()),
+    );
     let sc = scenario.to_str().unwrap();
     let inst = instance("hwkill");
     let listen = format!("127.0.0.1:{}", free_udp_port());
@@ -667,7 +658,10 @@ fn killing_the_current_loop_turns_the_drive_outputs_off() {
 fn a_silent_drive_is_reported_by_the_bridge() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("hwsilent");
-    let scenario = dir.file("long.toml", &format!("{SLOW}\n[run]\nduration_s = 30.0\n"));
+    let scenario = dir.file(
+        "long.toml",
+        &format!("{}\n[run]\nduration_s = 30.0\n", slow_scenario()),
+    );
     let json = dir.path("hw.json");
     let inst = instance("hwsilent");
     let listen = format!("127.0.0.1:{}", free_udp_port());
@@ -789,7 +783,7 @@ impl Drop for NullModem {
 fn serial_path_works_over_a_pseudo_terminal_pair() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("serial");
-    let scenario = dir.file("slow.toml", SLOW);
+    let scenario = dir.file("slow.toml", &slow_scenario());
     let sc = scenario.to_str().unwrap();
     let inst = instance("serial");
     let cable = NullModem::new();

@@ -63,7 +63,8 @@ enum Cmd {
     /// histograms and a log-y plot in --out DIR.
     Latency(LatencyArgs),
     /// A stand-in driver board: the motor model behind the drive wire protocol
-    /// (docs/drive-protocol.md) on UDP, with its own sample clock and fault injection.
+    /// (docs/drive-protocol.md) on UDP or a serial line, with its own sample clock and
+    /// fault injection.
     EmulateDrive(EmulateArgs),
     /// Transport baseline process used by `latency` (ping paced like the plant, pong waiting
     /// like the current loop).
@@ -307,7 +308,8 @@ struct RunArgs {
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
     /// lockstep: virtual time, bit-identical, as fast as possible. realtime: wall clock,
-    /// 20 kHz on absolute deadlines, late commands are held and counted.
+    /// 20 kHz on absolute deadlines, late commands are held and counted. hardware: the
+    /// plant is a bridge to a drive (--drive, or an emulated one started for the run).
     #[arg(long, default_value = "lockstep")]
     mode: Mode,
     #[command(flatten)]
@@ -333,8 +335,9 @@ struct StackArgs {
     /// 0 runs it SCHED_OTHER, which RT throttling does not touch.
     #[arg(long, value_parser = clap::value_parser!(u8).range(0..=99))]
     current_priority: Option<u8>,
-    /// Realtime: CPUs as PLANT,CURRENT: the plant and position loop are pinned to the first,
-    /// the (spinning) current loop to the second. `none` disables pinning.
+    /// Realtime: CPUs as PLANT,CURRENT: the plant and position loop (hardware: the drive and
+    /// the bridge) are pinned to the first, the current loop to the second. `none` disables
+    /// pinning.
     #[arg(long, default_value = "0,1")]
     cpus: String,
     /// Realtime: do not mlockall.

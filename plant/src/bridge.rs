@@ -188,6 +188,14 @@ impl DriveLink {
         Some(frame)
     }
 
+    /// Puts the link's counters into a stats report (drive-held periods are its misses).
+    pub fn copy_counters(&self, stats: &mut StatsReport) {
+        stats.crc_errors = self.crc_errors;
+        stats.bad_frames = self.bad_frames;
+        stats.rejected_commands = self.rejected_commands;
+        stats.misses = self.held_periods;
+    }
+
     pub fn control_frame(&mut self, action: Action, now_ns: u64) -> Frame {
         let f = Frame {
             seq: self.tx_seq,
@@ -340,6 +348,8 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
     // forward it. Never a continuous spin: the bridge shares a CPU with the drive
     // (emulated) or with the loops.
     let answer_window = period_ns * 6 / 10;
+    // About once a second, for the monitor's progress line.
+    let stats_every = (s.rates.current_loop_hz.round() as u64).max(1);
     let mut first_wait = true;
     'run: loop {
         if termination_requested() {
@@ -425,6 +435,10 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             send(&states, st)?;
             stats.cycles += 1;
             stats.compute.record(monotonic_ns() - rx_at);
+            if stats.cycles % stats_every == 0 {
+                link.copy_counters(&mut stats);
+                publish_stats(&stats_pub, &mut stats, false)?;
+            }
             last_rx = rx_at;
             last_state = Some(st);
             if last {
@@ -461,10 +475,7 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
         &mut wire,
         &link.control_frame(Action::Disable, monotonic_ns()),
     );
-    stats.crc_errors = link.crc_errors;
-    stats.bad_frames = link.bad_frames;
-    stats.rejected_commands = link.rejected_commands;
-    stats.misses = link.held_periods;
+    link.copy_counters(&mut stats);
     publish_stats(&stats_pub, &mut stats, true)?;
     tracing::info!(
         crc_errors = link.crc_errors,
@@ -478,21 +489,8 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::drive_protocol::Sample;
+    use crate::drive_protocol::{frame_bytes as bytes, Sample};
     use crate::drive_units::default_config;
-
-    fn bytes(seq: u32, m: Message) -> Vec<u8> {
-        let mut b = [0u8; MAX_FRAME];
-        let n = encode(
-            &Frame {
-                seq,
-                timestamp_ns: 0,
-                message: m,
-            },
-            &mut b,
-        );
-        b[..n].to_vec()
-    }
 
     fn sample(counts: i32) -> Message {
         Message::Sample(Sample {

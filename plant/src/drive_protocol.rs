@@ -458,6 +458,19 @@ pub fn is_newer(seq: u32, last: Option<u32>) -> bool {
     }
 }
 
+/// Test helper: one encoded frame as bytes.
+#[cfg(test)]
+pub(crate) fn frame_bytes(seq: u32, message: Message) -> Vec<u8> {
+    let mut b = [0u8; MAX_FRAME];
+    let frame = Frame {
+        seq,
+        timestamp_ns: 0,
+        message,
+    };
+    let n = encode(&frame, &mut b);
+    b[..n].to_vec()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

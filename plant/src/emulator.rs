@@ -365,19 +365,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn frame_bytes(seq: u32, m: Message) -> Vec<u8> {
-        let mut b = [0u8; MAX_FRAME];
-        let n = encode(
-            &Frame {
-                seq,
-                timestamp_ns: 0,
-                message: m,
-            },
-            &mut b,
-        );
-        b[..n].to_vec()
-    }
+    use crate::drive_protocol::frame_bytes;
 
     fn cmd(answers: u32, d: i16) -> Message {
         Message::Command(Command {

@@ -126,6 +126,20 @@ mod tests {
         assert!(r.final_error_rad.abs() < 1e-6, "{r:?}");
     }
 
+    /// Open-loop microstepping (2) follows a slow move but steps out at the paper's speed:
+    /// there the back-EMF amplitude K_m ω_d = 6.6 V exceeds V_max = 6.5 V, leaving no
+    /// voltage to drive current (why the paper's comparison uses current feedback).
+    #[test]
+    fn open_loop_microstepping_steps_out_at_the_papers_speed() {
+        let mut slow = Scenario::default();
+        slow.trajectory.cruise_velocity_rad_s = 2.0;
+        let r = simulate(&slow, Method::OpenLoop);
+        assert!(r.cruise_max_abs_error_rad < 0.02, "{r:?}");
+        let fast = simulate(&Scenario::default(), Method::OpenLoop);
+        let step = std::f64::consts::TAU / 200.0;
+        assert!(fast.cruise_max_abs_error_rad > 10.0 * step, "{fast:?}");
+    }
+
     /// The in-process reference is deterministic to the bit.
     #[test]
     fn simulation_is_bit_identical_across_runs() {

@@ -252,7 +252,7 @@ pub fn run_current_loop_realtime(
         .map_err(|e| ControllerError::Protocol(e.to_string()))?;
     let commands = publisher(&topics.command, "drive/command")?;
     let s = &opts.scenario;
-    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let period_ns = s.sample_period_ns();
     let answer_budget_ns = period_ns * u64::from(s.rates.compute_delay_periods.max(1));
     let mut body = CurrentLoop::new(s, method);
     let mut setpoint = TorqueSetpoint::default();
@@ -339,7 +339,7 @@ pub fn run_position_loop_realtime(
         .map_err(|e| ControllerError::Protocol(e.to_string()))?;
     let setpoints = publisher(&topics.setpoint, "control/setpoint")?;
     let s = &opts.scenario;
-    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let period_ns = s.sample_period_ns();
     let tick_ns = period_ns * s.rate_ratio();
     let mut body = PositionLoop::new(s);
     let mut stats = Box::new(StatsReport {

@@ -180,7 +180,7 @@ fn cyclictest(o: &LatencyOptions, period_ns: u64, out_dir: &Path) -> Result<Opti
 pub fn run_latency(s: &Scenario, o: &LatencyOptions) -> Result<LatencyReport> {
     std::fs::create_dir_all(&o.out)
         .with_context(|| format!("cannot create {}", o.out.display()))?;
-    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let period_ns = s.sample_period_ns();
     let mut notes = Vec::new();
     tracing::info!(
         "latency session: {:.0} s realtime stack run, then baselines of {:.0} s each",

@@ -287,7 +287,7 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
     };
 
     let s = &opts.scenario;
-    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let period_ns = s.sample_period_ns();
     let mut link = DriveLink::new(s.rates.current_loop_hz, b.observer_hz, b.offset_counts);
     let mut rx = [0u8; 2048];
 

@@ -266,7 +266,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     };
     o.rt.apply()?;
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods);
-    let period_ns = (1e9 / o.scenario.rates.current_loop_hz).round() as u64;
+    let period_ns = o.scenario.sample_period_ns();
     let mut buf = [0u8; MAX_FRAME];
     let mut rx = [0u8; 2048];
     tracing::info!(listen = %o.listen, serial = ?o.serial, "emulated drive up; waiting for HELLO");

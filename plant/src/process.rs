@@ -185,7 +185,7 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
 
     let s = &opts.scenario;
     let n = s.sample_count();
-    let period_ns = (1e9 / s.rates.current_loop_hz).round() as u64;
+    let period_ns = s.sample_period_ns();
     let delay = u64::from(s.rates.compute_delay_periods);
     let mut sim = PlantSim::new(s);
     let mut slot = CommandSlot::default();

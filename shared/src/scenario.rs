@@ -440,6 +440,11 @@ impl Scenario {
         1.0 / self.rates.current_loop_hz
     }
 
+    /// Current-loop sample period in whole nanoseconds, for deadline arithmetic.
+    pub fn sample_period_ns(&self) -> u64 {
+        (1e9 / self.rates.current_loop_hz).round() as u64
+    }
+
     /// Current-loop samples per position-loop tick.
     pub fn rate_ratio(&self) -> u64 {
         (self.rates.current_loop_hz / self.rates.position_loop_hz).round() as u64

@@ -248,9 +248,7 @@ fn run_ping(o: &PingPongOptions, link: &mut Link) -> Result<()> {
             ..Default::default()
         };
         link.send(&m)?;
-        if monotonic_ns() > pacer.deadline(k + 1) {
-            pacer.reanchor(k + 1, monotonic_ns() + o.period_ns);
-        }
+        pacer.pause_if_late(k + 1, monotonic_ns());
     }
     std::thread::sleep(Duration::from_millis(100));
     Ok(())

@@ -348,10 +348,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
         }
         sample_seq = sample_seq.wrapping_add(1);
         // Like the simulated plant: a host stall pauses the drive's time (see plant/process).
-        let now = monotonic_ns();
-        if now > pacer.deadline(u64::from(sample_seq)) {
-            pacer.reanchor(u64::from(sample_seq), now + period_ns);
-        }
+        pacer.pause_if_late(u64::from(sample_seq), monotonic_ns());
     }
     let c = core.counters;
     tracing::info!(?c, faults = core.latched_faults(), "emulated drive stopped");

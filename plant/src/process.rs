@@ -249,12 +249,9 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
         // stall stays visible in the wake-up and period figures). Catching up instead would
         // publish samples back to back and charge the current loop for periods it was
         // never given.
-        let now = monotonic_ns();
-        let next_deadline = pacer.deadline(sim.sample_index());
-        if now > next_deadline {
+        if let Some(late) = pacer.pause_if_late(sim.sample_index(), monotonic_ns()) {
             stats.overruns += 1;
-            paused_ns += now - next_deadline;
-            pacer.reanchor(sim.sample_index(), now + period_ns);
+            paused_ns += late;
         }
         // The plant's misses are the commands it lacked (`slot`); its own lateness shows as
         // overruns, so the recorder's miss count is not used here.

@@ -147,6 +147,17 @@ impl Pacer {
         self.next = index;
     }
 
+    /// For a simulated device whose time must not run while its process is held up: if
+    /// deadline `index` is already past at `now_ns`, moves it one period after `now_ns` and
+    /// returns by how much it was late (the time paused).
+    pub fn pause_if_late(&mut self, index: u64, now_ns: u64) -> Option<u64> {
+        let due = self.deadline(index);
+        (now_ns > due).then(|| {
+            self.reanchor(index, now_ns + self.period_ns);
+            now_ns - due
+        })
+    }
+
     pub fn epoch_ns(&self) -> u64 {
         self.epoch_ns
     }
@@ -178,6 +189,20 @@ mod tests {
         let mut late = Pacer::new(monotonic_ns() - 10_000_000, 1_000_000, WaitStrategy::Spin);
         assert!(late.skip_to(monotonic_ns()) >= 10);
         assert!(late.wait().woke_ns >= late.deadline(0));
+    }
+
+    #[test]
+    fn a_late_deadline_is_paused_not_caught_up() {
+        let mut p = Pacer::new(1_000, 100, WaitStrategy::Spin);
+        assert_eq!(
+            p.pause_if_late(3, 1_250),
+            None,
+            "deadline 3 is 1_300, not past"
+        );
+        assert_eq!(p.deadline(3), 1_300);
+        assert_eq!(p.pause_if_late(3, 1_450), Some(150));
+        assert_eq!(p.deadline(3), 1_550);
+        assert_eq!(p.deadline(4), 1_650);
     }
 
     #[test]

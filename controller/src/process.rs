@@ -8,7 +8,7 @@ use std::fmt::Debug;
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
 use stepdrive_shared::messages::{state_flags, DriveState, TorqueSetpoint};
-use stepdrive_shared::pacer::{sleep_until, Pacer, WaitStrategy};
+use stepdrive_shared::pacer::{await_message, Arrival, Pacer, WaitStrategy};
 use stepdrive_shared::poll::termination_requested;
 use stepdrive_shared::poll::{poll_until, WaitError};
 use stepdrive_shared::rt::RtOptions;
@@ -52,7 +52,11 @@ fn receive_next<T: Debug + Copy + Message + 'static>(
     what: &'static str,
     peer: &'static str,
 ) -> Result<T, ControllerError> {
-    poll_until(timeout, || try_receive(sub)).map_err(|e| match e {
+    poll_until(timeout, || try_receive(sub)).map_err(|e| wait_error(e, what, peer))
+}
+
+fn wait_error(e: WaitError<IpcError>, what: &'static str, peer: &'static str) -> ControllerError {
+    match e {
         WaitError::Timeout(timeout) => ControllerError::PeerTimeout {
             what,
             peer,
@@ -60,7 +64,7 @@ fn receive_next<T: Debug + Copy + Message + 'static>(
         },
         WaitError::Terminated => ControllerError::Terminated,
         WaitError::Source(e) => ControllerError::Ipc(e),
-    })
+    }
 }
 
 /// Receives the next state and checks it is the one expected (no gaps in lockstep).
@@ -170,17 +174,8 @@ pub struct RealtimeLoopOptions {
     pub rt: RtOptions,
 }
 
-/// What `await_newest` returns: the newest queued message, when it was taken, how many
-/// older ones were skipped, and the timer's wake-up latency if the loop slept on one.
-struct Arrival<T> {
-    message: T,
-    taken_ns: u64,
-    timer_latency_ns: Option<u64>,
-}
-
-/// Polls `sub` until a message arrives, waiting per `wait`: spinning, sleeping in 10 µs
-/// steps, or sleeping on the absolute deadline `margin` before `expected_ns` (the next
-/// sample's deadline) and spinning from there.
+/// Waits (per `wait`, see [`await_message`]) for the next state and takes the newest one
+/// queued: older ones are stale for a realtime loop and show up as lost by sequence gap.
 fn await_newest<T: Debug + Copy + Message + 'static>(
     sub: &Sub<T>,
     wait: WaitStrategy,
@@ -189,48 +184,14 @@ fn await_newest<T: Debug + Copy + Message + 'static>(
     peer: &'static str,
     what: &'static str,
 ) -> Result<Arrival<T>, ControllerError> {
-    let mut timer_latency_ns = None;
-    if let WaitStrategy::Hybrid { margin_ns } = wait {
-        let target = expected_ns.saturating_sub(margin_ns);
-        if target > monotonic_ns() {
-            sleep_until(target);
-            timer_latency_ns = Some(monotonic_ns().saturating_sub(target));
-        }
-    }
-    let start = monotonic_ns();
-    let timeout_ns = timeout.as_nanos() as u64;
-    let mut polls: u32 = 0;
-    loop {
+    await_message(wait, expected_ns, timeout, || {
         let mut newest = None;
         while let Some(m) = try_receive(sub)? {
             newest = Some(m);
         }
-        if let Some(message) = newest {
-            return Ok(Arrival {
-                message,
-                taken_ns: monotonic_ns(),
-                timer_latency_ns,
-            });
-        }
-        polls = polls.wrapping_add(1);
-        if polls % 256 == 0 || wait == WaitStrategy::Sleep {
-            if termination_requested() {
-                return Err(ControllerError::Terminated);
-            }
-            let now = monotonic_ns();
-            if now - start > timeout_ns {
-                return Err(ControllerError::PeerTimeout {
-                    what,
-                    peer,
-                    timeout,
-                });
-            }
-            if wait == WaitStrategy::Sleep {
-                sleep_until(now + 10_000);
-            }
-        }
-        std::hint::spin_loop();
-    }
+        Ok(newest)
+    })
+    .map_err(|e| wait_error(e, what, peer))
 }
 
 /// Realtime current loop: woken by each state sample (by polling, see `await_newest`),

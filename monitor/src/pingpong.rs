@@ -9,8 +9,8 @@ use std::path::PathBuf;
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
 use stepdrive_shared::messages::{state_flags, DriveState};
-use stepdrive_shared::pacer::{sleep_until, Pacer, WaitStrategy};
-use stepdrive_shared::poll::termination_requested;
+use stepdrive_shared::pacer::{await_message, Pacer, WaitStrategy};
+use stepdrive_shared::poll::{termination_requested, WaitError};
 use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
@@ -257,34 +257,16 @@ fn run_ping(o: &PingPongOptions, link: &mut Link) -> Result<()> {
 fn run_pong(o: &PingPongOptions, link: &mut Link) -> Result<()> {
     let mut hop = Box::<Histogram>::default();
     let mut expected = 0u64;
-    let mut last_rx = monotonic_ns();
-    let deadline = monotonic_ns() + o.duration.as_nanos() as u64 + 30_000_000_000;
     loop {
-        if let WaitStrategy::Hybrid { margin_ns } = o.wait {
-            let target = expected.saturating_sub(margin_ns);
-            if target > monotonic_ns() {
-                sleep_until(target);
-            }
-        }
-        let mut got = None;
-        let mut polls = 0u32;
-        while got.is_none() {
-            got = link.try_recv()?;
-            polls = polls.wrapping_add(1);
-            if got.is_none() && (polls % 256 == 0 || o.wait == WaitStrategy::Sleep) {
-                let now = monotonic_ns();
-                if termination_requested() || now > deadline || now - last_rx > 5_000_000_000 {
-                    bail!("ping side went silent");
-                }
-                if o.wait == WaitStrategy::Sleep {
-                    sleep_until(now + 10_000);
-                }
-            }
-        }
-        let Some(m) = got else { continue };
-        let now = monotonic_ns();
-        last_rx = now;
-        hop.record(now.saturating_sub(m.publish_time_ns));
+        // The current loop's own wait, so the baseline differs from it only in transport.
+        let arrival = await_message(o.wait, expected, Duration::from_secs(5), || link.try_recv())
+            .map_err(|e| match e {
+            WaitError::Source(e) => e,
+            _ => anyhow::anyhow!("ping side went silent"),
+        })?;
+        let m = arrival.message;
+        // Measured exactly as the current loop measures its state hop.
+        hop.record(arrival.taken_ns.saturating_sub(m.publish_time_ns));
         let reply = DriveState {
             publish_time_ns: monotonic_ns(),
             ..m

@@ -3,7 +3,9 @@
 //! before the deadline and spinning the rest (iceoryx2's timers are jiffy-grained here).
 
 use crate::clock::monotonic_ns;
+use crate::poll::{termination_requested, WaitError};
 use std::str::FromStr;
+use std::time::Duration;
 
 /// How a loop waits for its next deadline or message.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -82,6 +84,61 @@ pub fn wait_until(t_ns: u64, strategy: WaitStrategy) -> u64 {
         let now = monotonic_ns();
         if now >= t_ns {
             return now;
+        }
+        std::hint::spin_loop();
+    }
+}
+
+/// A message taken by [`await_message`], when it was taken, and the timer's wake-up
+/// latency if the wait slept on one.
+#[derive(Debug, Clone, Copy)]
+pub struct Arrival<T> {
+    pub message: T,
+    pub taken_ns: u64,
+    pub timer_latency_ns: Option<u64>,
+}
+
+/// Waits for a message expected at `expected_ns` (a loop woken by its input rather than a
+/// clock): `hybrid:N` sleeps on the absolute time N before `expected_ns` and polls from
+/// there, `spin` polls throughout, `sleep` polls every 10 µs. `poll` returns the message
+/// when there is one. Gives up after `timeout` or on SIGINT/SIGTERM.
+pub fn await_message<T, E>(
+    wait: WaitStrategy,
+    expected_ns: u64,
+    timeout: Duration,
+    mut poll: impl FnMut() -> Result<Option<T>, E>,
+) -> Result<Arrival<T>, WaitError<E>> {
+    let mut timer_latency_ns = None;
+    if let WaitStrategy::Hybrid { margin_ns } = wait {
+        let target = expected_ns.saturating_sub(margin_ns);
+        if target > monotonic_ns() {
+            sleep_until(target);
+            timer_latency_ns = Some(monotonic_ns().saturating_sub(target));
+        }
+    }
+    let start = monotonic_ns();
+    let timeout_ns = timeout.as_nanos() as u64;
+    let mut polls: u32 = 0;
+    loop {
+        if let Some(message) = poll().map_err(WaitError::Source)? {
+            return Ok(Arrival {
+                message,
+                taken_ns: monotonic_ns(),
+                timer_latency_ns,
+            });
+        }
+        polls = polls.wrapping_add(1);
+        if polls % 256 == 0 || wait == WaitStrategy::Sleep {
+            if termination_requested() {
+                return Err(WaitError::Terminated);
+            }
+            let now = monotonic_ns();
+            if now - start > timeout_ns {
+                return Err(WaitError::Timeout(timeout));
+            }
+            if wait == WaitStrategy::Sleep {
+                sleep_until(now + 10_000);
+            }
         }
         std::hint::spin_loop();
     }

@@ -49,6 +49,8 @@ pub struct DriveLink {
     pub bad_frames: u64,
     pub rejected_commands: u64,
     pub held_periods: u64,
+    /// The drive's timestamp of the last accepted sample, ns on the drive's clock.
+    pub sample_timestamp_ns: u64,
 }
 
 impl DriveLink {
@@ -70,6 +72,7 @@ impl DriveLink {
             bad_frames: 0,
             rejected_commands: 0,
             held_periods: 0,
+            sample_timestamp_ns: 0,
         }
     }
 
@@ -121,6 +124,7 @@ impl DriveLink {
                     return Event::Dropped;
                 }
                 self.last_seq = Some(frame.seq);
+                self.sample_timestamp_ns = frame.timestamp_ns;
                 self.first_seq.get_or_insert(frame.seq);
                 // Unwrap the 32-bit counter into a 64-bit position.
                 let step = match self.last_raw {
@@ -363,11 +367,11 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
                 let now = monotonic_ns();
                 match link.on_frame(&rx[..len], now) {
                     Event::State(st) => {
-                        if let Ok(Frame { timestamp_ns, .. }) = decode(&rx[..len]) {
-                            // The emulated drive shares this host's clock; for a real
-                            // drive only the round trip below is meaningful.
-                            stats.hop.record(now.saturating_sub(timestamp_ns));
-                        }
+                        // The emulated drive shares this host's clock; for a real drive
+                        // only the round trip below is meaningful.
+                        stats
+                            .hop
+                            .record(now.saturating_sub(link.sample_timestamp_ns));
                         let q = st.applied_command_seq as u32;
                         let slot = &mut sent_at[(q % 64) as usize];
                         if slot.0 == q && slot.1 != 0 {

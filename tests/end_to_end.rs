@@ -721,6 +721,14 @@ impl NullModem {
             assert_eq!(rc, 0, "openpty: {}", std::io::Error::last_os_error());
             // SAFETY: openpty returned two fresh fds and a NUL-terminated name.
             unsafe {
+                // Non-blocking master: the relay is driven by poll() and must never block in
+                // write() (one run hung there for 12 minutes); bytes the other side cannot
+                // take are dropped, as on a real line.
+                libc::fcntl(
+                    m,
+                    libc::F_SETFL,
+                    libc::fcntl(m, libc::F_GETFL) | libc::O_NONBLOCK,
+                );
                 let mut t: libc::termios = std::mem::zeroed();
                 libc::tcgetattr(s, &mut t);
                 libc::cfmakeraw(&mut t);

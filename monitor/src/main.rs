@@ -152,17 +152,22 @@ struct PingpongArgs {
     rt: RtArgs,
 }
 
-fn parse_seconds(s: &str) -> Result<Duration, String> {
-    let v: f64 = s
-        .parse()
-        .map_err(|_| format!("`{s}` is not a number of seconds"))?;
+/// A run length or timeout: positive, finite, below 1e6 s.
+fn seconds(v: f64) -> Result<Duration, String> {
     if v.is_finite() && v > 0.0 && v < 1e6 {
         Ok(Duration::from_secs_f64(v))
     } else {
         Err(format!(
-            "must be a positive number of seconds below 1e6 (got {s})"
+            "must be a positive number of seconds below 1e6 (got {v})"
         ))
     }
+}
+
+fn parse_seconds(s: &str) -> Result<Duration, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number of seconds"))?;
+    seconds(v)
 }
 
 #[derive(Args, Debug, Clone)]
@@ -613,7 +618,7 @@ fn real_main(cli: Cli) -> Result<()> {
             let launch = a.stack.launch_options(Mode::Realtime)?;
             let _throttling = a.stack.throttling_guard(Mode::Realtime)?;
             let baseline = a.baseline_duration.unwrap_or(s.duration_s().min(20.0));
-            let baseline_duration = parse_seconds(&baseline.to_string())
+            let baseline_duration = seconds(baseline)
                 .map_err(anyhow::Error::msg)
                 .context("--baseline-duration")?;
             let opts = LatencyOptions {
@@ -635,7 +640,7 @@ fn real_main(cli: Cli) -> Result<()> {
         Cmd::EmulateDrive(a) => {
             let scenario = a.scenario.load()?;
             let duration = match a.duration {
-                Some(d) => Some(parse_seconds(&d.to_string()).map_err(anyhow::Error::msg)?),
+                Some(d) => Some(seconds(d).map_err(anyhow::Error::msg)?),
                 None => None,
             };
             run_emulator(&EmulatorOptions {
@@ -662,7 +667,7 @@ fn real_main(cli: Cli) -> Result<()> {
             if !(a.period_us.is_finite() && a.period_us >= 1.0) {
                 anyhow::bail!("--period-us must be ≥ 1");
             }
-            let duration = parse_seconds(&a.duration.to_string()).map_err(anyhow::Error::msg)?;
+            let duration = seconds(a.duration).map_err(anyhow::Error::msg)?;
             stepdrive_monitor::pingpong::run(&PingPongOptions {
                 transport: a.transport,
                 endpoint: a.endpoint,

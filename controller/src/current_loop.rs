@@ -1,11 +1,13 @@
 //! The current loop body, run once per plant sample: the selected method's desired currents
 //! (commutation (17) with the fresh rotor angle, or the microstepping references), the
-//! sampled current tracking law, and the bus limit. Pure: no IPC, no clock, no allocation.
+//! sampled current tracking law, the bus limit, and the voltage plan for the periods after.
+//! Pure: no IPC, no clock, no allocation.
 
 use crate::laws::commutation::commutate;
 use crate::laws::current_tracking::SampledCurrentLaw;
 use crate::laws::microstepping::{microstep_currents, microstep_voltages};
-use stepdrive_shared::messages::{DriveCommand, DriveState, TorqueSetpoint};
+use crate::laws::phasor::{Complex, Rotating};
+use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint, MAX_PLAN};
 use stepdrive_shared::scenario::MAX_COMPUTE_DELAY_PERIODS;
 use stepdrive_shared::{Method, Scenario};
 
@@ -22,12 +24,34 @@ pub struct CurrentLoop {
     bus_v: f64,
     period: f64,
     delay: usize,
-    /// Voltages already sent for the next `delay` periods, oldest first.
+    plan_periods: usize,
+    /// After answering sample m: the voltages of periods m+1 ..= m+d, oldest first (the
+    /// last is the one just sent; the others were sent before).
     decided: [[f64; 2]; MAX_DELAY],
-    commands: u64,
+    /// The sample answered last, and that command's sequence number.
+    answered: Option<(u64, u64)>,
+    /// Where the plan for the last command starts (set by `on_sample`, used by `plan`).
+    seed: Option<Seed>,
+    /// The last plan, built in place (~2 KB); `len` 0 until one is made.
+    plan: DrivePlan,
+}
+
+/// How the plan continues past the period just decided.
+#[derive(Debug, Clone, Copy)]
+enum Seed {
+    /// Iterate the current law from the current `start` predicted at sample k+d+1, with the
+    /// references and the back-EMF positioned there.
+    Law {
+        start: [f64; 2],
+        references: Rotating,
+        emf: Rotating,
+    },
+    /// Open loop: the voltages themselves.
+    Voltages(Rotating),
 }
 
 impl CurrentLoop {
+    /// Plans `drive.command_plan_periods` ahead; see [`Self::with_plan_periods`].
     pub fn new(s: &Scenario, method: Method) -> Self {
         let decay = match method {
             Method::Lyapunov => s.gains.rho_per_s,
@@ -50,60 +74,141 @@ impl CurrentLoop {
             v_max: s.gains.v_max_v,
             bus_v: s.drive.bus_voltage_v,
             period: s.sample_period_s(),
-            // Validated ≤ MAX_COMPUTE_DELAY_PERIODS by the scenario.
+            // Validated ≤ MAX_COMPUTE_DELAY_PERIODS and ≤ MAX_PLAN by the scenario.
             delay: (s.rates.compute_delay_periods as usize).min(MAX_DELAY),
+            plan_periods: (s.drive.command_plan_periods as usize).min(MAX_PLAN),
             decided: [[0.0; 2]; MAX_DELAY],
-            commands: 0,
+            answered: None,
+            seed: None,
+            plan: DrivePlan::default(),
         }
+    }
+
+    /// How many periods each plan covers (at most [`MAX_PLAN`]). Lockstep uses 0: its plant
+    /// waits for every command, so it never needs a plan.
+    pub fn with_plan_periods(mut self, periods: usize) -> Self {
+        self.plan_periods = periods.min(MAX_PLAN);
+        self
     }
 
     pub fn method(&self) -> Method {
         self.method
     }
 
+    /// The voltages the drive applies over periods k .. k+d−1, as far as this loop knows:
+    /// what it sent for them, or, for periods whose own command it never sent (it skipped
+    /// samples), the entry of its last plan that the drive falls back on.
+    fn decided_before(&self, k: u64) -> [[f64; 2]; MAX_DELAY] {
+        let d = self.delay as u64;
+        let Some((m, _)) = self.answered.filter(|&(m, _)| m + 1 < k) else {
+            return self.decided;
+        };
+        let mut out = [[0.0; 2]; MAX_DELAY];
+        for (p, slot) in (k..k + d).zip(out.iter_mut()) {
+            *slot = if p <= m + d {
+                self.decided[(p - m - 1) as usize]
+            } else if self.plan.answers_seq == m {
+                // Past the end of the plan the drive holds its last voltage.
+                let last = (self.plan.len as u64).saturating_sub(1);
+                let j = (p - m - d - 1).min(last);
+                self.plan
+                    .voltage_for(m + d + 1 + j, d)
+                    .unwrap_or(self.decided[self.delay - 1])
+            } else {
+                self.decided[self.delay - 1]
+            };
+        }
+        out
+    }
+
     /// One cycle: the command answering `state`, given the position loop's latest setpoint.
-    /// `publish_time_ns` is left for the caller.
+    /// `publish_time_ns` is left for the caller. Keeps what [`Self::plan`] needs.
     pub fn on_sample(&mut self, state: &DriveState, setpoint: &TorqueSetpoint) -> DriveCommand {
         let (theta, omega) = (state.theta_rad, state.omega_rad_s);
         let i = [state.i_a_a, state.i_b_a];
         let t = state.sample_time_s;
-        let decided = &self.decided[..self.delay];
-        let (v, i_ref) = match self.method {
+        let d = self.delay;
+        let all_decided = self.decided_before(state.seq);
+        let decided = &all_decided[..d];
+        let (k_m, n_r, period, bus_v) = (self.k_m, self.n_r, self.period, self.bus_v);
+        let planning = self.plan_periods > 0;
+        // The first planned period starts at sample k+d+1.
+        let t_plan = t + period * (d + 1) as f64;
+        let clamp = |v: [f64; 2]| v.map(|x| x.clamp(-bus_v, bus_v));
+        let law = self.law;
+        // The current at k+d+1 once `v` has been applied from `predicted` at k+d.
+        let seed_law = |predicted: [f64; 2], v: [f64; 2], references: Rotating| {
+            let theta_d = theta + omega * period * d as f64;
+            Seed::Law {
+                start: law.predict(predicted, v, theta_d, omega),
+                references,
+                emf: law.back_emf_sequence(theta_d + omega * period, omega),
+            }
+        };
+        let (v, i_ref, seed) = match self.method {
             Method::Proposed => {
                 let tau = setpoint.torque_nm;
-                let (k_m, n_r, period) = (self.k_m, self.n_r, self.period);
                 let reference =
                     |j: usize| commutate(tau, theta + omega * period * j as f64, k_m, n_r);
-                (
-                    self.law.voltage(i, theta, omega, decided, reference),
-                    reference(self.delay + 1),
-                )
+                let (v, predicted) = law.decide(i, theta, omega, decided, reference);
+                let v = clamp(v);
+                // (17) as a phasor: i^d = j(τ/K_m) e^{jN_rθ}, turning with the rotor.
+                let seed = planning.then(|| {
+                    let references = Rotating::new(
+                        Complex::new(0.0, tau / k_m),
+                        n_r * (theta + omega * (t_plan - t)),
+                        n_r * omega * period,
+                        0.0,
+                    );
+                    seed_law(predicted, v, references)
+                });
+                (v, reference(d + 1), seed)
             }
             Method::Lyapunov => {
-                let (v_max, r, n_r, period) = (self.v_max, self.r, self.n_r, self.period);
+                let (v_max, r) = (self.v_max, self.r);
                 let reference = |j: usize| {
                     microstep_currents(setpoint.theta_d_at(t + period * j as f64), v_max, r, n_r)
                 };
-                (
-                    self.law.voltage(i, theta, omega, decided, reference),
-                    reference(self.delay + 1),
-                )
+                let (v, predicted) = law.decide(i, theta, omega, decided, reference);
+                let v = clamp(v);
+                let seed = planning.then(|| {
+                    let references = microstep_sequence(setpoint, t_plan, period, n_r, v_max / r);
+                    seed_law(predicted, v, references)
+                });
+                (v, reference(d + 1), seed)
             }
             Method::OpenLoop => {
                 // Eq. (2) evaluated mid-way through the period the voltage will be applied in.
-                let t_mid = t + self.period * (self.delay as f64 + 0.5);
-                let v = microstep_voltages(setpoint.theta_d_at(t_mid), self.v_max, self.n_r);
-                (v, [v[0] / self.r, v[1] / self.r])
+                let half = 0.5 * period;
+                let t_mid = t + period * d as f64 + half;
+                let v = clamp(microstep_voltages(
+                    setpoint.theta_d_at(t_mid),
+                    self.v_max,
+                    n_r,
+                ));
+                let seed = planning.then(|| {
+                    Seed::Voltages(microstep_sequence(
+                        setpoint,
+                        t_plan + half,
+                        period,
+                        n_r,
+                        self.v_max,
+                    ))
+                });
+                (v, [v[0] / self.r, v[1] / self.r], seed)
             }
         };
-        // Clamp here too, so the loop's own prediction uses what the drive will really apply.
-        let v = v.map(|x| x.clamp(-self.bus_v, self.bus_v));
-        if self.delay > 0 {
-            self.decided.copy_within(1..self.delay, 0);
-            self.decided[self.delay - 1] = v;
+        // Keep what the drive will apply, for the next cycle's prediction.
+        self.decided = all_decided;
+        if d > 0 {
+            self.decided.copy_within(1..d, 0);
+            self.decided[d - 1] = v;
         }
-        let command = DriveCommand {
-            seq: self.commands,
+        let seq = self.answered.map_or(0, |(_, seq)| seq + 1);
+        self.answered = Some((state.seq, seq));
+        self.seed = seed;
+        DriveCommand {
+            seq,
             answers_seq: state.seq,
             sample_time_s: t,
             state_publish_time_ns: state.publish_time_ns,
@@ -112,8 +217,204 @@ impl CurrentLoop {
             v_b_v: v[1],
             i_a_ref_a: i_ref[0],
             i_b_ref_a: i_ref[1],
+        }
+    }
+
+    /// The plan continuing the command just returned by [`Self::on_sample`]: the voltages
+    /// the law would choose for the next periods if its model held (see
+    /// [`SampledCurrentLaw::plan`]). Built in place; `publish_time_ns` is left for the
+    /// caller. Empty when planning is off.
+    pub fn plan(&mut self) -> &DrivePlan {
+        let (Some((answers, seq)), Some(seed)) = (self.answered, self.seed.take()) else {
+            self.plan.len = 0;
+            return &self.plan;
         };
-        self.commands += 1;
-        command
+        let n = self.plan_periods;
+        let bus_v = self.bus_v;
+        let out = &mut self.plan.v[..n];
+        match seed {
+            Seed::Law {
+                start,
+                references,
+                emf,
+            } => self.law.plan(start, references, emf, bus_v, out),
+            Seed::Voltages(mut voltages) => {
+                for slot in out.iter_mut() {
+                    *slot = voltages
+                        .value()
+                        .pair()
+                        .map(|x| x.clamp(-bus_v, bus_v) as f32);
+                    voltages.advance();
+                }
+            }
+        }
+        self.plan.command_seq = seq;
+        self.plan.answers_seq = answers;
+        self.plan.publish_time_ns = 0;
+        self.plan.len = n as u32;
+        &self.plan
+    }
+}
+
+/// amplitude · e^{jN_rθ_d(t)} at t = t_0, t_0 + T, ...: the microstepping references of
+/// (2) and (39) along the setpoint's segment (quadratic θ_d, so a chirp).
+fn microstep_sequence(
+    sp: &TorqueSetpoint,
+    t0: f64,
+    period: f64,
+    n_r: f64,
+    amplitude: f64,
+) -> Rotating {
+    let phase = n_r * sp.theta_d_at(t0);
+    let step = n_r * (sp.theta_d_at(t0 + period) - sp.theta_d_at(t0));
+    let step_change = n_r * sp.alpha_d_rad_s2 * period * period;
+    Rotating::new(Complex::new(amplitude, 0.0), phase, step, step_change)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::laws::commutation::commutate;
+    use stepdrive_plant::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
+
+    const T: f64 = 50e-6;
+
+    /// What a run of the loop against the motor produced.
+    struct Trace {
+        /// The plan sent with the answer to sample k0.
+        plan: Vec<[f32; 2]>,
+        /// The voltage applied over each period k.
+        applied: Vec<[f64; 2]>,
+        /// |i − (17)| at each sample, A (the proposed method's tracking error).
+        current_error: Vec<f64>,
+    }
+
+    /// Runs the loop (compute delay 1) against the motor at constant speed (J → ∞, the
+    /// plan's own assumption), skipping the samples in `skipped` as a stalled loop does,
+    /// with the drive applying the freshest command's entry for each period.
+    fn run(
+        method: Method,
+        sp: &TorqueSetpoint,
+        skipped: std::ops::Range<u64>,
+        k0: u64,
+        n: u64,
+    ) -> Trace {
+        let s = Scenario::default();
+        let m = Motor {
+            j: f64::INFINITY,
+            ..Motor::from(&s.motor)
+        };
+        let mut cl = CurrentLoop::new(&s, method).with_plan_periods(120);
+        let mut x = MotorState::new(0.2, 13.13, 0.0, 0.0);
+        let mut last: Option<(DriveCommand, DrivePlan)> = None;
+        let mut trace = Trace {
+            plan: Vec::new(),
+            applied: Vec::new(),
+            current_error: Vec::new(),
+        };
+        for k in 0..n {
+            let i_ref = commutate(sp.torque_nm, x[THETA], m.k_m, m.n_r);
+            trace
+                .current_error
+                .push((x[I_A] - i_ref[0]).hypot(x[I_B] - i_ref[1]));
+            // Period k belongs to the answer to k − 1, or else to the freshest plan.
+            let v = match &last {
+                Some((c, _)) if c.answers_seq + 1 == k => [c.v_a_v, c.v_b_v],
+                Some((_, plan)) => plan.voltage_for(k, 1).expect("the plan covers the gap"),
+                None => [0.0; 2],
+            };
+            trace.applied.push(v);
+            if !skipped.contains(&k) {
+                let state = DriveState {
+                    seq: k,
+                    sample_time_s: k as f64 * T,
+                    theta_rad: x[THETA],
+                    omega_rad_s: x[OMEGA],
+                    i_a_a: x[I_A],
+                    i_b_a: x[I_B],
+                    ..Default::default()
+                };
+                let c = cl.on_sample(&state, sp);
+                let plan = *cl.plan();
+                if k == k0 {
+                    trace.plan = plan.entries().to_vec();
+                }
+                last = Some((c, plan));
+            }
+            x = m.integrate(&x, v, 0.0, T, 8);
+        }
+        trace
+    }
+
+    const CRUISE_TORQUE: TorqueSetpoint = TorqueSetpoint {
+        seq: 0,
+        from_state_seq: 0,
+        sample_time_s: 0.0,
+        publish_time_ns: 0,
+        theta_d_rad: 0.0,
+        omega_d_rad_s: 0.0,
+        alpha_d_rad_s2: 0.0,
+        torque_nm: 0.0757,
+    };
+
+    /// The plan is the law's own future: on the model it assumes (constant speed, same
+    /// setpoint segment), the voltages the loop goes on to send equal the plan sent at k0,
+    /// period by period, to f32 rounding; for each method, and for the baselines along an
+    /// accelerating θ_d (the chirp).
+    #[test]
+    fn the_plan_is_what_the_law_goes_on_to_send() {
+        let accelerating = TorqueSetpoint {
+            theta_d_rad: 0.2,
+            omega_d_rad_s: 13.0,
+            alpha_d_rad_s2: 26.26,
+            ..Default::default()
+        };
+        for (method, sp) in [
+            (Method::Proposed, CRUISE_TORQUE),
+            (Method::Lyapunov, accelerating),
+            (Method::OpenLoop, accelerating),
+        ] {
+            let k0 = 30;
+            let t = run(method, &sp, 0..0, k0, k0 + 130);
+            assert_eq!(t.plan.len(), 120);
+            // Entry j is for period k0 + d + 1 + j.
+            let later = &t.applied[k0 as usize + 2..];
+            let gap = t
+                .plan
+                .iter()
+                .zip(later)
+                .map(|(p, a)| {
+                    (f64::from(p[0]) - a[0])
+                        .abs()
+                        .max((f64::from(p[1]) - a[1]).abs())
+                })
+                .fold(0.0, f64::max);
+            assert!(
+                gap < 1e-5,
+                "{method}: plan and later commands differ by {gap} V"
+            );
+            // Not equal by accident: the voltage turns through ~4 rad over the plan.
+            let (a, b) = (later[0], later[100]);
+            assert!(
+                (a[0] - b[0]).abs() + (a[1] - b[1]).abs() > 1.0,
+                "{method}: {a:?} {b:?}"
+            );
+        }
+    }
+
+    /// A loop that skipped samples predicts with the plan entries the drive applied in the
+    /// meantime, so tracking resumes without a transient: the current error stays at its
+    /// settled level through a 60-period gap and after it.
+    #[test]
+    fn after_a_gap_the_loop_predicts_with_the_applied_plan() {
+        let t = run(Method::Proposed, &CRUISE_TORQUE, 100..160, 0, 260);
+        let settled = t.current_error[60..100]
+            .iter()
+            .fold(0.0, |a: f64, &b| a.max(b));
+        let after = t.current_error[100..]
+            .iter()
+            .fold(0.0, |a: f64, &b| a.max(b));
+        assert!(settled < 1e-6, "settled error {settled} A");
+        assert!(after < 1e-6, "error through and after the gap {after} A");
     }
 }

@@ -102,7 +102,8 @@ pub fn run_current_loop(
     let states = subscriber(&topics.state, "drive/state", LOOP_BUFFER)?;
     let setpoints = subscriber(&topics.setpoint, "control/setpoint", LOOP_BUFFER)?;
     let commands = publisher(&topics.command, "drive/command")?;
-    let mut body = CurrentLoop::new(&opts.scenario, method);
+    // The lockstep plant waits for every command, so it never needs a plan.
+    let mut body = CurrentLoop::new(&opts.scenario, method).with_plan_periods(0);
     let ratio = opts.scenario.rate_ratio();
     let mut setpoint = TorqueSetpoint::default();
     tracing::info!(instance = %opts.instance, %method, "current loop up");
@@ -212,6 +213,7 @@ pub fn run_current_loop_realtime(
         .apply()
         .map_err(|e| ControllerError::Protocol(e.to_string()))?;
     let commands = publisher(&topics.command, "drive/command")?;
+    let plans = publisher(&topics.plan, "drive/plan")?;
     let s = &opts.scenario;
     let period_ns = s.sample_period_ns();
     let answer_budget_ns = period_ns * u64::from(s.rates.compute_delay_periods.max(1));
@@ -245,6 +247,7 @@ pub fn run_current_loop_realtime(
             stats.period.record(start - prev_start);
         } else {
             connect(&commands)?;
+            connect(&plans)?;
         }
         last_seq = Some(state.seq);
         prev_start = start;
@@ -265,6 +268,12 @@ pub fn run_current_loop_realtime(
         stats.compute.record(done - start);
         if done > state.deadline_ns + answer_budget_ns {
             stats.misses += 1;
+        }
+        // After the command, so that planning never delays it.
+        let mut plan = *body.plan();
+        if plan.len > 0 {
+            plan.publish_time_ns = monotonic_ns();
+            send(&plans, plan)?;
         }
         stats.cycles += 1;
         expected_ns = state.deadline_ns + period_ns;

@@ -329,10 +329,13 @@ pub fn table(r: &LatencyReport) -> String {
     if let Some(t) = &r.run.timing {
         let _ = writeln!(
             out,
-            "\ndeadline misses (command not there for its period): {} of {} ({:.3} %), late commands discarded {}",
+            "\ndeadline misses (command not there for its period): {} of {} ({:.3} %; {} covered by a plan; {} runs, longest {} periods), late commands discarded {}",
             t.deadline_misses,
             t.plant.as_ref().map_or(0, |p| p.cycles),
             t.deadline_miss_pct,
+            t.misses_planned,
+            t.miss_runs,
+            t.longest_miss_run,
             t.late_commands_discarded
         );
         if let Some(p) = &t.plant {

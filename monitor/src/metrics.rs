@@ -14,6 +14,8 @@ pub struct RunReport {
     pub mode: String,
     /// max |θ_d − θ| over the cruise window, rad.
     pub cruise_max_abs_error_rad: f64,
+    /// max |θ_d − θ| over the whole run, rad (catches an excursion outside cruise).
+    pub max_abs_error_rad: f64,
     /// mean θ_d − θ over the final window, rad.
     pub final_error_rad: f64,
     pub cruise_mean_id_a: f64,
@@ -51,6 +53,7 @@ pub struct Metrics {
     n_r: f64,
     eq7: f64,
     cruise_max_abs_error: f64,
+    max_abs_error: f64,
     cruise_sum_id: f64,
     cruise_sum_iq: f64,
     cruise_n: u64,
@@ -78,6 +81,7 @@ impl Metrics {
             n_r: s.motor.n_r(),
             eq7: s.eq7_bound_rad(),
             cruise_max_abs_error: 0.0,
+            max_abs_error: 0.0,
             cruise_sum_id: 0.0,
             cruise_sum_iq: 0.0,
             cruise_n: 0,
@@ -104,9 +108,12 @@ impl Metrics {
         // torque and i_q are negative, so they are taken along the direction of motion.
         let (tau, mirrored) = self.trajectory.phase(t);
         let direction = if mirrored { -1.0 } else { 1.0 };
+        // NaN-safe: a NaN error must show up, not be skipped by `max`.
+        let abs = error.abs();
+        if abs.is_nan() || abs > self.max_abs_error {
+            self.max_abs_error = abs;
+        }
         if tau >= self.cruise.0 && tau <= self.cruise.1 {
-            // NaN-safe: a NaN error must show up, not be skipped by `max`.
-            let abs = error.abs();
             if abs.is_nan() || abs > self.cruise_max_abs_error {
                 self.cruise_max_abs_error = abs;
             }
@@ -151,6 +158,7 @@ impl Metrics {
             method: method.as_str().to_string(),
             mode: mode.to_string(),
             cruise_max_abs_error_rad: self.cruise_max_abs_error,
+            max_abs_error_rad: self.max_abs_error,
             final_error_rad: mean(self.final_sum_error, self.final_n),
             cruise_mean_id_a: mean(self.cruise_sum_id, self.cruise_n),
             cruise_mean_iq_a: cruise_mean_iq,

@@ -39,10 +39,13 @@ pub fn expected_microstepping_cruise_error(s: &Scenario) -> f64 {
 
 pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
     type Row = (&'static str, fn(&RunReport) -> String);
-    let rows: [Row; 14] = [
+    let rows: [Row; 15] = [
         ("mode", |r| r.mode.clone()),
         ("cruise max |e| [rad]", |r| {
             format!("{:.3e}", r.cruise_max_abs_error_rad)
+        }),
+        ("max |e|, whole run [rad]", |r| {
+            format!("{:.3e}", r.max_abs_error_rad)
         }),
         ("final error [rad]", |r| {
             format!("{:.3e}", r.final_error_rad)
@@ -98,10 +101,13 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         let Some(t) = &r.timing else { continue };
         let _ = writeln!(
             out,
-            "\n{} realtime timing: deadline misses {} ({:.3} %), late commands discarded {}, plant overruns {}",
+            "\n{} realtime timing: deadline misses {} ({:.3} %; {} covered by a plan; {} runs, longest {} periods), late commands discarded {}, plant overruns {}",
             r.method,
             t.deadline_misses,
             t.deadline_miss_pct,
+            t.misses_planned,
+            t.miss_runs,
+            t.longest_miss_run,
             t.late_commands_discarded,
             t.plant.as_ref().map_or(0, |p| p.overruns)
         );

@@ -86,6 +86,12 @@ pub struct TimingReport {
     /// loop's deadline misses as the motor sees them.
     pub deadline_misses: u64,
     pub deadline_miss_pct: f64,
+    /// Of the misses, periods the plant covered with the freshest command's voltage plan
+    /// (the rest held the previous voltage).
+    pub misses_planned: u64,
+    /// Runs of consecutive misses (times the current loop was away) and the longest, periods.
+    pub miss_runs: u64,
+    pub longest_miss_run: u64,
     /// Commands that arrived after their period and were dropped unapplied.
     pub late_commands_discarded: u64,
     /// State sample published → answering command published.
@@ -114,18 +120,18 @@ impl TimingReport {
         position: Option<Box<StatsReport>>,
         monitor_lost: u64,
     ) -> Self {
-        let (misses, pct, late) = plant.as_ref().map_or((0, f64::NAN, 0), |p| {
-            (
-                p.misses,
-                100.0 * p.misses as f64 / p.cycles.max(1) as f64,
-                p.late_discarded,
-            )
+        let (misses, pct) = plant.as_ref().map_or((0, f64::NAN), |p| {
+            (p.misses, 100.0 * p.misses as f64 / p.cycles.max(1) as f64)
         });
+        let counter = |f: fn(&StatsReport) -> u64| plant.as_deref().map_or(0, f);
         Self {
             current_loop_hz: s.rates.current_loop_hz,
             deadline_misses: misses,
             deadline_miss_pct: pct,
-            late_commands_discarded: late,
+            misses_planned: counter(|p| p.planned),
+            miss_runs: counter(|p| p.miss_runs),
+            longest_miss_run: counter(|p| p.longest_miss_run),
+            late_commands_discarded: counter(|p| p.late_discarded),
             sensor_to_actuator: plant
                 .as_ref()
                 .map(|p| Percentiles::of(&p.sensor_to_actuator)),
@@ -133,9 +139,9 @@ impl TimingReport {
             current_loop: current.as_deref().map(LoopTiming::of),
             position_loop: position.as_deref().map(LoopTiming::of),
             monitor_lost_samples: monitor_lost,
-            crc_errors: plant.as_ref().map_or(0, |p| p.crc_errors),
-            bad_frames: plant.as_ref().map_or(0, |p| p.bad_frames),
-            rejected_commands: plant.as_ref().map_or(0, |p| p.rejected_commands),
+            crc_errors: counter(|p| p.crc_errors),
+            bad_frames: counter(|p| p.bad_frames),
+            rejected_commands: counter(|p| p.rejected_commands),
             round_trip: plant
                 .as_ref()
                 .filter(|p| p.round_trip.count > 0)

@@ -13,7 +13,7 @@ use stepdrive_shared::poll::{poll_until, WaitError};
 use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
-    connect, publish_stats, publisher, publisher_count, send, subscriber, subscriber_count,
+    connect, drain, publish_stats, publisher, publisher_count, send, subscriber, subscriber_count,
     try_receive, IpcError, Topics, LOOP_BUFFER,
 };
 use stepdrive_shared::stats::{roles, CycleRecorder, StatsReport};
@@ -175,6 +175,7 @@ const STATS_EVERY: u64 = 20_000;
 pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsReport, PlantError> {
     let topics = Topics::open(&opts.instance, "plant", Mode::Realtime)?;
     let commands = subscriber(&topics.command, "drive/command", LOOP_BUFFER)?;
+    let plans = subscriber(&topics.plan, "drive/plan", LOOP_BUFFER)?;
     let states = publisher(&topics.state, "drive/state")?;
     let stats_pub = publisher(&topics.stats, "monitor/stats")?;
     rto.rt
@@ -188,7 +189,7 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
     let period_ns = s.sample_period_ns();
     let delay = u64::from(s.rates.compute_delay_periods);
     let mut sim = PlantSim::new(s);
-    let mut slot = CommandSlot::default();
+    let mut slot = CommandSlot::new(delay);
     // Heap-allocated once: the report is ~90 KB.
     let mut stats = Box::new(StatsReport {
         role: roles::PLANT,
@@ -225,11 +226,13 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
                 .record(c.publish_time_ns.saturating_sub(c.state_publish_time_ns));
             slot.offer(c, next_needed);
         }
+        // In place: a plan is ~2 KB and only the freshest is kept.
+        drain(&plans, |plan| slot.offer_plan(plan))?;
         match sim.needed_command() {
             None => sim.advance(None),
             Some(needed) => match slot.take(needed) {
                 Selection::Apply(c) => sim.advance(Some(&c)),
-                Selection::Hold => {
+                Selection::Missing(planned) => {
                     if slot.consecutive_misses >= rto.watchdog_periods {
                         if sim.state(false).fault & fault_bits::COMMAND_TIMEOUT == 0 {
                             tracing::error!(
@@ -239,7 +242,7 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
                         }
                         sim.trip(fault_bits::COMMAND_TIMEOUT);
                     }
-                    sim.advance_hold();
+                    sim.advance_missing(planned);
                 }
             },
         }
@@ -257,8 +260,7 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
         // overruns, so the recorder's miss count is not used here.
         recorder.record(&mut stats, tick.deadline_ns, tick.woke_ns, monotonic_ns());
         if stats.cycles % STATS_EVERY == 0 {
-            stats.misses = slot.misses;
-            stats.late_discarded = slot.late_discarded;
+            slot.copy_counters(&mut stats);
             publish_stats(&stats_pub, &mut stats, false)?;
         }
     }
@@ -269,13 +271,13 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
             "the host stalled the plant; simulated time paused through the stalls"
         );
     }
-    stats.misses = slot.misses;
-    stats.late_discarded = slot.late_discarded;
+    slot.copy_counters(&mut stats);
     publish_stats(&stats_pub, &mut stats, true)?;
     tracing::info!(
         samples = n,
         misses = slot.misses,
         overruns = stats.overruns,
+        miss_runs_1_2_4_8_16_32_64_128 = ?slot.runs_by_length,
         "plant done"
     );
     Ok(*stats)

@@ -3,7 +3,10 @@
 //! applied over (t_{k+d}, t_{k+d+1}]. This is the loop body; [`crate::process`] wraps it in IPC.
 
 use crate::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
-use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DriveState, NONE_SEQ};
+use stepdrive_shared::messages::{
+    fault_bits, state_flags, DriveCommand, DrivePlan, DriveState, NONE_SEQ,
+};
+use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
 #[derive(Debug, Clone)]
@@ -82,49 +85,52 @@ impl PlantSim {
         self.fault |= fault_bit;
     }
 
-    /// Realtime: the command for this period is missing. Holds the previous voltage (zero if
-    /// faulted) over (t_k, t_{k+1}] and flags the sample.
-    pub fn advance_hold(&mut self) {
-        let v = if self.fault == 0 {
-            self.applied
-        } else {
-            [0.0; 2]
+    /// Realtime: the command for this period is missing. Applies `planned` (the freshest
+    /// plan's entry for this period, with the sequence number of the command it continues)
+    /// if there is one, else holds the previous voltage; zero if faulted. Flags the sample
+    /// either way.
+    pub fn advance_missing(&mut self, planned: Option<([f64; 2], u64)>) {
+        let (v, seq, flags) = match planned {
+            Some((v, seq)) => (
+                v,
+                seq,
+                state_flags::COMMAND_HELD | state_flags::COMMAND_PLANNED,
+            ),
+            None => (self.applied, self.applied_seq, state_flags::COMMAND_HELD),
         };
-        let seq = if self.fault == 0 {
-            self.applied_seq
-        } else {
-            NONE_SEQ
-        };
-        self.x = self
-            .motor
-            .integrate(&self.x, v, self.tau_l, self.period, self.substeps);
-        self.applied = v;
-        self.applied_seq = seq;
-        self.flags = state_flags::COMMAND_HELD;
-        self.k += 1;
+        self.apply(v, seq);
+        self.flags |= flags;
     }
 
     /// Integrates over (t_k, t_{k+1}] with `command` (the one [`Self::needed_command`] named,
     /// or `None` for outputs off) and moves to sample k+1. A non-finite command turns the
     /// outputs off and latches [`fault_bits::BAD_COMMAND`]; from then on the outputs stay off.
     pub fn advance(&mut self, command: Option<&DriveCommand>) {
+        match command {
+            Some(c) => self.apply([c.v_a_v, c.v_b_v], c.seq),
+            None => self.apply([0.0; 2], NONE_SEQ),
+        }
+    }
+
+    /// The one place a voltage reaches the motor: non-finite latches a fault, a fault turns
+    /// the outputs off, anything beyond ±V_bus is clamped and flagged.
+    fn apply(&mut self, requested: [f64; 2], seq: u64) {
         self.flags = 0;
+        if !requested.iter().all(|v| v.is_finite()) {
+            self.fault |= fault_bits::BAD_COMMAND;
+        }
         let mut v = [0.0; 2];
-        let mut seq = NONE_SEQ;
-        if let Some(c) = command {
-            if !(c.v_a_v.is_finite() && c.v_b_v.is_finite()) {
-                self.fault |= fault_bits::BAD_COMMAND;
-            }
-            if self.fault == 0 {
-                for (out, raw) in v.iter_mut().zip([c.v_a_v, c.v_b_v]) {
-                    let clamped = raw.clamp(-self.bus_v, self.bus_v);
-                    if clamped != raw {
-                        self.flags |= state_flags::VOLTAGE_LIMITED;
-                    }
-                    *out = clamped;
+        let mut seq = seq;
+        if self.fault == 0 {
+            for (out, raw) in v.iter_mut().zip(requested) {
+                let clamped = raw.clamp(-self.bus_v, self.bus_v);
+                if clamped != raw {
+                    self.flags |= state_flags::VOLTAGE_LIMITED;
                 }
-                seq = c.seq;
+                *out = clamped;
             }
+        } else {
+            seq = NONE_SEQ;
         }
         self.x = self
             .motor
@@ -140,25 +146,64 @@ impl PlantSim {
 pub enum Selection {
     /// The command computed for this period arrived in time.
     Apply(DriveCommand),
-    /// It did not: hold the previous voltage (a deadline miss).
-    Hold,
+    /// It did not (a deadline miss): apply the freshest plan's entry for this period
+    /// (voltage, the sequence number of the command that plan continues), or hold the
+    /// previous voltage if no plan covers the period.
+    Missing(Option<([f64; 2], u64)>),
 }
 
 /// Realtime command selection, kept apart from IPC so its rules are testable: the command
-/// for a period is the one answering sample k − d; one that arrives after its period was
-/// decided is discarded and counted, never applied to a later period.
-#[derive(Debug, Clone, Default)]
+/// for period p is the one answering sample p − d; one that arrives after its period was
+/// decided is discarded and counted, never applied to a later period. When the command for
+/// a period is missing, the freshest plan received may cover it; every plan entry names
+/// its period, so none lands on another one.
+#[derive(Debug, Clone)]
 pub struct CommandSlot {
+    delay: u64,
     pending: [Option<DriveCommand>; 8],
-    /// Periods whose command was missing (previous voltage held).
+    /// The plan continuing the newest command (~2 KB, kept in place).
+    freshest: DrivePlan,
+    /// Periods whose command was missing.
     pub misses: u64,
+    /// Of those, periods covered by a plan entry (the rest held the previous voltage).
+    pub planned: u64,
     /// Commands that arrived after their period and were dropped unapplied.
     pub late_discarded: u64,
     /// Misses in a row, for the watchdog.
     pub consecutive_misses: u32,
+    /// Runs of consecutive misses, and the longest one.
+    pub miss_runs: u64,
+    pub longest_miss_run: u32,
+    /// Finished runs by length: 1, 2-3, 4-7, ..., 128 and more periods.
+    pub runs_by_length: [u64; 8],
 }
 
 impl CommandSlot {
+    /// `delay`: the compute delay d, periods.
+    pub fn new(delay: u64) -> Self {
+        Self {
+            delay,
+            pending: [None; 8],
+            freshest: DrivePlan::default(),
+            misses: 0,
+            planned: 0,
+            late_discarded: 0,
+            consecutive_misses: 0,
+            miss_runs: 0,
+            longest_miss_run: 0,
+            runs_by_length: [0; 8],
+        }
+    }
+
+    /// Puts the slot's counters into a stats report (its misses are the plant's).
+    pub fn copy_counters(&self, stats: &mut StatsReport) {
+        stats.misses = self.misses;
+        stats.planned = self.planned;
+        stats.late_discarded = self.late_discarded;
+        stats.miss_runs = self.miss_runs;
+        stats.longest_miss_run = u64::from(self.longest_miss_run);
+    }
+
     /// Offers a received command. `next_needed` is the first sample whose command has not
     /// been decided yet; anything older is late.
     pub fn offer(&mut self, c: DriveCommand, next_needed: u64) {
@@ -173,11 +218,22 @@ impl CommandSlot {
         *slot = Some(c);
     }
 
+    /// Offers a received plan; the one continuing the newest command is kept.
+    pub fn offer_plan(&mut self, plan: &DrivePlan) {
+        if self.freshest.len == 0 || plan.answers_seq > self.freshest.answers_seq {
+            self.freshest = *plan;
+        }
+    }
+
     /// Decides the period whose command answers sample `needed`.
     pub fn take(&mut self, needed: u64) -> Selection {
         let slot = &mut self.pending[(needed % 8) as usize];
         match slot.take() {
             Some(c) if c.answers_seq == needed => {
+                if self.consecutive_misses > 0 {
+                    let bucket = 31 - self.consecutive_misses.leading_zeros();
+                    self.runs_by_length[(bucket as usize).min(7)] += 1;
+                }
                 self.consecutive_misses = 0;
                 Selection::Apply(c)
             }
@@ -188,7 +244,14 @@ impl CommandSlot {
                 }
                 self.misses += 1;
                 self.consecutive_misses = self.consecutive_misses.saturating_add(1);
-                Selection::Hold
+                self.miss_runs += u64::from(self.consecutive_misses == 1);
+                self.longest_miss_run = self.longest_miss_run.max(self.consecutive_misses);
+                let planned = self
+                    .freshest
+                    .voltage_for(needed + self.delay, self.delay)
+                    .map(|v| (v, self.freshest.command_seq));
+                self.planned += u64::from(planned.is_some());
+                Selection::Missing(planned)
             }
         }
     }
@@ -230,7 +293,7 @@ mod tests {
     fn late_command_is_held_counted_and_never_applied() {
         let s = Scenario::default();
         let mut p = PlantSim::new(&s);
-        let mut slot = CommandSlot::default();
+        let mut slot = CommandSlot::new(1);
         p.advance(None); // period (0,1]: delay line filling
                          // Period (1,2] needs cmd 0: it arrived in time.
         slot.offer(cmd(0, 1.0, 2.0), 0);
@@ -240,8 +303,8 @@ mod tests {
         p.advance(Some(&c));
         assert_eq!(p.state(false).applied_command_seq, 0);
         // Period (2,3] needs cmd 1: missing, so cmd 0's voltage is held and a miss counted.
-        assert_eq!(slot.take(1), Selection::Hold);
-        p.advance_hold();
+        assert_eq!(slot.take(1), Selection::Missing(None));
+        p.advance_missing(None);
         let st = p.state(false);
         assert_eq!((st.v_a_v, st.v_b_v, st.applied_command_seq), (1.0, 2.0, 0));
         assert_ne!(st.flags & state_flags::COMMAND_HELD, 0);
@@ -260,8 +323,101 @@ mod tests {
         assert_eq!(slot.consecutive_misses, 0);
         // Commands that arrive early wait for their own period.
         slot.offer(cmd(4, 5.0, 5.0), 3);
-        assert_eq!(slot.take(3), Selection::Hold);
+        assert_eq!(slot.take(3), Selection::Missing(None));
         assert!(matches!(slot.take(4), Selection::Apply(c) if c.answers_seq == 4));
+    }
+
+    fn plan(answers: u64, entries: &[f32]) -> DrivePlan {
+        let mut p = DrivePlan {
+            command_seq: answers,
+            answers_seq: answers,
+            len: entries.len() as u32,
+            ..Default::default()
+        };
+        for (slot, &x) in p.v.iter_mut().zip(entries) {
+            *slot = [x, -x];
+        }
+        p
+    }
+
+    /// On a miss the plant applies the freshest plan's entry for that very period; a late
+    /// command's own voltage never; past the plan it holds the last voltage.
+    #[test]
+    fn misses_follow_the_freshest_plan_entry_for_their_own_period() {
+        let mut p = PlantSim::new(&Scenario::default());
+        let mut slot = CommandSlot::new(1);
+        p.advance(None);
+        // cmd 0 answers sample 0: period 1; its plan covers periods 2, 3, 4.
+        slot.offer(cmd(0, 1.0, -1.0), 0);
+        slot.offer_plan(&plan(0, &[2.0, 3.0, 4.0]));
+        let Selection::Apply(c) = slot.take(0) else {
+            panic!("cmd 0 was on time")
+        };
+        p.advance(Some(&c));
+        let applied = |p: &PlantSim| {
+            let st = p.state(false);
+            (st.v_a_v, st.v_b_v, st.applied_command_seq, st.flags)
+        };
+        let planned = state_flags::COMMAND_HELD | state_flags::COMMAND_PLANNED;
+        // Period 2: cmd 1 missing, plan 0's entry for period 2.
+        let sel = slot.take(1);
+        assert_eq!(sel, Selection::Missing(Some(([2.0, -2.0], 0))));
+        let Selection::Missing(v) = sel else { panic!() };
+        p.advance_missing(v);
+        assert_eq!(applied(&p), (2.0, -2.0, 0, planned));
+        // cmd 1 turns up late with its plan for periods 3 and 4: the command is discarded,
+        // its 9 V never applied, but its plan is the freshest (an older one offered after
+        // it does not replace it).
+        slot.offer(cmd(1, 9.0, -9.0), 2);
+        slot.offer_plan(&plan(1, &[5.0, 6.0]));
+        slot.offer_plan(&plan(0, &[7.0, 7.0, 7.0, 7.0]));
+        assert_eq!(slot.late_discarded, 1);
+        for (needed, want) in [(2, 5.0), (3, 6.0)] {
+            let Selection::Missing(v) = slot.take(needed) else {
+                panic!("sample {needed}'s command never came")
+            };
+            p.advance_missing(v);
+            assert_eq!(applied(&p), (want, -want, 1, planned));
+        }
+        // Period 5: past every plan, the last voltage is held.
+        assert_eq!(slot.take(4), Selection::Missing(None));
+        p.advance_missing(None);
+        assert_eq!(applied(&p), (6.0, -6.0, 1, state_flags::COMMAND_HELD));
+        assert_eq!(
+            (
+                slot.misses,
+                slot.planned,
+                slot.miss_runs,
+                slot.longest_miss_run
+            ),
+            (4, 3, 1, 4)
+        );
+        // A plan claiming more than MAX_PLAN entries covers nothing.
+        let mut bad = plan(5, &[7.0]);
+        bad.len = stepdrive_shared::messages::MAX_PLAN as u32 + 1;
+        slot.offer_plan(&bad);
+        assert_eq!(slot.take(6), Selection::Missing(None));
+    }
+
+    /// A non-finite plan entry is a bad command: outputs off, fault latched.
+    #[test]
+    fn non_finite_plan_entry_trips_the_plant() {
+        let mut p = PlantSim::new(&Scenario::default());
+        let mut slot = CommandSlot::new(1);
+        p.advance(None);
+        slot.offer(cmd(0, 1.0, 1.0), 0);
+        slot.offer_plan(&plan(0, &[f32::NAN]));
+        let Selection::Apply(c) = slot.take(0) else {
+            panic!()
+        };
+        p.advance(Some(&c));
+        let Selection::Missing(v) = slot.take(1) else {
+            panic!()
+        };
+        p.advance_missing(v);
+        let st = p.state(false);
+        assert_eq!((st.v_a_v, st.v_b_v), (0.0, 0.0));
+        assert_ne!(st.fault & fault_bits::BAD_COMMAND, 0);
     }
 
     #[test]
@@ -270,7 +426,7 @@ mod tests {
         p.advance(None);
         p.advance(Some(&cmd(0, 5.0, 5.0)));
         p.trip(fault_bits::COMMAND_TIMEOUT);
-        p.advance_hold();
+        p.advance_missing(None);
         let st = p.state(false);
         assert_eq!((st.v_a_v, st.v_b_v), (0.0, 0.0));
         assert_eq!(st.fault, fault_bits::COMMAND_TIMEOUT);

@@ -14,8 +14,12 @@ pub mod state_flags {
     pub const LAST: u32 = 1 << 0;
     /// The applied voltage was clamped to ±V_bus on at least one phase.
     pub const VOLTAGE_LIMITED: u32 = 1 << 1;
-    /// Realtime: the command for the last period was missing; the previous one was held.
+    /// Realtime: the command for the last period was missing (a deadline miss). The voltage
+    /// applied was the freshest plan's entry for that period ([`COMMAND_PLANNED`]) or,
+    /// without one, the previous voltage held.
     pub const COMMAND_HELD: u32 = 1 << 2;
+    /// With [`COMMAND_HELD`]: the voltage came from a [`DrivePlan`].
+    pub const COMMAND_PLANNED: u32 = 1 << 3;
 }
 
 /// Bits of [`DriveState::fault`]. A fault is latched by the process that drives the motor.
@@ -63,7 +67,8 @@ pub struct DriveState {
     pub fault: u32,
 }
 
-/// Current loop → plant: phase voltages computed from sample `answers_seq`.
+/// Current loop → plant: phase voltages computed from sample `answers_seq`, for period
+/// answers_seq + d.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
 #[type_name("stepdrive.DriveCommand.v1")]
@@ -83,6 +88,78 @@ pub struct DriveCommand {
     /// Reference currents the loop is steering to (for monitoring).
     pub i_a_ref_a: f64,
     pub i_b_ref_a: f64,
+}
+
+/// Longest [`DrivePlan`]: 256 periods, 12.8 ms at 20 kHz, longer than the default watchdog
+/// (200 periods), so with the defaults a plan never outlives the watchdog.
+pub const MAX_PLAN: usize = 256;
+
+/// Current loop → plant (realtime), right after each command: the voltages the loop expects
+/// to send for the periods after that command's, predicted with the same model and law
+/// (constant speed, the setpoint segment unchanged). A plant whose next command is late
+/// applies the freshest plan's entry for that period instead of freezing the last voltage:
+/// at cruise the electrical angle turns ~0.03 rad per period, so a frozen voltage vector
+/// loses torque within a millisecond while the plan keeps commutating. A miss is still a
+/// miss (counted, and it feeds the watchdog). Published after the command so that planning
+/// never delays it.
+#[derive(Clone, Copy, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("stepdrive.DrivePlan.v1")]
+pub struct DrivePlan {
+    /// The [`DriveCommand::seq`] this plan continues.
+    pub command_seq: u64,
+    /// The sample that command answers; entry j is for period answers_seq + d + 1 + j.
+    pub answers_seq: u64,
+    /// CLOCK_MONOTONIC at publication, nanoseconds.
+    pub publish_time_ns: u64,
+    /// Valid entries, 0..=[`MAX_PLAN`].
+    pub len: u32,
+    pub _reserved: u32,
+    /// (v_a, v_b), V.
+    pub v: [[f32; 2]; MAX_PLAN],
+}
+
+impl Default for DrivePlan {
+    fn default() -> Self {
+        Self {
+            command_seq: 0,
+            answers_seq: 0,
+            publish_time_ns: 0,
+            len: 0,
+            _reserved: 0,
+            v: [[0.0; 2]; MAX_PLAN],
+        }
+    }
+}
+
+impl std::fmt::Debug for DrivePlan {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let shown = (self.len as usize).min(3);
+        f.debug_struct("DrivePlan")
+            .field("command_seq", &self.command_seq)
+            .field("answers_seq", &self.answers_seq)
+            .field("len", &self.len)
+            .field("first", &&self.v[..shown])
+            .finish()
+    }
+}
+
+impl DrivePlan {
+    /// The planned voltage for `period` under compute delay `delay`, if the plan covers it.
+    /// A plan claiming more than [`MAX_PLAN`] entries is malformed and covers nothing.
+    pub fn voltage_for(&self, period: u64, delay: u64) -> Option<[f64; 2]> {
+        let first = self.answers_seq.checked_add(delay)?.checked_add(1)?;
+        let len = self.len as usize;
+        let j = usize::try_from(period.checked_sub(first)?)
+            .ok()
+            .filter(|&j| j < len && len <= MAX_PLAN)?;
+        Some(self.v[j].map(f64::from))
+    }
+
+    /// The entries in use.
+    pub fn entries(&self) -> &[[f32; 2]] {
+        &self.v[..(self.len as usize).min(MAX_PLAN)]
+    }
 }
 
 /// Position/torque loop → current loop: torque demand and the trajectory segment that

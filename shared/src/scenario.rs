@@ -2,6 +2,7 @@
 //! loop rates, trajectory and metric windows. Loads from TOML and validates itself; every
 //! error names the offending field.
 
+use crate::messages::MAX_PLAN;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -83,12 +84,18 @@ impl Default for LoadParams {
 pub struct DriveParams {
     /// Supply voltage; each phase voltage is limited to ±V_bus.
     pub bus_voltage_v: f64,
+    /// Realtime: periods of voltage plan the current loop sends with each command
+    /// (0..=256). A drive whose next command is late applies the plan's entry for that
+    /// period instead of freezing the last voltage; 0 = freeze it. The default, 200 periods
+    /// (10 ms at 20 kHz), matches the default watchdog.
+    pub command_plan_periods: u32,
 }
 
 impl Default for DriveParams {
     fn default() -> Self {
         Self {
             bus_voltage_v: 24.0,
+            command_plan_periods: 200,
         }
     }
 }
@@ -312,6 +319,15 @@ impl Scenario {
         )?;
         finite("load.torque_nm", self.load.torque_nm)?;
         positive("drive.bus_voltage_v", self.drive.bus_voltage_v)?;
+        if self.drive.command_plan_periods as usize > MAX_PLAN {
+            return Err(invalid(
+                "drive.command_plan_periods",
+                format!(
+                    "must be 0..={MAX_PLAN} (got {})",
+                    self.drive.command_plan_periods
+                ),
+            ));
+        }
 
         let g = &self.gains;
         positive("gains.k1", g.k1)?;
@@ -594,6 +610,7 @@ mod tests {
         assert!(err_of("[rates]\nposition_loop_hz = 3000.0").contains("rates.position_loop_hz"));
         assert!(err_of("[rates]\ncompute_delay_periods = 9").contains("compute_delay_periods"));
         assert!(err_of("[load]\ntorque_nm = nan").contains("load.torque_nm"));
+        assert!(err_of("[drive]\ncommand_plan_periods = 257").contains("command_plan_periods"));
         assert!(err_of("[metrics]\ncruise_end_s = 9.0").contains("metrics.cruise_end_s"));
         // A typo is an error naming the unknown key, not a silent default.
         assert!(err_of("[motor]\nresistanse_ohm = 1.0").contains("resistanse_ohm"));

@@ -1,7 +1,7 @@
 //! Service names and the one place that opens them, so every process opens every service
 //! with identical settings (iceoryx2 treats an opener's settings as minimum requirements).
 
-use crate::messages::{DriveCommand, DriveState, TorqueSetpoint};
+use crate::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
 use crate::scenario::Mode;
 use crate::stats::StatsReport;
 use iceoryx2::port::publisher::Publisher;
@@ -71,6 +71,10 @@ impl ServiceNames {
     pub fn drive_command(&self) -> String {
         format!("{}/drive/command", self.instance)
     }
+    /// Current loop → plant, after each command (realtime): the voltage plan.
+    pub fn drive_plan(&self) -> String {
+        format!("{}/drive/plan", self.instance)
+    }
     /// Position loop → current loop, every tick.
     pub fn torque_setpoint(&self) -> String {
         format!("{}/control/setpoint", self.instance)
@@ -93,6 +97,7 @@ pub struct Topics {
     pub names: ServiceNames,
     pub state: Topic<DriveState>,
     pub command: Topic<DriveCommand>,
+    pub plan: Topic<DrivePlan>,
     pub setpoint: Topic<TorqueSetpoint>,
     pub stats: Topic<StatsReport>,
     pub mode: Mode,
@@ -168,6 +173,18 @@ impl Topics {
         let state = open_topic::<DriveState>(&node, &names.drive_state(), &control)?;
         let command = open_topic::<DriveCommand>(&node, &names.drive_command(), &control)?;
         let setpoint = open_topic::<TorqueSetpoint>(&node, &names.torque_setpoint(), &control)?;
+        // Only the plant reads plans, and only the newest matters: a short queue keeps the
+        // ~2 KB samples' shared memory small.
+        let plan = open_topic::<DrivePlan>(
+            &node,
+            &names.drive_plan(),
+            &Qos {
+                max_publishers: 1,
+                max_subscribers: 2,
+                max_buffer: LOOP_BUFFER,
+                safe_overflow: true,
+            },
+        )?;
         let stats = open_topic::<StatsReport>(
             &node,
             &names.stats(),
@@ -184,6 +201,7 @@ impl Topics {
             names,
             state,
             command,
+            plan,
             setpoint,
             stats,
             mode,
@@ -242,6 +260,20 @@ pub fn try_receive<T: Debug + ZeroCopySend + Copy + 'static>(
         Ok(None) => Ok(None),
         Err(e) => Err(ipc_err("receive failed", e)),
     }
+}
+
+/// Hands every queued sample to `f` in place, without copying it out (for large ones).
+pub fn drain<T: Debug + ZeroCopySend + 'static>(
+    subscriber: &Sub<T>,
+    mut f: impl FnMut(&T),
+) -> Result<(), IpcError> {
+    while let Some(sample) = subscriber
+        .receive()
+        .map_err(|e| ipc_err("receive failed", e))?
+    {
+        f(sample.payload());
+    }
+    Ok(())
 }
 
 /// Removes what crashed processes left behind (nodes, ports, shared memory). Call it

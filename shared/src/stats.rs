@@ -250,7 +250,7 @@ pub mod roles {
 /// A loop's timing statistics, published at ~1 Hz and once more (`is_final`) at exit.
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
 #[repr(C)]
-#[type_name("stepdrive.StatsReport.v2")]
+#[type_name("stepdrive.StatsReport.v3")]
 pub struct StatsReport {
     pub role: u32,
     pub is_final: u32,
@@ -268,6 +268,13 @@ pub struct StatsReport {
     pub lost: u64,
     /// Plant: commands that arrived after their period and were discarded unapplied.
     pub late_discarded: u64,
+    /// Plant: of the misses, periods that got the freshest command's plan entry (the rest
+    /// held the previous voltage).
+    pub planned: u64,
+    /// Plant: runs of consecutive misses (how often the current loop was away), and the
+    /// longest one.
+    pub miss_runs: u64,
+    pub longest_miss_run: u64,
     /// Bridge: frames from the drive dropped for a CRC mismatch.
     pub crc_errors: u64,
     /// Bridge: frames dropped as malformed, duplicate or out of order.

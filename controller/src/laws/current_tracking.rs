@@ -34,6 +34,8 @@
 //! `tends_to_eq22_as_the_period_shrinks`). Future rotor angles for the reference are
 //! predicted at constant ω (N_r ω T ≈ 0.03 rad per period at cruise).
 
+use crate::laws::phasor::{Complex, Rotating};
+
 /// The paper's continuous law, eq. (22) (also (39) with ρ for k_3): phase voltages that make
 /// ė = −k e. `i_ref_dot` is the reference's time derivative.
 #[allow(clippy::too_many_arguments)]
@@ -129,6 +131,19 @@ impl SampledCurrentLaw {
         decided: &[[f64; 2]],
         reference: impl Fn(usize) -> [f64; 2],
     ) -> [f64; 2] {
+        self.decide(i, theta, omega, decided, reference).0
+    }
+
+    /// [`Self::voltage`], and the current it predicted at sample k+d (where that voltage
+    /// starts), from which [`Self::plan`] continues.
+    pub fn decide(
+        &self,
+        i: [f64; 2],
+        theta: f64,
+        omega: f64,
+        decided: &[[f64; 2]],
+        reference: impl Fn(usize) -> [f64; 2],
+    ) -> ([f64; 2], [f64; 2]) {
         let d = decided.len();
         let mut predicted = i;
         for (j, v) in decided.iter().enumerate() {
@@ -144,7 +159,47 @@ impl SampledCurrentLaw {
             let target = r_next[p] - self.lambda * (r_now[p] - predicted[p]);
             v[p] = (target - self.a * predicted[p] - e[p]) / self.b;
         }
-        v
+        (v, predicted)
+    }
+
+    /// [`Self::back_emf_step`] from rotor angle θ_0 + ωTm, as a sequence over m: at constant
+    /// speed it is a fixed complex amplitude turning with the electrical angle,
+    /// Δ_m = −j (K_m ω/L) C e^{jN_rθ_m}, C = (e^{jΩT} − a)/(β + jΩ).
+    pub fn back_emf_sequence(&self, theta0: f64, omega: f64) -> Rotating {
+        let big_omega = self.n_r * omega;
+        let c = (Complex::unit(big_omega * self.period) - Complex::new(self.a, 0.0))
+            / Complex::new(self.beta, big_omega);
+        let g = self.k_m * omega / self.l;
+        let amplitude = Complex::new(g * c.im, -g * c.re);
+        Rotating::new(amplitude, self.n_r * theta0, big_omega * self.period, 0.0)
+    }
+
+    /// The law's own future: the voltages it would choose for the periods after the one it
+    /// just decided if its model held (constant speed, unchanged reference trajectory).
+    /// `i` is the current predicted at the first planned sample, `reference` and `emf` are
+    /// positioned there and step one period per entry. Each voltage is clamped to ±`bus_v`
+    /// as the drive will clamp it, and the prediction uses the clamped value.
+    pub fn plan(
+        &self,
+        i: [f64; 2],
+        mut reference: Rotating,
+        mut emf: Rotating,
+        bus_v: f64,
+        out: &mut [[f32; 2]],
+    ) {
+        let mut i = Complex::from_pair(i);
+        for slot in out.iter_mut() {
+            let r_now = reference.value();
+            reference.advance();
+            let r_next = reference.value();
+            let e = emf.value();
+            emf.advance();
+            let target = r_next - (r_now - i) * self.lambda;
+            let v = (target - i * self.a - e) * (1.0 / self.b);
+            let v = Complex::new(v.re.clamp(-bus_v, bus_v), v.im.clamp(-bus_v, bus_v));
+            i = i * self.a + v * self.b + e;
+            *slot = [v.re as f32, v.im as f32];
+        }
     }
 }
 

@@ -6,8 +6,10 @@
 //! - [`current_tracking`]: the nonlinear current tracking law, eq. (22), and its sampled
 //!   design for a 50 µs period with compute delay.
 //! - [`microstepping`]: the baselines' references, eqs. (2) and (39).
+//! - [`phasor`]: sinusoids stepped by complex multiplication, for the voltage plan.
 
 pub mod commutation;
 pub mod current_tracking;
 pub mod microstepping;
+pub mod phasor;
 pub mod torque_modulation;

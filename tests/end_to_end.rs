@@ -889,6 +889,6 @@ fn serial_path_works_over_a_pseudo_terminal_pair() {
         .unwrap_or_else(|| panic!("no drive summary: {drive_log}"));
     assert!(
         applied > 1000,
-        "only {applied} commands applied: {drive_log}"
+        "only {applied} commands applied: {drive_log}\nbridge: {log}"
     );
 }

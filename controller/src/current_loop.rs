@@ -30,8 +30,9 @@ pub struct CurrentLoop {
     decided: [[f64; 2]; MAX_DELAY],
     /// The sample answered last, and that command's sequence number.
     answered: Option<(u64, u64)>,
-    /// Where the plan for the last command starts (set by `on_sample`, used by `plan`).
-    seed: Option<Seed>,
+    /// Where the plan for the last command starts (set by `on_sample`, used by `plan`),
+    /// and the bus voltage its voltages are clamped to.
+    seed: Option<(Seed, f64)>,
     /// The last plan, built in place (~2 KB); `len` 0 until one is made.
     plan: DrivePlan,
 }
@@ -130,7 +131,14 @@ impl CurrentLoop {
         let d = self.delay;
         let all_decided = self.decided_before(state.seq);
         let decided = &all_decided[..d];
-        let (k_m, n_r, period, bus_v) = (self.k_m, self.n_r, self.period, self.bus_v);
+        // The drive cannot apply more than its measured bus (a bridge refuses to send it).
+        let measured = state.bus_voltage_v;
+        let bus_v = if measured.is_finite() && measured > 0.0 {
+            measured.min(self.bus_v)
+        } else {
+            self.bus_v
+        };
+        let (k_m, n_r, period) = (self.k_m, self.n_r, self.period);
         let planning = self.plan_periods > 0;
         // The first planned period starts at sample k+d+1.
         let t_plan = t + period * (d + 1) as f64;
@@ -206,7 +214,7 @@ impl CurrentLoop {
         }
         let seq = self.answered.map_or(0, |(_, seq)| seq + 1);
         self.answered = Some((state.seq, seq));
-        self.seed = seed;
+        self.seed = seed.map(|seed| (seed, bus_v));
         DriveCommand {
             seq,
             answers_seq: state.seq,
@@ -225,12 +233,11 @@ impl CurrentLoop {
     /// [`SampledCurrentLaw::plan`]). Built in place; `publish_time_ns` is left for the
     /// caller. Empty when planning is off.
     pub fn plan(&mut self) -> &DrivePlan {
-        let (Some((answers, seq)), Some(seed)) = (self.answered, self.seed.take()) else {
+        let (Some((answers, seq)), Some((seed, bus_v))) = (self.answered, self.seed.take()) else {
             self.plan.len = 0;
             return &self.plan;
         };
         let n = self.plan_periods;
-        let bus_v = self.bus_v;
         let out = &mut self.plan.v[..n];
         match seed {
             Seed::Law {

@@ -14,8 +14,8 @@ use stepdrive_shared::poll::{poll_until, WaitError};
 use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
-    connect, publish_stats, publisher, send, subscriber, try_receive, IpcError, Message, Sub,
-    Topics, LOOP_BUFFER,
+    connect, listener, publish_stats, publisher, send, subscriber, try_receive, wait_event,
+    IpcError, Listener, Message, Sub, Topics, LOOP_BUFFER,
 };
 use stepdrive_shared::stats::{roles, CycleRecorder, StatsReport};
 use stepdrive_shared::{Method, Scenario};
@@ -185,14 +185,46 @@ fn await_newest<T: Debug + Copy + Message + 'static>(
     peer: &'static str,
     what: &'static str,
 ) -> Result<Arrival<T>, ControllerError> {
-    await_message(wait, expected_ns, timeout, || {
-        let mut newest = None;
-        while let Some(m) = try_receive(sub)? {
-            newest = Some(m);
+    await_message(wait, expected_ns, timeout, || newest(sub)).map_err(|e| wait_error(e, what, peer))
+}
+
+/// Waits for the next state by blocking on the producer's event (see [`WaitStrategy::Event`])
+/// and takes the newest one queued.
+fn await_event(
+    sub: &Sub<DriveState>,
+    ready: &Listener,
+    timeout: Duration,
+) -> Result<Arrival<DriveState>, ControllerError> {
+    let start = monotonic_ns();
+    loop {
+        if let Some(message) = newest(sub)? {
+            return Ok(Arrival {
+                message,
+                taken_ns: monotonic_ns(),
+                timer_latency_ns: None,
+            });
         }
-        Ok(newest)
-    })
-    .map_err(|e| wait_error(e, what, peer))
+        if termination_requested() {
+            return Err(ControllerError::Terminated);
+        }
+        if monotonic_ns() - start > timeout.as_nanos() as u64 {
+            return Err(ControllerError::PeerTimeout {
+                what: "drive/state",
+                peer: "plant",
+                timeout,
+            });
+        }
+        wait_event(ready, Duration::from_millis(1))?;
+    }
+}
+
+/// The newest queued message, if any (older ones are dropped).
+fn newest<T: Debug + Copy + Message + 'static>(sub: &Sub<T>) -> Result<Option<T>, IpcError> {
+    let mut newest = None;
+    while let Some(m) = try_receive(sub)? {
+        newest = Some(m);
+    }
+    Ok(newest)
 }
 
 /// Realtime current loop: woken by each state sample (by polling, see `await_newest`),
@@ -214,6 +246,11 @@ pub fn run_current_loop_realtime(
         .map_err(|e| ControllerError::Protocol(e.to_string()))?;
     let commands = publisher(&topics.command, "drive/command")?;
     let plans = publisher(&topics.plan, "drive/plan")?;
+    // `event`: woken by the bridge's state-ready event (hardware mode) instead of a clock.
+    let ready = match rto.wait {
+        WaitStrategy::Event => Some(listener(&topics.state_ready()?)?),
+        _ => None,
+    };
     let s = &opts.scenario;
     let period_ns = s.sample_period_ns();
     let answer_budget_ns = period_ns * u64::from(s.rates.compute_delay_periods.max(1));
@@ -233,14 +270,28 @@ pub fn run_current_loop_realtime(
         } else {
             opts.peer_timeout
         };
-        let arrival = await_newest(
-            &states,
-            rto.wait,
-            expected_ns,
-            timeout,
-            "plant",
-            "drive/state",
-        )?;
+        let arrival = if last_seq.is_none() {
+            // Before the first sample there is no deadline to time against: a back-off
+            // poll, not a spin that would hold this CPU from processes starting on it.
+            let first = poll_until(timeout, || newest(&states))
+                .map_err(|e| wait_error(e, "drive/state", "plant"))?;
+            Arrival {
+                message: first,
+                taken_ns: monotonic_ns(),
+                timer_latency_ns: None,
+            }
+        } else if let Some(ready) = &ready {
+            await_event(&states, ready, timeout)?
+        } else {
+            await_newest(
+                &states,
+                rto.wait,
+                expected_ns,
+                timeout,
+                "plant",
+                "drive/state",
+            )?
+        };
         let (state, start) = (arrival.message, arrival.taken_ns);
         if let Some(prev) = last_seq {
             stats.lost += state.seq.saturating_sub(prev + 1);

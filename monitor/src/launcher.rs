@@ -282,13 +282,25 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
                 d
             }
         };
-        // The bridge polls its socket: one priority below the drive's clock on its CPU, so
-        // it takes each sample as soon as the drive has sent it.
-        let mut bridge = opts.plant.clone();
-        bridge.rt.priority = bridge.rt.priority.map(|p| p.saturating_sub(1).max(1));
+        // The drive stands for separate hardware: it keeps the plant's CPU (its clock spins
+        // the last part of each period). The bridge shares the current loop's CPU, one
+        // priority below it: it polls its socket from shortly before each sample is due (no
+        // wake-up on the critical path), publishes the state and raises state-ready; the
+        // loop, asleep on that event, preempts it, answers and sleeps again, and the bridge
+        // forwards the answer. Nothing on that path crosses CPUs or waits for a timer.
+        let bridge = RoleRt {
+            wait: match opts.current.rt.priority {
+                Some(_) => WaitStrategy::Hybrid { margin_ns: 15_000 },
+                None => WaitStrategy::Sleep,
+            },
+            rt: RtOptions {
+                priority: opts.current.rt.priority.map(|p| p.saturating_sub(1).max(1)),
+                ..opts.current.rt.clone()
+            },
+        };
         plant_args.extend(["--backend".to_string(), "udp".to_string()]);
         plant_args.extend(["--drive".to_string(), drive.to_string()]);
-        plant_args.extend(bridge.rt.to_args());
+        plant_args.extend(bridge.args());
     } else {
         plant_args.extend(role_args(&opts.plant));
         if realtime {

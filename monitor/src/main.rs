@@ -106,6 +106,10 @@ struct EmulateArgs {
     /// Periods without a valid command before outputs go off and a fault latches.
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u16).range(1..))]
     watchdog_periods: u16,
+    /// PLAN entries the drive keeps (announced in CONFIG): when a COMMAND is late it applies
+    /// the plan's entry for that period instead of holding the last duty. 0: no plans.
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u16).range(0..=256))]
+    plan_capacity: u16,
     /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
     #[arg(long, value_name = "S")]
     duration: Option<f64>,
@@ -284,6 +288,11 @@ struct PlantArgs {
     /// forwarding commands.
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
     silence_periods: u32,
+    /// Bridge: send the current loop's voltage plan to the drive (if its CONFIG says it keeps
+    /// one) whenever it is this many samples newer than the last sent. A full PLAN is ~830
+    /// bytes: every period at 20 kHz would be 17 MB/s.
+    #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
+    plan_every: u32,
     /// Bridge: bandwidth of the encoder velocity observer, Hz.
     #[arg(long, default_value_t = 400.0)]
     observer_hz: f64,
@@ -359,10 +368,11 @@ struct StackArgs {
     /// ~25 µs (measured: wake-up p50 31 µs with sleep, 3-5 µs with hybrid:25).
     #[arg(long, default_value = "hybrid:25")]
     plant_wait: WaitStrategy,
-    /// Realtime: wait strategy of the current loop: sleep to 40 µs before the next sample's
-    /// deadline, then poll. A pure spin would hold a whole CPU and exhaust the RT budget.
-    #[arg(long, default_value = "hybrid:40")]
-    current_wait: WaitStrategy,
+    /// Realtime: wait strategy of the current loop. Default: hybrid:40 (sleep to 40 µs
+    /// before the next sample's deadline, then poll; a pure spin would hold a whole CPU);
+    /// in hardware mode `event` (sleep until the bridge raises state-ready).
+    #[arg(long)]
+    current_wait: Option<WaitStrategy>,
     /// Realtime: wait strategy of the position loop.
     #[arg(long, default_value = "sleep")]
     position_wait: WaitStrategy,
@@ -382,7 +392,7 @@ struct StackArgs {
 impl StackArgs {
     /// Applies `--rt-throttling` for the life of the returned guard.
     fn throttling_guard(&self, mode: Mode) -> Result<Option<RtThrottlingOff>> {
-        if mode != Mode::Realtime {
+        if mode == Mode::Lockstep {
             return Ok(None);
         }
         if self.rt_throttling == "off" {
@@ -434,7 +444,10 @@ impl StackArgs {
                 rt: rt(self.priority, cpus.map(|c| c.0)),
             },
             current: RoleRt {
-                wait: self.current_wait,
+                wait: self.current_wait.unwrap_or(match mode {
+                    Mode::Hardware => WaitStrategy::Event,
+                    _ => WaitStrategy::Hybrid { margin_ns: 40_000 },
+                }),
                 rt: rt(
                     self.current_priority.unwrap_or(self.priority),
                     cpus.map(|c| c.1),
@@ -476,6 +489,9 @@ struct ScenarioArgs {
     #[arg(long, value_name = "FILE")]
     check: Option<PathBuf>,
 }
+
+/// The bridge sleeps until 15 µs before the drive's next frame is due, then polls its socket.
+const BRIDGE_WAIT: WaitStrategy = WaitStrategy::Hybrid { margin_ns: 15_000 };
 
 fn init_logging() {
     use tracing_subscriber::EnvFilter;
@@ -552,6 +568,13 @@ fn real_main(cli: Cli) -> Result<()> {
                 let b = BridgeOptions {
                     drive,
                     rt: a.common.rt.options(),
+                    // Polling only pays with a real-time priority; without one it takes
+                    // the CPU from the very processes the bridge waits for.
+                    wait: a.common.wait.unwrap_or(match a.common.rt.priority {
+                        Some(_) => BRIDGE_WAIT,
+                        None => WaitStrategy::Sleep,
+                    }),
+                    plan_every: a.plan_every,
                     silence_periods: a.silence_periods,
                     observer_hz: a.observer_hz,
                     offset_counts: None,
@@ -583,9 +606,19 @@ fn real_main(cli: Cli) -> Result<()> {
                 Mode::Lockstep => {
                     run_current_loop(&lo, a.method)?;
                 }
-                Mode::Realtime | Mode::Hardware => {
+                mode @ (Mode::Realtime | Mode::Hardware) => {
+                    let wait = a.common.wait.unwrap_or(match mode {
+                        Mode::Hardware => WaitStrategy::Event,
+                        _ => WaitStrategy::Spin,
+                    });
+                    if wait == WaitStrategy::Event && mode != Mode::Hardware {
+                        anyhow::bail!(
+                            "--wait event needs a plant that raises state-ready: only the \
+                             bridge does (--mode hardware)"
+                        );
+                    }
                     let rto = RealtimeLoopOptions {
-                        wait: a.common.wait.unwrap_or(WaitStrategy::Spin),
+                        wait,
                         rt: a.common.rt.options(),
                     };
                     run_current_loop_realtime(&lo, a.method, &rto)?;
@@ -650,6 +683,7 @@ fn real_main(cli: Cli) -> Result<()> {
                 wait: a.wait,
                 rt: a.rt.options(),
                 watchdog_periods: a.watchdog_periods,
+                plan_capacity: a.plan_capacity,
                 inject: FaultInjection {
                     drop_every: a.drop_every,
                     corrupt_every: a.corrupt_every,

@@ -5,20 +5,22 @@
 
 use crate::drive_protocol::{
     decode, encode, is_newer, status, Action, Command, Config, DecodeError, FaultReport, Frame,
-    Message, MAX_FRAME,
+    Message, Plan, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
 use crate::drive_units::{duty_for, volts_for, Scaling, VelocityObserver};
 use crate::process::{wait_for_stack, PlantError, PlantOptions};
-use crate::wire::{SerialPort, Wire};
+use crate::wire::{enlarge_receive_buffer, SerialPort, Wire};
 use std::net::{SocketAddr, UdpSocket};
-use std::time::Duration;
+use std::os::fd::RawFd;
 use stepdrive_shared::clock::monotonic_ns;
-use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DriveState};
+use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
+use stepdrive_shared::pacer::{sleep_until, WaitStrategy};
 use stepdrive_shared::poll::termination_requested;
 use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{
-    connect, publish_stats, publisher, send, subscriber, try_receive, Topics, LOOP_BUFFER,
+    connect, drain, notifier, notify, publish_stats, publisher, send, subscriber, try_receive, Sub,
+    Topics, LOOP_BUFFER,
 };
 use stepdrive_shared::stats::{roles, StatsReport};
 
@@ -35,6 +37,8 @@ pub enum Event {
 /// Drive frames ↔ SI, without sockets or clocks.
 pub struct DriveLink {
     scaling: Option<Scaling>,
+    /// PLAN entries the drive keeps (from CONFIG; 0: send none).
+    plan_capacity: u16,
     observer: VelocityObserver,
     observer_hz: f64,
     offset_counts_setting: Option<i64>,
@@ -48,7 +52,15 @@ pub struct DriveLink {
     pub crc_errors: u64,
     pub bad_frames: u64,
     pub rejected_commands: u64,
+    /// Periods the drive reported without their COMMAND, and of those the ones it covered
+    /// with a PLAN entry; runs of such periods and the longest.
     pub held_periods: u64,
+    pub planned_periods: u64,
+    held_run: u64,
+    pub held_runs: u64,
+    pub longest_held_run: u64,
+    /// Samples that never arrived: gaps in the drive's frame sequence.
+    pub lost_on_wire: u64,
     /// The drive's timestamp of the last accepted sample, ns on the drive's clock.
     pub sample_timestamp_ns: u64,
 }
@@ -58,6 +70,7 @@ impl DriveLink {
     pub fn new(sample_hz: f64, observer_hz: f64, offset_counts: Option<i64>) -> Self {
         Self {
             scaling: None,
+            plan_capacity: 0,
             observer: VelocityObserver::new(observer_hz, 1.0 / sample_hz),
             observer_hz,
             offset_counts_setting: offset_counts,
@@ -72,6 +85,11 @@ impl DriveLink {
             bad_frames: 0,
             rejected_commands: 0,
             held_periods: 0,
+            planned_periods: 0,
+            held_run: 0,
+            held_runs: 0,
+            longest_held_run: 0,
+            lost_on_wire: 0,
             sample_timestamp_ns: 0,
         }
     }
@@ -83,9 +101,10 @@ impl DriveLink {
     /// Forgets the sample stream (index, position, velocity, counters) so that run starts
     /// at k = 0 with the next sample; the configuration is kept.
     pub fn restart(&mut self) {
-        let scaling = self.scaling;
+        let (scaling, plan_capacity) = (self.scaling, self.plan_capacity);
         *self = Self {
             scaling,
+            plan_capacity,
             tx_seq: self.tx_seq,
             ..Self::new(self.sample_hz, self.observer_hz, self.offset_counts_setting)
         };
@@ -111,6 +130,7 @@ impl DriveLink {
         match frame.message {
             Message::Config(c) => {
                 self.scaling = Some(Scaling::new(&c));
+                self.plan_capacity = c.plan_capacity.min(MAX_PLAN_ENTRIES as u16);
                 Event::Config(c)
             }
             Message::FaultReport(f) => Event::Fault(f),
@@ -122,6 +142,9 @@ impl DriveLink {
                 if !is_newer(frame.seq, self.last_seq) {
                     self.bad_frames += 1;
                     return Event::Dropped;
+                }
+                if let Some(last) = self.last_seq {
+                    self.lost_on_wire += u64::from(frame.seq.wrapping_sub(last) - 1);
                 }
                 self.last_seq = Some(frame.seq);
                 self.sample_timestamp_ns = frame.timestamp_ns;
@@ -146,6 +169,15 @@ impl DriveLink {
                 if s.status & status::COMMAND_HELD != 0 {
                     flags |= state_flags::COMMAND_HELD;
                     self.held_periods += 1;
+                    self.held_run += 1;
+                    self.held_runs += u64::from(self.held_run == 1);
+                    self.longest_held_run = self.longest_held_run.max(self.held_run);
+                    if s.status & status::COMMAND_PLANNED != 0 {
+                        flags |= state_flags::COMMAND_PLANNED;
+                        self.planned_periods += 1;
+                    }
+                } else {
+                    self.held_run = 0;
                 }
                 Event::State(DriveState {
                     seq: k,
@@ -192,12 +224,49 @@ impl DriveLink {
         Some(frame)
     }
 
+    /// The PLAN frame carrying `plan` (as many entries as the drive keeps), or `None` if the
+    /// drive keeps none or any entry must not reach it (non-finite or beyond the measured
+    /// bus: the whole plan is refused and counted with the rejected commands).
+    pub fn plan_frame(&mut self, plan: &DrivePlan, bus_v: f64, now_ns: u64) -> Option<Frame> {
+        let first = self.first_seq?;
+        let count = plan.entries().len().min(usize::from(self.plan_capacity));
+        if count == 0 {
+            return None;
+        }
+        let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
+        for (out, v) in duties.iter_mut().zip(&plan.entries()[..count]) {
+            let (Some(a), Some(b)) = (
+                duty_for(f64::from(v[0]), bus_v),
+                duty_for(f64::from(v[1]), bus_v),
+            ) else {
+                self.rejected_commands += 1;
+                return None;
+            };
+            *out = [a, b];
+        }
+        let frame = Frame {
+            seq: self.tx_seq,
+            timestamp_ns: now_ns,
+            message: Message::Plan(Plan {
+                answers_sample: first.wrapping_add(plan.answers_seq as u32),
+                count: count as u16,
+                duties,
+            }),
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        Some(frame)
+    }
+
     /// Puts the link's counters into a stats report (drive-held periods are its misses).
     pub fn copy_counters(&self, stats: &mut StatsReport) {
+        stats.lost = self.lost_on_wire;
         stats.crc_errors = self.crc_errors;
         stats.bad_frames = self.bad_frames;
         stats.rejected_commands = self.rejected_commands;
         stats.misses = self.held_periods;
+        stats.planned = self.planned_periods;
+        stats.miss_runs = self.held_runs;
+        stats.longest_miss_run = self.longest_held_run;
     }
 
     pub fn control_frame(&mut self, action: Action, now_ns: u64) -> Frame {
@@ -242,18 +311,16 @@ impl std::fmt::Display for DriveAddr {
 pub struct BridgeOptions {
     pub drive: DriveAddr,
     pub rt: RtOptions,
+    /// How the bridge waits for the drive's next frame: `hybrid:N` sleeps until N before
+    /// it is due, then polls the socket; `spin` polls throughout; `sleep` blocks in poll().
+    pub wait: WaitStrategy,
     /// No valid sample for this many periods: publish a fault and stop forwarding.
     pub silence_periods: u32,
+    /// Forward the current loop's plan when it is this many samples newer than the last
+    /// one sent (a ~830-byte PLAN at 20 kHz would be 17 MB/s; every 10th period, ~1.7).
+    pub plan_every: u32,
     pub observer_hz: f64,
     pub offset_counts: Option<i64>,
-}
-
-/// Receives one frame: the first of a batch waiting up to 1 ms (woken by the kernel when
-/// it lands), the rest without waiting. `None` when nothing (more) is there.
-fn recv_frame(wire: &mut Wire, buf: &mut [u8], first: &mut bool) -> Option<usize> {
-    let wait = if *first { 1 } else { 0 };
-    *first = false;
-    wire.recv(buf, wait).map(|(n, _)| n)
 }
 
 fn send_frame(wire: &mut Wire, f: &Frame) {
@@ -262,11 +329,20 @@ fn send_frame(wire: &mut Wire, f: &Frame) {
     wire.send(&buf[..n]);
 }
 
+/// The longest the bridge polls its socket past a frame's due time before it blocks.
+const MAX_SPIN_PAST_DUE_NS: u64 = 100_000;
+
+/// Room for ~100 ms of samples at 20 kHz, so that a stalled bridge finds them queued
+/// instead of lost (the default, ~200 KB, holds a few hundred).
+const RECEIVE_BUFFER_BYTES: usize = 4 << 20;
+
 /// Runs the bridge for the scenario's duration (hardware mode).
 pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport, PlantError> {
     let io = |e: std::io::Error| PlantError::Protocol(format!("drive socket: {e}"));
     let topics = Topics::open(&opts.instance, "plant", Mode::Hardware)?;
     let commands = subscriber(&topics.command, "drive/command", LOOP_BUFFER)?;
+    let plans = subscriber(&topics.plan, "drive/plan", LOOP_BUFFER)?;
+    let ready = notifier(&topics.state_ready()?)?;
     let states = publisher(&topics.state, "drive/state")?;
     let stats_pub = publisher(&topics.stats, "monitor/stats")?;
     b.rt.apply()
@@ -280,9 +356,9 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             };
             let sock = UdpSocket::bind(local).map_err(io)?;
             sock.connect(addr).map_err(io)?;
-            // Blocking with a short timeout: a waiting recv is woken when a datagram lands.
-            sock.set_read_timeout(Some(Duration::from_millis(1)))
-                .map_err(io)?;
+            sock.set_nonblocking(true).map_err(io)?;
+            let got = enlarge_receive_buffer(&sock, RECEIVE_BUFFER_BYTES);
+            tracing::debug!(bytes = got, "drive socket receive buffer");
             Wire::Udp { sock, peer: None }
         }
         DriveAddr::Serial(path) => Wire::Serial(SerialPort::open(path).map_err(|e| {
@@ -291,6 +367,14 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
     };
 
     let s = &opts.scenario;
+    if s.rates.compute_delay_periods != 1 {
+        return Err(PlantError::Protocol(format!(
+            "a drive applies each COMMAND one period after its sample (docs/drive-protocol.md); \
+             the scenario's rates.compute_delay_periods is {}, so the current loop would be \
+             designed for another drive",
+            s.rates.compute_delay_periods
+        )));
+    }
     let period_ns = s.sample_period_ns();
     let mut link = DriveLink::new(s.rates.current_loop_hz, b.observer_hz, b.offset_counts);
     let mut rx = [0u8; 2048];
@@ -313,7 +397,8 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             send_frame(&mut wire, &link.hello_frame(now));
             next_hello = now + 50_000_000;
         }
-        if let Some((n, _)) = wire.recv(&mut rx, 1) {
+        wait_readable(wire.raw_fd(), 1);
+        if let Some((n, _)) = wire.recv(&mut rx, 0) {
             if let Event::Config(c) = link.on_frame(&rx[..n], now) {
                 tracing::info!(?c, "drive configuration");
                 if f64::from(c.sample_rate_hz) != s.rates.current_loop_hz.round() {
@@ -340,44 +425,56 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
         role: roles::PLANT,
         ..Default::default()
     });
-    let mut sent_at = [(0u32, 0u64); 64];
+    let mut out = Box::new(Outbox {
+        sent_at: [(0, 0); 64],
+        answered: None,
+        plan: DrivePlan::default(),
+        plan_sent: None,
+        plan_every: u64::from(b.plan_every.max(1)),
+        silent: false,
+        bus_v: 0.0,
+    });
     let mut last_rx = monotonic_ns();
     let mut last_state: Option<DriveState> = None;
-    let mut silent = false;
     let silence_ns = u64::from(b.silence_periods) * period_ns;
-    tracing::info!(samples = n, drive = %b.drive, "bridge running");
-    // Each period: wait (woken by the kernel when a frame lands: no timer, whose wake-up
-    // costs ~25 µs here; at most 1 ms, so the silence watchdog keeps running), take everything queued, publish the
-    // newest sample, then poll for the current loop's answer for up to `answer_window` and
-    // forward it. Never a continuous spin: the bridge shares a CPU with the drive
-    // (emulated) or with the loops.
-    let answer_window = period_ns * 6 / 10;
     // About once a second, for the monitor's progress line.
     let stats_every = (s.rates.current_loop_hz.round() as u64).max(1);
-    let mut first_wait = true;
-    'run: loop {
+    let mut arrivals = ArrivalClock::new(period_ns);
+    let mut due: Option<u64> = None;
+    tracing::info!(samples = n, drive = %b.drive, wait = %b.wait, "bridge running");
+    loop {
         if termination_requested() {
             return Err(PlantError::Terminated);
         }
-        // Take everything queued; only the newest sample is published (older ones would
-        // only draw late commands) and the skipped ones show up as lost.
+        // Wait for the drive's next frame without a wake-up on the critical path: asleep
+        // until the wait strategy's margin before it is due, then polling the socket (a
+        // wake-up by the kernel would cost ~15 µs here: softirq, IPI, preemption). Without a
+        // due time, or well past it (drive late or silent), block in poll() for up to 1 ms
+        // so the silence watchdog keeps running.
+        let spin_from = due.map(|d| match b.wait {
+            WaitStrategy::Hybrid { margin_ns } => d.saturating_sub(margin_ns),
+            WaitStrategy::Spin => 0,
+            _ => u64::MAX,
+        });
+        if let Some(t) = spin_from.filter(|&t| t != u64::MAX && t > monotonic_ns()) {
+            sleep_until(t);
+        }
+        // A frame this late means the drive or the host was held up: stop spinning.
+        let give_up = due.map_or(0, |d| d + (2 * period_ns).min(MAX_SPIN_PAST_DUE_NS));
         let mut newest: Option<(DriveState, u64)> = None;
         loop {
-            while let Some(len) = recv_frame(&mut wire, &mut rx, &mut first_wait) {
+            out.forward(&commands, &plans, &mut link, &mut wire, &mut stats)?;
+            while let Some((len, _)) = wire.recv(&mut rx, 0) {
                 let now = monotonic_ns();
                 match link.on_frame(&rx[..len], now) {
                     Event::State(st) => {
-                        // The emulated drive shares this host's clock; for a real drive
-                        // only the round trip below is meaningful.
+                        // The emulated drive shares this host's clock; for a real drive only
+                        // the round trip is meaningful.
                         stats
                             .hop
                             .record(now.saturating_sub(link.sample_timestamp_ns));
-                        let q = st.applied_command_seq as u32;
-                        let slot = &mut sent_at[(q % 64) as usize];
-                        if slot.0 == q && slot.1 != 0 {
-                            stats.round_trip.record(now - slot.1);
-                            slot.1 = 0;
-                        }
+                        out.round_trip(st.applied_command_seq as u32, now, &mut stats);
+                        stats.superseded += u64::from(newest.is_some());
                         newest = Some((st, now));
                     }
                     Event::Fault(f) => {
@@ -393,86 +490,87 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             if newest.is_some() {
                 break;
             }
-            first_wait = true;
-            {
-                let now = monotonic_ns();
-                if termination_requested() {
-                    return Err(PlantError::Terminated);
+            let now = monotonic_ns();
+            if now - last_rx > silence_ns && !out.silent {
+                out.silent = true;
+                tracing::error!(
+                    periods = b.silence_periods,
+                    "no valid sample from the drive: fault published, commands no longer forwarded"
+                );
+                if let Some(mut st) = last_state {
+                    st.seq += 1;
+                    st.fault |= fault_bits::DRIVE_SILENT;
+                    st.publish_time_ns = now;
+                    st.deadline_ns = now;
+                    send(&states, st)?;
+                    notify(&ready)?;
+                    last_state = Some(st);
                 }
-                if !silent && now - last_rx > silence_ns {
-                    silent = true;
-                    tracing::error!(
-                        periods = b.silence_periods,
-                        "no valid sample from the drive: fault published, commands no longer forwarded"
-                    );
-                    if let Some(mut st) = last_state {
-                        st.seq += 1;
-                        st.fault |= fault_bits::DRIVE_SILENT;
-                        st.publish_time_ns = now;
-                        st.deadline_ns = now;
-                        send(&states, st)?;
-                        last_state = Some(st);
-                    }
-                }
-                if now - last_rx > opts.peer_timeout.as_nanos() as u64 {
-                    return Err(PlantError::Protocol(format!(
-                        "the drive at {} has been silent for {:?}",
-                        b.drive, opts.peer_timeout
-                    )));
-                }
+            }
+            if now - last_rx > opts.peer_timeout.as_nanos() as u64 {
+                return Err(PlantError::Protocol(format!(
+                    "the drive at {} has been silent for {:?}",
+                    b.drive, opts.peer_timeout
+                )));
+            }
+            if termination_requested() {
+                return Err(PlantError::Terminated);
+            }
+            if spin_from.is_none_or(|t| t == u64::MAX) || now > give_up {
+                wait_readable(wire.raw_fd(), 1);
+            } else {
+                std::hint::spin_loop();
             }
         }
-        if let Some((mut st, rx_at)) = newest {
-            if silent {
-                // Latched: once silent, the stack stays in fault for this run.
-                st.fault |= fault_bits::DRIVE_SILENT;
-            }
-            if let Some(prev) = last_state {
-                stats.lost += st.seq.saturating_sub(prev.seq + 1);
-                stats.period.record(rx_at.saturating_sub(prev.deadline_ns));
-            }
-            let last = st.seq + 1 >= n;
-            if last {
-                st.flags |= state_flags::LAST;
-            }
-            st.publish_time_ns = monotonic_ns();
-            send(&states, st)?;
-            stats.cycles += 1;
-            stats.compute.record(monotonic_ns() - rx_at);
-            if stats.cycles % stats_every == 0 {
-                link.copy_counters(&mut stats);
-                publish_stats(&stats_pub, &mut stats, false)?;
-            }
-            last_rx = rx_at;
-            last_state = Some(st);
-            if last {
-                break 'run;
+        let Some((mut st, rx_at)) = newest else {
+            continue;
+        };
+        // The newest is the last sample accepted: its drive timestamp is the link's.
+        let newest_stamp = link.sample_timestamp_ns;
+        if out.silent {
+            // Latched: once silent, the stack stays in fault for this run.
+            st.fault |= fault_bits::DRIVE_SILENT;
+        }
+        if let Some(prev) = last_state {
+            stats.period.record(rx_at.saturating_sub(prev.deadline_ns));
+        }
+        let last = st.seq + 1 >= n;
+        if last {
+            st.flags |= state_flags::LAST;
+        }
+        out.bus_v = st.bus_voltage_v;
+        st.publish_time_ns = monotonic_ns();
+        send(&states, st)?;
+        // With real-time priorities the current loop, one above on this CPU, preempts us
+        // here and has answered when notify returns.
+        notify(&ready)?;
+        stats.cycles += 1;
+        stats.compute.record(monotonic_ns() - rx_at);
+        out.forward(&commands, &plans, &mut link, &mut wire, &mut stats)?;
+        if b.wait == WaitStrategy::Sleep {
+            // Without them nothing orders its answer before our next wake-up: look for it
+            // every ANSWER_CHECK_NS until it is out, a frame lands, or most of the period
+            // has gone.
+            let until = rx_at + period_ns * 8 / 10;
+            while out.answered.is_none_or(|a| a < st.seq) {
+                let now = monotonic_ns();
+                if now >= until
+                    || wait_readable_ns(wire.raw_fd(), (until - now).min(ANSWER_CHECK_NS))
+                {
+                    break;
+                }
+                out.forward(&commands, &plans, &mut link, &mut wire, &mut stats)?;
             }
         }
-        // The answer to the sample just published.
-        let want = last_state.map_or(0, |st| st.seq);
-        let until = monotonic_ns() + answer_window;
-        loop {
-            let mut answered = false;
-            while let Some(c) = try_receive(&commands)? {
-                let now = monotonic_ns();
-                stats
-                    .sensor_to_actuator
-                    .record(c.publish_time_ns.saturating_sub(c.state_publish_time_ns));
-                answered |= c.answers_seq >= want;
-                if silent {
-                    continue;
-                }
-                let bus = last_state.map_or(0.0, |st| st.bus_voltage_v);
-                if let Some(f) = link.command_frame(&c, bus, now) {
-                    send_frame(&mut wire, &f);
-                    sent_at[(f.seq % 64) as usize] = (f.seq, monotonic_ns());
-                }
-            }
-            if answered || monotonic_ns() > until {
-                break;
-            }
-            std::hint::spin_loop();
+        if stats.cycles % stats_every == 0 {
+            link.copy_counters(&mut stats);
+            publish_stats(&stats_pub, &mut stats, false)?;
+        }
+        last_rx = rx_at;
+        last_state = Some(st);
+        due = Some(arrivals.next_due(newest_stamp, rx_at));
+        if last {
+            break;
         }
     }
     send_frame(
@@ -485,10 +583,148 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
         crc_errors = link.crc_errors,
         bad_frames = link.bad_frames,
         rejected = link.rejected_commands,
+        lost = link.lost_on_wire,
+        superseded = stats.superseded,
         "bridge done"
     );
     Ok(*stats)
 }
+
+/// When the drive's next sample is due, in host time. Every SAMPLE carries the drive's
+/// timestamp, so the next one leaves one period after it (whatever the drive did before,
+/// pauses included); it lands the transport delay later. That delay, which also absorbs the
+/// offset between the two clocks, is the smallest seen: a sample can be held up on the way,
+/// never sped up. The estimate may grow by `CREEP_NS` a period so that it follows a drive
+/// clock running slow against the host's (up to 0.2 % at 20 kHz).
+#[derive(Debug, Clone, Copy)]
+pub struct ArrivalClock {
+    period_ns: u64,
+    /// Host time minus drive time of the fastest recent delivery, ns.
+    delay_ns: Option<i64>,
+}
+
+/// How far a period the delay estimate may grow.
+const CREEP_NS: i64 = 100;
+
+impl ArrivalClock {
+    pub fn new(period_ns: u64) -> Self {
+        Self {
+            period_ns,
+            delay_ns: None,
+        }
+    }
+
+    /// A sample stamped `drive_ns` by the drive arrived at host time `at`: returns when the
+    /// next one is due.
+    pub fn next_due(&mut self, drive_ns: u64, at: u64) -> u64 {
+        let delay = at.wrapping_sub(drive_ns) as i64;
+        let d = self.delay_ns.map_or(delay, |d| delay.min(d + CREEP_NS));
+        self.delay_ns = Some(d);
+        drive_ns.wrapping_add(self.period_ns).wrapping_add(d as u64)
+    }
+}
+
+/// The host → drive side of the bridge: what the current loop publishes goes out as frames.
+struct Outbox {
+    /// (frame seq, send time) of recent COMMAND frames, for the round trip.
+    sent_at: [(u32, u64); 64],
+    /// The newest sample a command has answered.
+    answered: Option<u64>,
+    /// The newest plan received (~2 KB, kept in place), and the sample the last PLAN sent
+    /// continued from.
+    plan: DrivePlan,
+    plan_sent: Option<u64>,
+    plan_every: u64,
+    /// Once the drive has been silent too long nothing is forwarded any more.
+    silent: bool,
+    /// The measured bus voltage of the last sample (volts → duty).
+    bus_v: f64,
+}
+
+impl Outbox {
+    /// Forwards every command queued, then the newest plan if it is `plan_every` samples
+    /// newer than the last one sent (nothing while silent).
+    fn forward(
+        &mut self,
+        commands: &Sub<DriveCommand>,
+        plans: &Sub<DrivePlan>,
+        link: &mut DriveLink,
+        wire: &mut Wire,
+        stats: &mut StatsReport,
+    ) -> Result<(), PlantError> {
+        self.forward_commands(commands, link, wire, stats)?;
+        drain(plans, |p| {
+            if p.len > 0 && (self.plan.len == 0 || p.answers_seq > self.plan.answers_seq) {
+                self.plan = *p;
+            }
+        })?;
+        let due = self
+            .plan_sent
+            .is_none_or(|sent| self.plan.answers_seq >= sent + self.plan_every);
+        if self.plan.len > 0 && due && !self.silent {
+            if let Some(f) = link.plan_frame(&self.plan, self.bus_v, monotonic_ns()) {
+                send_frame(wire, &f);
+            }
+            self.plan_sent = Some(self.plan.answers_seq);
+        }
+        Ok(())
+    }
+
+    fn forward_commands(
+        &mut self,
+        commands: &Sub<DriveCommand>,
+        link: &mut DriveLink,
+        wire: &mut Wire,
+        stats: &mut StatsReport,
+    ) -> Result<(), PlantError> {
+        while let Some(c) = try_receive(commands)? {
+            stats
+                .sensor_to_actuator
+                .record(c.publish_time_ns.saturating_sub(c.state_publish_time_ns));
+            self.answered = self.answered.max(Some(c.answers_seq));
+            if self.silent {
+                continue;
+            }
+            if let Some(f) = link.command_frame(&c, self.bus_v, monotonic_ns()) {
+                send_frame(wire, &f);
+                self.sent_at[(f.seq % 64) as usize] = (f.seq, monotonic_ns());
+            }
+        }
+        Ok(())
+    }
+
+    /// A sample reported command frame `seq` applied: records the round trip once.
+    fn round_trip(&mut self, seq: u32, now: u64, stats: &mut StatsReport) {
+        let slot = &mut self.sent_at[(seq % 64) as usize];
+        if slot.0 == seq && slot.1 != 0 {
+            stats.round_trip.record(now - slot.1);
+            slot.1 = 0;
+        }
+    }
+}
+
+/// Sleeps until `fd` is readable or `timeout_ms` passes (EINTR just returns).
+fn wait_readable(fd: RawFd, timeout_ms: i32) {
+    wait_readable_ns(fd, timeout_ms as u64 * 1_000_000);
+}
+
+/// Sleeps until `fd` is readable (true) or `timeout_ns` passes (false; EINTR too).
+fn wait_readable_ns(fd: RawFd, timeout_ns: u64) -> bool {
+    let mut pfd = libc::pollfd {
+        fd,
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    let ts = libc::timespec {
+        tv_sec: (timeout_ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (timeout_ns % 1_000_000_000) as libc::c_long,
+    };
+    // SAFETY: one valid pollfd and timespec; no signal mask change.
+    unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) > 0 }
+}
+
+/// How often a bridge without real-time priority looks for the current loop's answer.
+const ANSWER_CHECK_NS: u64 = 20_000;
 
 #[cfg(test)]
 mod tests {
@@ -518,7 +754,7 @@ mod tests {
             Event::Dropped,
             "no CONFIG yet"
         );
-        let cfg = default_config(20_000.0, 200);
+        let cfg = default_config(20_000.0, 200, 200);
         assert!(matches!(
             l.on_frame(&bytes(0, Message::Config(cfg)), 0),
             Event::Config(_)
@@ -552,10 +788,44 @@ mod tests {
         assert!(st2.theta_rad > st.theta_rad);
     }
 
+    /// The due time follows the drive's own timestamps (a pause of the drive moves it at
+    /// once), plus the fastest delivery seen; a slower delivery does not move it, a steadily
+    /// growing delay (a slow drive clock) is followed at CREEP_NS a period.
+    #[test]
+    fn arrival_clock_follows_the_drive_timestamps() {
+        let mut c = ArrivalClock::new(50_000);
+        // Drive clock 7 ms behind the host's, 3 µs on the way.
+        let host = |drive: u64, on_the_way: u64| drive + 7_000_000 + on_the_way;
+        assert_eq!(
+            c.next_due(1_000_000, host(1_000_000, 3_000)),
+            host(1_050_000, 3_000)
+        );
+        // Held up 20 µs on the way: the next is still due 3 µs after it leaves.
+        assert_eq!(
+            c.next_due(1_050_000, host(1_050_000, 23_000)),
+            host(1_100_000, 3_000 + CREEP_NS as u64)
+        );
+        // The drive paused 400 µs: its timestamp says so.
+        assert_eq!(
+            c.next_due(1_500_000, host(1_500_000, 3_000)),
+            host(1_550_000, 3_000)
+        );
+        // A drive clock 1 µs a period slower than the host's: the delay estimate follows.
+        let mut due = 0;
+        for k in 0..200u64 {
+            let sent = 2_000_000 + k * 50_000;
+            due = c.next_due(sent, host(sent, 3_000 + k * 1_000));
+        }
+        assert!(due >= host(2_000_000 + 200 * 50_000, 3_000 + 199 * CREEP_NS as u64 - 1));
+    }
+
     #[test]
     fn bad_commands_are_never_sent() {
         let mut l = DriveLink::new(20_000.0, 400.0, Some(0));
-        l.on_frame(&bytes(0, Message::Config(default_config(20_000.0, 200))), 0);
+        l.on_frame(
+            &bytes(0, Message::Config(default_config(20_000.0, 200, 200))),
+            0,
+        );
         l.on_frame(&bytes(50, sample(0)), 0);
         let c = |va: f64| DriveCommand {
             answers_seq: 0,

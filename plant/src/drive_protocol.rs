@@ -1,8 +1,8 @@
-//! The drive wire protocol, version 1 (`docs/drive-protocol.md` is the specification; this
+//! The drive wire protocol, version 2 (`docs/drive-protocol.md` is the specification; this
 //! module is its reference codec). Frames are little-endian with fixed fields:
 //!
 //! ```text
-//! 0  u16 magic 0x5344      2  u8 version (1)     3  u8 kind
+//! 0  u16 magic 0x5344      2  u8 version (2)     3  u8 kind
 //! 4  u32 seq (sender's frame counter, +1 per frame)
 //! 8  u64 timestamp_ns (sender's monotonic clock)
 //! 16 u16 payload_len       18 payload            18+n u32 CRC-32 of bytes 0..18+n
@@ -15,11 +15,15 @@
 use thiserror::Error;
 
 pub const MAGIC: u16 = 0x5344;
-pub const VERSION: u8 = 1;
+pub const VERSION: u8 = 2;
 pub const HEADER_LEN: usize = 18;
 pub const CRC_LEN: usize = 4;
-/// Largest frame of this version (CONFIG): header + 28 + CRC.
-pub const MAX_FRAME: usize = HEADER_LEN + 28 + CRC_LEN;
+/// Most entries one PLAN can carry (12.8 ms at 20 kHz).
+pub const MAX_PLAN_ENTRIES: usize = 256;
+/// PLAN payload: answers_sample, count, reserved, then 4 bytes an entry.
+const PLAN_HEADER: usize = 8;
+/// Largest frame of this version (a full PLAN).
+pub const MAX_FRAME: usize = HEADER_LEN + PLAN_HEADER + 4 * MAX_PLAN_ENTRIES + CRC_LEN;
 
 /// Drive fault bits (SAMPLE.fault_bits, FAULT_REPORT.fault_bits).
 pub mod faults {
@@ -37,8 +41,11 @@ pub mod faults {
 pub mod status {
     /// Outputs are enabled (the bridge sent ENABLE and no fault is latched).
     pub const ENABLED: u16 = 1 << 0;
-    /// The previous period's COMMAND was missing; the drive held the one before.
+    /// The previous period's COMMAND was missing; the drive held the one before, or applied
+    /// a PLAN entry ([`COMMAND_PLANNED`]).
     pub const COMMAND_HELD: u16 = 1 << 1;
+    /// With [`COMMAND_HELD`]: the duties came from the PLAN.
+    pub const COMMAND_PLANNED: u16 = 1 << 2;
 }
 
 /// Duty ±32767 means ±100 % of the bus voltage on that phase.
@@ -70,6 +77,23 @@ pub struct Command {
     pub duty_b: i16,
 }
 
+/// Duties the host expects to send next, for a drive whose COMMAND is late: entry j is for
+/// the period that starts at SAMPLE `answers_sample` + 2 + j (the period after the one the
+/// COMMAND answering `answers_sample` is for). Entries past `count` are zero.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Plan {
+    pub answers_sample: u32,
+    /// 1 ..= MAX_PLAN_ENTRIES.
+    pub count: u16,
+    pub duties: [[i16; 2]; MAX_PLAN_ENTRIES],
+}
+
+impl Plan {
+    pub fn entries(&self) -> &[[i16; 2]] {
+        &self.duties[..usize::from(self.count).min(MAX_PLAN_ENTRIES)]
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Action {
     Enable = 1,
@@ -98,9 +122,14 @@ pub struct Config {
     pub watchdog_periods: u16,
     /// +1 if positive encoder counts are positive θ, −1 otherwise.
     pub encoder_direction: i8,
-    pub reserved: [u8; 7],
+    /// PLAN entries the drive keeps; 0: it ignores PLAN frames (none are sent).
+    pub plan_capacity: u16,
+    pub reserved: [u8; 5],
 }
 
+// A Message lives on the stack of the wire path, which must not allocate: the 1 KB PLAN
+// variant stays inline rather than boxed.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Message {
     /// drive → host, every period.
@@ -115,6 +144,8 @@ pub enum Message {
     Config(Config),
     /// host → drive: announces the host (its UDP address) and asks for CONFIG.
     Hello,
+    /// host → drive, every few periods when the drive keeps plans.
+    Plan(Plan),
 }
 
 impl Message {
@@ -126,10 +157,20 @@ impl Message {
             Message::FaultReport(_) => 4,
             Message::Config(_) => 5,
             Message::Hello => 6,
+            Message::Plan(_) => 7,
         }
     }
 
-    fn payload_len(kind: u8) -> Option<usize> {
+    /// The payload length this message encodes to.
+    fn payload_len(&self) -> usize {
+        match self {
+            Message::Plan(p) => PLAN_HEADER + 4 * p.entries().len(),
+            _ => Self::fixed_len(self.kind()).unwrap_or(0),
+        }
+    }
+
+    /// Payload length of the fixed-size kinds.
+    fn fixed_len(kind: u8) -> Option<usize> {
         Some(match kind {
             1 => 22,
             2 => 8,
@@ -139,6 +180,26 @@ impl Message {
             6 => 4,
             _ => return None,
         })
+    }
+
+    /// Whether a payload of `len` bytes is valid for `kind` (PLAN: 8 + 4·count, count ≥ 1).
+    fn valid_len(kind: u8, len: usize) -> Result<(), DecodeError> {
+        let expected = match kind {
+            7 => {
+                let entries = len.saturating_sub(PLAN_HEADER) / 4;
+                PLAN_HEADER + 4 * entries.clamp(1, MAX_PLAN_ENTRIES)
+            }
+            k => Self::fixed_len(k).ok_or(DecodeError::BadKind(k))?,
+        };
+        if expected == len {
+            Ok(())
+        } else {
+            Err(DecodeError::BadLength {
+                kind,
+                expected,
+                got: len,
+            })
+        }
     }
 }
 
@@ -172,6 +233,8 @@ pub enum DecodeError {
     BadCrc { got: u32, computed: u32 },
     #[error("invalid control action {0}")]
     BadAction(u8),
+    #[error("PLAN says {count} entries in a payload of {len} bytes")]
+    BadPlanCount { count: u16, len: usize },
     #[error("bad COBS encoding")]
     BadCobs,
 }
@@ -220,7 +283,7 @@ impl Writer<'_> {
 /// Encodes a frame into `buf`; returns its length. No allocation.
 pub fn encode(frame: &Frame, buf: &mut [u8; MAX_FRAME]) -> usize {
     let kind = frame.message.kind();
-    let len = Message::payload_len(kind).unwrap_or(0);
+    let len = frame.message.payload_len();
     let mut w = Writer { buf, at: 0 };
     w.put(&MAGIC.to_le_bytes());
     w.put(&[VERSION, kind]);
@@ -258,9 +321,19 @@ pub fn encode(frame: &Frame, buf: &mut [u8; MAX_FRAME]) -> usize {
             w.put(&c.bus_uv_per_count.to_le_bytes());
             w.put(&c.watchdog_periods.to_le_bytes());
             w.put(&c.encoder_direction.to_le_bytes());
+            w.put(&c.plan_capacity.to_le_bytes());
             w.put(&c.reserved);
         }
         Message::Hello => w.put(&[VERSION, 0, 0, 0]),
+        Message::Plan(p) => {
+            w.put(&p.answers_sample.to_le_bytes());
+            w.put(&(p.entries().len() as u16).to_le_bytes());
+            w.put(&[0, 0]);
+            for [a, b] in p.entries() {
+                w.put(&a.to_le_bytes());
+                w.put(&b.to_le_bytes());
+            }
+        }
     }
     let end = w.at;
     let crc = crc32(&w.buf[..end]);
@@ -326,14 +399,7 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
     if version != VERSION {
         return Err(DecodeError::BadVersion(version));
     }
-    let expected = Message::payload_len(kind).ok_or(DecodeError::BadKind(kind))?;
-    if expected != payload {
-        return Err(DecodeError::BadLength {
-            kind,
-            expected,
-            got: payload,
-        });
-    }
+    Message::valid_len(kind, payload)?;
     let seq = r.u32();
     let timestamp_ns = u64::from_le_bytes(r.take());
     r.at += 2;
@@ -379,8 +445,30 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
             bus_uv_per_count: r.u32(),
             watchdog_periods: r.u16(),
             encoder_direction: i8::from_le_bytes(r.take()),
+            plan_capacity: r.u16(),
             reserved: r.take(),
         }),
+        7 => {
+            let answers_sample = r.u32();
+            let count = r.u16();
+            r.at += 2;
+            let entries = (payload - PLAN_HEADER) / 4;
+            if usize::from(count) != entries {
+                return Err(DecodeError::BadPlanCount {
+                    count,
+                    len: payload,
+                });
+            }
+            let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
+            for d in duties.iter_mut().take(entries) {
+                *d = [r.i16(), r.i16()];
+            }
+            Message::Plan(Plan {
+                answers_sample,
+                count,
+                duties,
+            })
+        }
         _ => Message::Hello,
     };
     Ok(Frame {
@@ -497,9 +585,30 @@ mod tests {
         assert_eq!(
             buf[..n],
             [
-                0x44, 0x53, 0x01, 0x02, 0x07, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x00, 0x00, 0x00, 0x00,
-                0x00, 0x00, 0x08, 0x00, 0x06, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x18, 0xFC, 0x4F, 0xAE,
-                0x51, 0x61
+                0x44, 0x53, 0x02, 0x02, 0x07, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x00, 0x00, 0x00, 0x00,
+                0x00, 0x00, 0x08, 0x00, 0x06, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x18, 0xFC, 0x67, 0x07,
+                0x4F, 0x39
+            ]
+        );
+        let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
+        duties[0] = [1000, -1000];
+        duties[1] = [2000, -2000];
+        let plan = Frame {
+            seq: 8,
+            timestamp_ns: 2_000,
+            message: Message::Plan(Plan {
+                answers_sample: 6,
+                count: 2,
+                duties,
+            }),
+        };
+        let n = encode(&plan, &mut buf);
+        assert_eq!(
+            buf[..n],
+            [
+                0x44, 0x53, 0x02, 0x07, 0x08, 0x00, 0x00, 0x00, 0xD0, 0x07, 0x00, 0x00, 0x00, 0x00,
+                0x00, 0x00, 0x10, 0x00, 0x06, 0x00, 0x00, 0x00, 0x02, 0x00, 0x00, 0x00, 0xE8, 0x03,
+                0x18, 0xFC, 0xD0, 0x07, 0x30, 0xF8, 0x05, 0x2E, 0x05, 0x11
             ]
         );
     }
@@ -586,9 +695,23 @@ mod tests {
                     bus_uv_per_count: b,
                     watchdog_periods: w,
                     encoder_direction: d,
-                    reserved: [0; 7]
+                    plan_capacity: w,
+                    reserved: [0; 5]
                 })),
             Just(Message::Hello),
+            (
+                any::<u32>(),
+                proptest::collection::vec(any::<[i16; 2]>(), 1..=MAX_PLAN_ENTRIES)
+            )
+                .prop_map(|(s, entries)| {
+                    let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
+                    duties[..entries.len()].copy_from_slice(&entries);
+                    Message::Plan(Plan {
+                        answers_sample: s,
+                        count: entries.len() as u16,
+                        duties,
+                    })
+                }),
         ]
     }
 
@@ -622,6 +745,45 @@ mod tests {
             prop_assert!(decode(&buf[..n - 1]).is_err());
             prop_assert!(decode(&buf[..(n + 1).min(MAX_FRAME)]).is_err() || n == MAX_FRAME);
         }
+    }
+
+    /// A PLAN must carry exactly `count` entries, 1 ..= MAX_PLAN_ENTRIES.
+    #[test]
+    fn plan_lengths_are_checked() {
+        let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
+        duties[0] = [5, 5];
+        let one = Frame {
+            seq: 1,
+            timestamp_ns: 0,
+            message: Message::Plan(Plan {
+                answers_sample: 0,
+                count: 1,
+                duties,
+            }),
+        };
+        let mut buf = [0u8; MAX_FRAME];
+        let n = encode(&one, &mut buf);
+        assert_eq!(decode(&buf[..n]), Ok(one));
+        // Count field says 2 with one entry's bytes (CRC recomputed: a consistent liar).
+        let mut bad = buf;
+        bad[HEADER_LEN + 4] = 2;
+        let crc = crc32(&bad[..n - CRC_LEN]);
+        bad[n - CRC_LEN..n].copy_from_slice(&crc.to_le_bytes());
+        assert!(matches!(
+            decode(&bad[..n]),
+            Err(DecodeError::BadPlanCount { count: 2, .. })
+        ));
+        // An empty PLAN is malformed.
+        let mut empty = buf;
+        empty[16] = PLAN_HEADER as u8;
+        empty[HEADER_LEN + 4] = 0;
+        let m = HEADER_LEN + PLAN_HEADER;
+        let crc = crc32(&empty[..m]);
+        empty[m..m + CRC_LEN].copy_from_slice(&crc.to_le_bytes());
+        assert!(matches!(
+            decode(&empty[..m + CRC_LEN]),
+            Err(DecodeError::BadLength { kind: 7, .. })
+        ));
     }
 
     #[test]

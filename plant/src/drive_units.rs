@@ -5,7 +5,7 @@ use crate::drive_protocol::{Config, MAX_DUTY};
 use std::f64::consts::TAU;
 
 /// The emulated drive's scaling (a real drive reports its own in CONFIG).
-pub fn default_config(sample_rate_hz: f64, watchdog_periods: u16) -> Config {
+pub fn default_config(sample_rate_hz: f64, watchdog_periods: u16, plan_capacity: u16) -> Config {
     Config {
         sample_rate_hz: sample_rate_hz.round() as u32,
         // A 20-bit encoder: 6 µrad per count, far below the errors being measured.
@@ -17,7 +17,8 @@ pub fn default_config(sample_rate_hz: f64, watchdog_periods: u16) -> Config {
         bus_uv_per_count: 10_000,
         watchdog_periods,
         encoder_direction: 1,
-        reserved: [0; 7],
+        plan_capacity,
+        reserved: [0; 5],
     }
 }
 
@@ -124,7 +125,7 @@ mod tests {
 
     #[test]
     fn unit_round_trips() {
-        let s = Scaling::new(&default_config(20_000.0, 200));
+        let s = Scaling::new(&default_config(20_000.0, 200, 200));
         for theta in [-3.0, 0.0, 1e-3, 19.7] {
             assert!((s.theta(s.counts(theta)) - theta).abs() <= TAU / f64::from(1u32 << 20));
         }

@@ -4,11 +4,11 @@
 
 use crate::drive_protocol::{
     decode, encode, faults, is_newer, status, Action, Command, Config, FaultReport, Frame, Message,
-    Sample, MAX_FRAME,
+    Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
 use crate::drive_units::{default_config, volts_for, Scaling};
 use crate::sim::PlantSim;
-use crate::wire::{SerialPort, Wire};
+use crate::wire::{enlarge_receive_buffer, SerialPort, Wire};
 use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
@@ -43,7 +43,10 @@ pub struct DriveCounters {
     pub crc_errors: u64,
     pub stale_frames: u64,
     pub commands_applied: u64,
+    /// Periods without their COMMAND (the watchdog's count), and of those, the ones that
+    /// got a PLAN entry instead of the held duties.
     pub periods_held: u64,
+    pub periods_planned: u64,
 }
 
 /// The drive's logic, without sockets or clocks: frames in, samples out.
@@ -57,6 +60,9 @@ pub struct DriveCore {
     last_rx_seq: Option<u32>,
     pending: Option<Command>,
     pending_seq: u32,
+    /// The PLAN with the newest `answers_sample`, and its frame's seq.
+    plan: Option<(Plan, u32)>,
+    planned: bool,
     held_duty: (i16, i16),
     held_seq: u32,
     since_command: u32,
@@ -70,8 +76,10 @@ pub enum Reply {
 }
 
 impl DriveCore {
-    pub fn new(s: &Scenario, watchdog_periods: u16) -> Self {
-        let config = default_config(s.rates.current_loop_hz, watchdog_periods);
+    /// `plan_capacity`: PLAN entries kept (0: PLAN frames are not wanted, and dropped).
+    pub fn new(s: &Scenario, watchdog_periods: u16, plan_capacity: u16) -> Self {
+        let capacity = plan_capacity.min(MAX_PLAN_ENTRIES as u16);
+        let config = default_config(s.rates.current_loop_hz, watchdog_periods, capacity);
         Self {
             scaling: Scaling::new(&config),
             config,
@@ -82,6 +90,8 @@ impl DriveCore {
             last_rx_seq: None,
             pending: None,
             pending_seq: 0,
+            plan: None,
+            planned: false,
             held_duty: (0, 0),
             held_seq: 0,
             since_command: 0,
@@ -143,8 +153,31 @@ impl DriveCore {
                 None
             }
             Message::Hello => Some(Reply::Config(self.config)),
+            Message::Plan(p) => {
+                if p.entries().iter().flatten().any(|&d| d == i16::MIN) {
+                    self.latched |= faults::BAD_COMMAND;
+                } else if p.count > self.config.plan_capacity {
+                    // More than it announced it keeps: malformed for this drive.
+                    self.counters.bad_frames += 1;
+                } else if self
+                    .plan
+                    .is_none_or(|(old, _)| is_newer(p.answers_sample, Some(old.answers_sample)))
+                {
+                    self.plan = Some((p, frame.seq));
+                }
+                None
+            }
             _ => None,
         }
+    }
+
+    /// The PLAN entry for the period starting at SAMPLE `sample_seq`, with its frame seq.
+    fn planned_duty(&self, sample_seq: u32) -> Option<((i16, i16), u32)> {
+        let (p, seq) = self.plan.as_ref()?;
+        // Entry j is for the period starting at answers_sample + 2 + j.
+        let j = sample_seq.wrapping_sub(p.answers_sample).wrapping_sub(2);
+        let [a, b] = *p.entries().get(usize::try_from(j).ok()?)?;
+        Some(((a, b), *seq))
     }
 
     /// Latches `bits` (e.g. an injected over-current).
@@ -162,6 +195,9 @@ impl DriveCore {
         }
         if self.since_command > 0 {
             status_bits |= status::COMMAND_HELD;
+        }
+        if self.planned {
+            status_bits |= status::COMMAND_PLANNED;
         }
         let frame = Frame {
             seq: self.tx_seq,
@@ -188,6 +224,7 @@ impl DriveCore {
     /// outputs go off and a fault latches. Returns a fault report if one just latched.
     pub fn run_period(&mut self, sample_seq: u32) -> Option<FaultReport> {
         let before = self.latched;
+        self.planned = false;
         let wanted = sample_seq.wrapping_sub(1);
         match self.pending.take() {
             Some(c) if c.answers_sample == wanted => {
@@ -204,6 +241,13 @@ impl DriveCore {
                 if self.enabled {
                     self.since_command = self.since_command.saturating_add(1);
                     self.counters.periods_held += 1;
+                    // The PLAN's duty for this period, if it has one; else the last is held.
+                    if let Some((duty, seq)) = self.planned_duty(sample_seq) {
+                        self.held_duty = duty;
+                        self.held_seq = seq;
+                        self.planned = true;
+                        self.counters.periods_planned += 1;
+                    }
                 }
                 if self.since_command >= u32::from(self.config.watchdog_periods) {
                     self.latched |= faults::WATCHDOG;
@@ -236,6 +280,8 @@ pub struct EmulatorOptions {
     pub wait: WaitStrategy,
     pub rt: RtOptions,
     pub watchdog_periods: u16,
+    /// PLAN entries the drive keeps (announced in CONFIG; 0: none).
+    pub plan_capacity: u16,
     pub inject: FaultInjection,
     /// Stop after this long (None: until SIGTERM/SIGINT).
     pub duration: Option<Duration>,
@@ -261,11 +307,12 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
         None => {
             let sock = UdpSocket::bind(o.listen)?;
             sock.set_nonblocking(true)?;
+            enlarge_receive_buffer(&sock, 4 << 20);
             Wire::Udp { sock, peer: None }
         }
     };
     o.rt.apply()?;
-    let mut core = DriveCore::new(&o.scenario, o.watchdog_periods);
+    let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
     let period_ns = o.scenario.sample_period_ns();
     let mut buf = [0u8; MAX_FRAME];
     let mut rx = [0u8; 2048];
@@ -353,8 +400,8 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     let c = core.counters;
     tracing::info!(?c, faults = core.latched_faults(), "emulated drive stopped");
     eprintln!(
-        "drive: frames ok {}, CRC errors {}, bad {}, stale {}, commands applied {}, periods held {}, latched faults {:#06x}",
-        c.frames_ok, c.crc_errors, c.bad_frames, c.stale_frames, c.commands_applied, c.periods_held, core.latched_faults()
+        "drive: frames ok {}, CRC errors {}, bad {}, stale {}, commands applied {}, periods without their command {} (PLAN entry applied in {}), latched faults {:#06x}",
+        c.frames_ok, c.crc_errors, c.bad_frames, c.stale_frames, c.commands_applied, c.periods_held, c.periods_planned, core.latched_faults()
     );
     Ok(c)
 }
@@ -374,7 +421,7 @@ mod tests {
 
     #[test]
     fn corrupt_stale_and_late_frames_are_never_applied() {
-        let mut d = DriveCore::new(&Scenario::default(), 20);
+        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
         assert!(matches!(
             d.on_frame(&frame_bytes(1, Message::Hello)),
             Some(Reply::Config(_))
@@ -411,9 +458,76 @@ mod tests {
         assert_ne!(s.status & status::COMMAND_HELD, 0);
     }
 
+    fn plan(answers: u32, duties: &[i16]) -> Message {
+        let mut d = [[0i16; 2]; MAX_PLAN_ENTRIES];
+        for (slot, &x) in d.iter_mut().zip(duties) {
+            *slot = [x, -x];
+        }
+        Message::Plan(Plan {
+            answers_sample: answers,
+            count: duties.len() as u16,
+            duties: d,
+        })
+    }
+
+    fn applied(d: &mut DriveCore) -> (i16, u32, u16) {
+        let Message::Sample(s) = d.sample_frame(0).message else {
+            panic!()
+        };
+        (s.duty_a, s.applied_command_seq, s.status)
+    }
+
+    /// A period without its COMMAND gets the freshest PLAN's entry for that very period
+    /// (flagged, and still counted for the watchdog); past the plan the duty is held; an
+    /// older PLAN never replaces a newer one; a PLAN longer than the announced capacity is
+    /// dropped; one with a −32768 duty latches BAD_COMMAND like such a COMMAND.
+    #[test]
+    fn missing_commands_take_the_freshest_plan_entry_for_their_period() {
+        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+        assert_eq!(d.config.plan_capacity, 8);
+        d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
+        d.run_period(0);
+        // Sample 0 answered in time: applied over the period starting at sample 1. Its plan
+        // covers the periods starting at samples 2, 3 and 4.
+        d.on_frame(&frame_bytes(2, cmd(0, 1000)));
+        d.on_frame(&frame_bytes(3, plan(0, &[2000, 3000, 4000])));
+        d.run_period(1);
+        assert_eq!(applied(&mut d), (1000, 2, status::ENABLED));
+        let planned = status::ENABLED | status::COMMAND_HELD | status::COMMAND_PLANNED;
+        d.run_period(2);
+        assert_eq!(applied(&mut d), (2000, 3, planned));
+        // A newer plan (continuing a command that never arrived) takes over; an older one
+        // offered after it does not.
+        d.on_frame(&frame_bytes(4, plan(1, &[5000, 6000])));
+        d.on_frame(&frame_bytes(5, plan(0, &[7000, 7000, 7000])));
+        d.run_period(3);
+        assert_eq!(applied(&mut d), (5000, 4, planned));
+        d.run_period(4);
+        assert_eq!(applied(&mut d), (6000, 4, planned));
+        // Past the plan: held, not planned.
+        d.run_period(5);
+        assert_eq!(
+            applied(&mut d),
+            (6000, 4, status::ENABLED | status::COMMAND_HELD)
+        );
+        // Held: period 0 (nothing can answer the sample before the first) and 2 to 5.
+        assert_eq!(
+            (d.counters.periods_held, d.counters.periods_planned),
+            (5, 3)
+        );
+        // Longer than the capacity of 8: dropped, counted.
+        d.on_frame(&frame_bytes(6, plan(5, &[1; 9])));
+        assert_eq!(d.counters.bad_frames, 1);
+        // A −32768 duty: rejected, fault latched, outputs off.
+        d.on_frame(&frame_bytes(7, plan(6, &[1, i16::MIN])));
+        d.run_period(6);
+        assert_ne!(d.latched_faults() & faults::BAD_COMMAND, 0);
+        assert_eq!(applied(&mut d).0, 0);
+    }
+
     #[test]
     fn watchdog_turns_outputs_off_and_latches_until_reset() {
-        let mut d = DriveCore::new(&Scenario::default(), 20);
+        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         d.run_period(0);
         d.on_frame(&frame_bytes(2, cmd(0, 5000)));

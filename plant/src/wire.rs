@@ -5,7 +5,7 @@
 use crate::drive_protocol::{cobs_decode, cobs_encode, MAX_FRAME};
 use std::io;
 use std::net::{SocketAddr, UdpSocket};
-use std::os::fd::{AsRawFd, FromRawFd, OwnedFd};
+use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
 use std::path::Path;
 
 /// A raw serial line (a UART or a pseudo-terminal), non-blocking, with COBS framing.
@@ -159,12 +159,56 @@ impl Wire {
         }
     }
 
+    /// The descriptor to `poll()` for incoming frames.
+    pub fn raw_fd(&self) -> RawFd {
+        match self {
+            Wire::Udp { sock, .. } => sock.as_raw_fd(),
+            Wire::Serial(p) => p.fd.as_raw_fd(),
+        }
+    }
+
     pub fn has_peer(&self) -> bool {
         match self {
             Wire::Udp { peer, sock } => peer.is_some() || sock.peer_addr().is_ok(),
             Wire::Serial(_) => true,
         }
     }
+}
+
+/// Asks for a `bytes` receive buffer (SO_RCVBUFFORCE as root, else SO_RCVBUF up to the
+/// system's rmem_max); returns what the kernel granted.
+pub fn enlarge_receive_buffer(sock: &UdpSocket, bytes: usize) -> usize {
+    let fd = sock.as_raw_fd();
+    let want = bytes.min(i32::MAX as usize) as libc::c_int;
+    let size = std::mem::size_of::<libc::c_int>() as libc::socklen_t;
+    for opt in [libc::SO_RCVBUFFORCE, libc::SO_RCVBUF] {
+        // SAFETY: setsockopt with a valid int option value.
+        let rc = unsafe {
+            libc::setsockopt(
+                fd,
+                libc::SOL_SOCKET,
+                opt,
+                (&want as *const libc::c_int).cast(),
+                size,
+            )
+        };
+        if rc == 0 {
+            break;
+        }
+    }
+    let mut got: libc::c_int = 0;
+    let mut len = size;
+    // SAFETY: getsockopt into a valid int.
+    unsafe {
+        libc::getsockopt(
+            fd,
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&mut got as *mut libc::c_int).cast(),
+            &mut len,
+        )
+    };
+    got.max(0) as usize
 }
 
 fn sockaddr_to_std(a: &libc::sockaddr_storage) -> Option<SocketAddr> {

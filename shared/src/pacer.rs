@@ -17,6 +17,9 @@ pub enum WaitStrategy {
     Spin,
     /// Sleep until `margin_ns` before the deadline, then spin.
     Hybrid { margin_ns: u64 },
+    /// Block until the input's producer raises an event (hardware mode: the current loop,
+    /// woken by the bridge). A clock-paced loop treats it as `Sleep`.
+    Event,
 }
 
 impl FromStr for WaitStrategy {
@@ -26,6 +29,7 @@ impl FromStr for WaitStrategy {
             "sleep" => Ok(Self::Sleep),
             "spin" => Ok(Self::Spin),
             "hybrid" => Ok(Self::Hybrid { margin_ns: 40_000 }),
+            "event" => Ok(Self::Event),
             other => match other.strip_prefix("hybrid:") {
                 Some(us) => us
                     .parse::<u64>()
@@ -34,7 +38,7 @@ impl FromStr for WaitStrategy {
                     })
                     .map_err(|_| format!("bad hybrid margin `{us}` (µs expected)")),
                 None => Err(format!(
-                    "unknown wait strategy `{other}` (sleep, spin, hybrid or hybrid:<µs>)"
+                    "unknown wait strategy `{other}` (sleep, spin, hybrid, hybrid:<µs> or event)"
                 )),
             },
         }
@@ -47,6 +51,7 @@ impl std::fmt::Display for WaitStrategy {
             Self::Sleep => f.write_str("sleep"),
             Self::Spin => f.write_str("spin"),
             Self::Hybrid { margin_ns } => write!(f, "hybrid:{}", margin_ns / 1000),
+            Self::Event => f.write_str("event"),
         }
     }
 }
@@ -72,7 +77,7 @@ pub fn sleep_until(t_ns: u64) {
 /// Waits until `t_ns` with the given strategy; returns the wake-up time.
 pub fn wait_until(t_ns: u64, strategy: WaitStrategy) -> u64 {
     match strategy {
-        WaitStrategy::Sleep => sleep_until(t_ns),
+        WaitStrategy::Sleep | WaitStrategy::Event => sleep_until(t_ns),
         WaitStrategy::Spin => {}
         WaitStrategy::Hybrid { margin_ns } => {
             if t_ns > margin_ns {
@@ -128,7 +133,8 @@ pub fn await_message<T, E>(
             });
         }
         polls = polls.wrapping_add(1);
-        if polls % 256 == 0 || wait == WaitStrategy::Sleep {
+        let sleeps = matches!(wait, WaitStrategy::Sleep | WaitStrategy::Event);
+        if polls % 256 == 0 || sleeps {
             if termination_requested() {
                 return Err(WaitError::Terminated);
             }
@@ -136,7 +142,7 @@ pub fn await_message<T, E>(
             if now - start > timeout_ns {
                 return Err(WaitError::Timeout(timeout));
             }
-            if wait == WaitStrategy::Sleep {
+            if sleeps {
                 sleep_until(now + 10_000);
             }
         }
@@ -269,6 +275,7 @@ mod tests {
             "hybrid:15".parse(),
             Ok(WaitStrategy::Hybrid { margin_ns: 15_000 })
         );
+        assert_eq!("event".parse(), Ok(WaitStrategy::Event));
         assert!("nap".parse::<WaitStrategy>().is_err());
     }
 }

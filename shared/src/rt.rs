@@ -78,6 +78,26 @@ impl RtOptions {
                 )?;
             }
         }
+        // Priority before affinity: a process that moves to a CPU where a SCHED_FIFO loop
+        // is busy must arrive with its own priority, or it never runs there.
+        if let Some(prio) = self.priority {
+            let param = libc::sched_param {
+                sched_priority: i32::from(prio.clamp(1, 99)),
+            };
+            // SAFETY: valid sched_param for the calling process.
+            let rc = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
+            if rc == 0 {
+                applied.fifo = true;
+            } else {
+                refuse(
+                    self.require,
+                    format!(
+                        "SCHED_FIFO priority {prio}: {}",
+                        std::io::Error::last_os_error()
+                    ),
+                )?;
+            }
+        }
         if let Some(cpu) = self.cpu {
             // SAFETY: cpu_set_t is plain data; CPU_SET bounds-checks against its size.
             let rc = unsafe {
@@ -95,24 +115,6 @@ impl RtOptions {
                 refuse(
                     self.require,
                     format!("CPU affinity {cpu}: {}", std::io::Error::last_os_error()),
-                )?;
-            }
-        }
-        if let Some(prio) = self.priority {
-            let param = libc::sched_param {
-                sched_priority: i32::from(prio.clamp(1, 99)),
-            };
-            // SAFETY: valid sched_param for the calling process.
-            let rc = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
-            if rc == 0 {
-                applied.fifo = true;
-            } else {
-                refuse(
-                    self.require,
-                    format!(
-                        "SCHED_FIFO priority {prio}: {}",
-                        std::io::Error::last_os_error()
-                    ),
                 )?;
             }
         }

@@ -18,6 +18,9 @@ pub type Ipc = ipc::Service;
 pub type Topic<T> = PortFactory<Ipc, T, ()>;
 pub type Pub<T> = Publisher<Ipc, T, ()>;
 pub type Sub<T> = Subscriber<Ipc, T, ()>;
+pub type EventTopic = iceoryx2::service::port_factory::event::PortFactory<Ipc>;
+pub type Notifier = iceoryx2::port::notifier::Notifier<Ipc>;
+pub type Listener = iceoryx2::port::listener::Listener<Ipc>;
 
 pub const DEFAULT_INSTANCE: &str = "stepdrive";
 
@@ -75,6 +78,10 @@ impl ServiceNames {
     pub fn drive_plan(&self) -> String {
         format!("{}/drive/plan", self.instance)
     }
+    /// Bridge → current loop (hardware): "a state was published".
+    pub fn state_ready(&self) -> String {
+        format!("{}/drive/state-ready", self.instance)
+    }
     /// Position loop → current loop, every tick.
     pub fn torque_setpoint(&self) -> String {
         format!("{}/control/setpoint", self.instance)
@@ -113,28 +120,19 @@ struct Qos {
     safe_overflow: bool,
 }
 
-fn open_topic<T: Debug + ZeroCopySend + 'static>(
+/// Opens or creates service `name` with `open`. Two processes starting together may race
+/// to create a service; the loser sees a transient error and retries.
+fn open_service<F, E: Debug>(
     node: &Node<Ipc>,
     name: &str,
-    qos: &Qos,
-) -> Result<Topic<T>, IpcError> {
+    open: impl Fn(iceoryx2::service::builder::Builder<Ipc>) -> Result<F, E>,
+) -> Result<F, IpcError> {
     let service_name: ServiceName = name
         .try_into()
         .map_err(|e| ipc_err(format!("service name `{name}`"), e))?;
-    // Two processes starting together may race to create the service; the loser sees a
-    // transient error and retries.
     let deadline = Instant::now() + Duration::from_secs(5);
     loop {
-        let result = node
-            .service_builder(&service_name)
-            .publish_subscribe::<T>()
-            .max_publishers(qos.max_publishers)
-            .max_subscribers(qos.max_subscribers)
-            .subscriber_max_buffer_size(qos.max_buffer)
-            .history_size(0)
-            .enable_safe_overflow(qos.safe_overflow)
-            .open_or_create();
-        match result {
+        match open(node.service_builder(&service_name)) {
             Ok(t) => return Ok(t),
             Err(e) if Instant::now() < deadline => {
                 tracing::debug!(service = name, error = ?e, "service not ready yet, retrying");
@@ -143,6 +141,23 @@ fn open_topic<T: Debug + ZeroCopySend + 'static>(
             Err(e) => return Err(ipc_err(format!("cannot open service `{name}`"), e)),
         }
     }
+}
+
+fn open_topic<T: Debug + ZeroCopySend + 'static>(
+    node: &Node<Ipc>,
+    name: &str,
+    qos: &Qos,
+) -> Result<Topic<T>, IpcError> {
+    open_service(node, name, |builder| {
+        builder
+            .publish_subscribe::<T>()
+            .max_publishers(qos.max_publishers)
+            .max_subscribers(qos.max_subscribers)
+            .subscriber_max_buffer_size(qos.max_buffer)
+            .history_size(0)
+            .enable_safe_overflow(qos.safe_overflow)
+            .open_or_create()
+    })
 }
 
 impl Topics {
@@ -207,6 +222,55 @@ impl Topics {
             mode,
         })
     }
+}
+
+impl Topics {
+    /// Hardware mode: the event the bridge raises after each state, so that the current
+    /// loop sleeps until there is a sample to answer instead of spinning on the CPU the
+    /// bridge needs (the bridge polls its drive socket there). Opened on demand.
+    pub fn state_ready(&self) -> Result<EventTopic, IpcError> {
+        open_service(&self.node, &self.names.state_ready(), |builder| {
+            // One event id: each wait drains the whole id bitset with an atomic swap per
+            // id, and the default 256 ids made that ~4.7 µs per wake-up (measured).
+            builder
+                .event()
+                .max_notifiers(1)
+                .max_listeners(2)
+                .event_id_max_value(0)
+                .open_or_create()
+        })
+    }
+}
+
+pub fn notifier(topic: &EventTopic) -> Result<Notifier, IpcError> {
+    topic
+        .notifier_builder()
+        .create()
+        .map_err(|e| ipc_err("cannot create state-ready notifier", e))
+}
+
+pub fn listener(topic: &EventTopic) -> Result<Listener, IpcError> {
+    topic
+        .listener_builder()
+        .create()
+        .map_err(|e| ipc_err("cannot create state-ready listener", e))
+}
+
+/// Raises the event (one `sendto` on a Unix socket).
+pub fn notify(notifier: &Notifier) -> Result<(), IpcError> {
+    notifier
+        .notify()
+        .map(|_| ())
+        .map_err(|e| ipc_err("notify failed", e))
+}
+
+/// Blocks until the event is raised or `timeout` passes (the timeout is jiffy-grained
+/// here, the wake-up on an event is not), and consumes what is pending.
+pub fn wait_event(listener: &Listener, timeout: Duration) -> Result<(), IpcError> {
+    listener
+        .timed_wait(|_| {}, timeout)
+        .map(|_| ())
+        .map_err(|e| ipc_err("event wait failed", e))
 }
 
 pub fn publisher<T: Debug + ZeroCopySend + 'static>(

@@ -281,6 +281,9 @@ pub struct StatsReport {
     pub bad_frames: u64,
     /// Bridge: commands not sent because they were non-finite or beyond the bus voltage.
     pub rejected_commands: u64,
+    /// Bridge: samples received but superseded by a newer one before they were published
+    /// (the bridge was held up); `lost` counts those that never arrived.
+    pub superseded: u64,
     /// Actual interval between successive cycles.
     pub period: Histogram,
     /// Wake-up latency against the absolute deadline.

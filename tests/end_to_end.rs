@@ -445,6 +445,46 @@ fn realtime_run_reports_timing_from_every_loop() {
     assert!(processes_with(&inst).is_empty());
 }
 
+/// Runs `stepdrive` with `args` (a run with `--json`), freezes its current-loop process
+/// with SIGSTOP for `freeze` once `after` has passed since it came up, and returns the
+/// run's JSON document.
+fn run_with_frozen_current_loop(
+    args: &[&str],
+    inst: &str,
+    json: &Path,
+    after: Duration,
+    freeze: Duration,
+) -> Value {
+    let mut child = Command::new(EXE)
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn run");
+    let current_loop = || {
+        processes_with(inst).into_iter().find(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .map(|c| String::from_utf8_lossy(&c).contains("\0current-loop\0"))
+                .unwrap_or(false)
+        })
+    };
+    assert!(
+        wait_until(Duration::from_secs(30), || current_loop().is_some()),
+        "current loop did not come up"
+    );
+    let pid = current_loop().expect("current loop") as libc::pid_t;
+    std::thread::sleep(after);
+    // SAFETY: plain kill(2) on a process of ours.
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    std::thread::sleep(freeze);
+    unsafe { libc::kill(pid, libc::SIGCONT) };
+    let status = wait_with_timeout(&mut child, Duration::from_secs(60));
+    assert!(status.success(), "run failed: {}", stderr_of(&mut child));
+    assert!(processes_with(inst).is_empty());
+    read_json(json)
+}
+
 /// The voltage plan between real processes: the current loop is frozen (SIGSTOP) for 5 ms,
 /// 100 periods, in the middle of a realtime run. The plant covers the gap from the plan the
 /// loop last sent, so the run ends with no fault and the motor on track. The watchdog is
@@ -460,34 +500,14 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
     args.extend(realtime_test_args(&scenario, &inst, "3.0"));
     args.extend(["--watchdog-periods", "4000"]);
     args.extend(["--json", json.to_str().unwrap()]);
-    let mut child = Command::new(EXE)
-        .args(&args)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn run");
-    let current_loop = || {
-        processes_with(&inst).into_iter().find(|pid| {
-            std::fs::read(format!("/proc/{pid}/cmdline"))
-                .map(|c| String::from_utf8_lossy(&c).contains("\0current-loop\0"))
-                .unwrap_or(false)
-        })
-    };
-    assert!(
-        wait_until(Duration::from_secs(30), || current_loop().is_some()),
-        "current loop did not come up"
-    );
-    let pid = current_loop().expect("current loop") as libc::pid_t;
     // Well into the 3 s run: the stack is up and the plant's clock has started.
-    std::thread::sleep(Duration::from_millis(1200));
-    // SAFETY: plain kill(2) on a process of ours.
-    unsafe { libc::kill(pid, libc::SIGSTOP) };
-    std::thread::sleep(Duration::from_millis(5));
-    unsafe { libc::kill(pid, libc::SIGCONT) };
-    let status = wait_with_timeout(&mut child, Duration::from_secs(60));
-    assert!(status.success(), "run failed: {}", stderr_of(&mut child));
-    let doc = read_json(&json);
+    let doc = run_with_frozen_current_loop(
+        &args,
+        &inst,
+        &json,
+        Duration::from_millis(1200),
+        Duration::from_millis(5),
+    );
     let run = run_of(&doc, "proposed");
     let t = &run["timing"];
     let longest = t["longest_miss_run"].as_u64().expect("longest_miss_run");
@@ -501,10 +521,10 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
         "the freeze was covered by the plan: {t}"
     );
     assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
-    // A 5 ms stall costs at most ~1e-3 rad even while accelerating (the stall simulation
-    // measures 1.3e-3 for 10 ms); holding the voltage instead would cost ~1e-2.
-    assert!(num(run, "max_abs_error_rad") < 2e-3, "{run}");
-    assert!(processes_with(&inst).is_empty());
+    // The stall simulation (`simulate_stalls`) on this scenario, a 5.5 ms stall starting
+    // anywhere after start-up: at most 4.8e-3 rad with the plan (at the reversal corner,
+    // where the torque the plan assumes changes), up to 7.1e-2 rad with the voltage held.
+    assert!(num(run, "max_abs_error_rad") < 1e-2, "{run}");
 }
 
 #[test]
@@ -547,8 +567,9 @@ fn latency_session_writes_its_files() {
     assert!(processes_with(&inst).is_empty());
 }
 
-/// Hardware-mode tests run the short scenario at 2 kHz / 200 Hz: at 20 kHz, five
-/// processes plus loopback UDP do not fit on this project's 2-core machines (README).
+/// Hardware-mode tests run the short scenario at 2 kHz / 200 Hz: they run without
+/// real-time priorities (tests share the CI machine's two cores), and there five processes
+/// plus loopback UDP at 20 kHz would measure the machine's scheduler, not the stack.
 fn slow_scenario() -> String {
     format!("{SHORT}\n[rates]\ncurrent_loop_hz = 2000.0\nposition_loop_hz = 200.0\n")
 }
@@ -615,6 +636,50 @@ fn hardware_mode_runs_against_the_emulated_drive() {
     assert!(t["round_trip"]["count"].as_u64().unwrap() > 0);
     assert!(num(run, "final_error_rad").is_finite());
     assert!(processes_with(&inst).is_empty());
+}
+
+/// The plan reaches a drive: the current loop is frozen for 30 ms (60 periods at 2 kHz)
+/// and the emulated drive fills the gap with the PLAN entries the bridge forwarded, with
+/// its watchdog (raised to 0.5 s for scheduling noise) untripped.
+#[test]
+fn the_drive_covers_a_frozen_current_loop_with_the_plan() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("hwfrozen");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    let json = dir.path("hw.json");
+    let inst = instance("hwfrozen");
+    let mut args = vec!["run", "--mode", "hardware", "--method", "proposed"];
+    args.extend([
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--instance",
+        &inst,
+    ]);
+    args.extend(["--priority", "0", "--cpus", "none", "--duration", "3.0"]);
+    args.extend([
+        "--watchdog-periods",
+        "1000",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    let doc = run_with_frozen_current_loop(
+        &args,
+        &inst,
+        &json,
+        Duration::from_millis(1500),
+        Duration::from_millis(30),
+    );
+    let run = run_of(&doc, "proposed");
+    let t = &run["timing"];
+    let longest = t["longest_miss_run"].as_u64().expect("longest_miss_run");
+    let planned = t["misses_planned"].as_u64().expect("misses_planned");
+    assert!(longest >= 50, "the 30 ms freeze shows at the drive: {t}");
+    assert!(
+        planned >= longest,
+        "the drive applied the plan through it: {t}"
+    );
+    assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
+    assert!(num(run, "max_abs_error_rad").is_finite());
 }
 
 #[test]

@@ -284,15 +284,12 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         };
         // The drive stands for separate hardware: it keeps the plant's CPU (its clock spins
         // the last part of each period). The bridge shares the current loop's CPU, one
-        // priority below it: it polls its socket from shortly before each sample is due (no
+        // priority below it: it polls its socket from 30 µs before each sample is due (no
         // wake-up on the critical path), publishes the state and raises state-ready; the
         // loop, asleep on that event, preempts it, answers and sleeps again, and the bridge
         // forwards the answer. Nothing on that path crosses CPUs or waits for a timer.
         let bridge = RoleRt {
-            wait: match opts.current.rt.priority {
-                Some(_) => WaitStrategy::Hybrid { margin_ns: 15_000 },
-                None => WaitStrategy::Sleep,
-            },
+            wait: stepdrive_plant::bridge::default_wait(opts.current.rt.priority.is_some()),
             rt: RtOptions {
                 priority: opts.current.rt.priority.map(|p| p.saturating_sub(1).max(1)),
                 ..opts.current.rt.clone()

@@ -17,7 +17,9 @@ use stepdrive_monitor::metrics::RunReport;
 use stepdrive_monitor::pingpong::PingPongOptions;
 use stepdrive_monitor::report::{document, table};
 use stepdrive_monitor::simulate::simulate;
-use stepdrive_plant::bridge::{run_bridge, BridgeOptions, DriveAddr};
+use stepdrive_plant::bridge::{
+    default_wait as bridge_default_wait, run_bridge, BridgeOptions, DriveAddr, EncoderCalibration,
+};
 use stepdrive_plant::emulator::{run_emulator, EmulatorOptions, FaultInjection};
 use stepdrive_plant::process::{PlantError, PlantOptions, RealtimeOptions};
 use stepdrive_shared::pacer::WaitStrategy;
@@ -293,6 +295,14 @@ struct PlantArgs {
     /// bytes: every period at 20 kHz would be 17 MB/s.
     #[arg(long, default_value_t = 10, value_parser = clap::value_parser!(u32).range(1..))]
     plan_every: u32,
+    /// Bridge: encoder reading (counts) at θ = 0, for an absolute encoder; by default the
+    /// first sample is θ = 0.
+    #[arg(long, value_name = "COUNTS", allow_negative_numbers = true)]
+    encoder_offset: Option<i64>,
+    /// Bridge: counts increase for negative θ, whatever the drive's CONFIG says (an encoder
+    /// or motor wired the other way round).
+    #[arg(long)]
+    reverse_encoder: bool,
     /// Bridge: bandwidth of the encoder velocity observer, Hz.
     #[arg(long, default_value_t = 400.0)]
     observer_hz: f64,
@@ -490,9 +500,6 @@ struct ScenarioArgs {
     check: Option<PathBuf>,
 }
 
-/// The bridge sleeps until 15 µs before the drive's next frame is due, then polls its socket.
-const BRIDGE_WAIT: WaitStrategy = WaitStrategy::Hybrid { margin_ns: 15_000 };
-
 fn init_logging() {
     use tracing_subscriber::EnvFilter;
     iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Warn);
@@ -568,16 +575,17 @@ fn real_main(cli: Cli) -> Result<()> {
                 let b = BridgeOptions {
                     drive,
                     rt: a.common.rt.options(),
-                    // Polling only pays with a real-time priority; without one it takes
-                    // the CPU from the very processes the bridge waits for.
-                    wait: a.common.wait.unwrap_or(match a.common.rt.priority {
-                        Some(_) => BRIDGE_WAIT,
-                        None => WaitStrategy::Sleep,
-                    }),
+                    wait: a
+                        .common
+                        .wait
+                        .unwrap_or(bridge_default_wait(a.common.rt.priority.is_some())),
                     plan_every: a.plan_every,
                     silence_periods: a.silence_periods,
                     observer_hz: a.observer_hz,
-                    offset_counts: None,
+                    calibration: EncoderCalibration {
+                        offset_counts: a.encoder_offset,
+                        reverse: a.reverse_encoder,
+                    },
                 };
                 run_bridge(&opts, &b)?;
                 return Ok(());

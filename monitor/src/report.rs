@@ -121,11 +121,12 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         if r.mode == "hardware" {
             let _ = writeln!(
                 out,
-                "  drive link: CRC errors {}, bad/duplicate/out-of-order frames {}, rejected commands {}, samples lost {}",
+                "  drive link: CRC errors {}, bad/duplicate/out-of-order frames {}, rejected commands {}, frames lost on the wire {}, samples superseded in the bridge {}",
                 t.crc_errors,
                 t.bad_frames,
                 t.rejected_commands,
-                t.plant.as_ref().map_or(0, |p| p.lost)
+                t.frames_lost,
+                t.samples_superseded
             );
             out += &line("round trip bridge → drive → bridge", t.round_trip.as_ref());
         }

@@ -106,6 +106,10 @@ pub struct TimingReport {
     pub crc_errors: u64,
     pub bad_frames: u64,
     pub rejected_commands: u64,
+    /// Hardware mode: samples that never arrived (gaps in the drive's frame sequence), and
+    /// samples that arrived but were superseded before the bridge published them.
+    pub frames_lost: u64,
+    pub samples_superseded: u64,
     /// Hardware mode: command frame sent → reported applied by the drive.
     pub round_trip: Option<Percentiles>,
     #[serde(skip)]
@@ -142,6 +146,8 @@ impl TimingReport {
             crc_errors: counter(|p| p.crc_errors),
             bad_frames: counter(|p| p.bad_frames),
             rejected_commands: counter(|p| p.rejected_commands),
+            frames_lost: counter(|p| p.lost),
+            samples_superseded: counter(|p| p.superseded),
             round_trip: plant
                 .as_ref()
                 .filter(|p| p.round_trip.count > 0)

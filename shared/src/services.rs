@@ -265,12 +265,14 @@ pub fn notify(notifier: &Notifier) -> Result<(), IpcError> {
 }
 
 /// Blocks until the event is raised or `timeout` passes (the timeout is jiffy-grained
-/// here, the wake-up on an event is not), and consumes what is pending.
+/// here, the wake-up on an event is not), and consumes what is pending. A signal (SIGCONT
+/// after a stop, SIGTERM) just ends the wait: the caller re-checks its flags.
 pub fn wait_event(listener: &Listener, timeout: Duration) -> Result<(), IpcError> {
-    listener
-        .timed_wait(|_| {}, timeout)
-        .map(|_| ())
-        .map_err(|e| ipc_err("event wait failed", e))
+    use iceoryx2::port::listener::ListenerWaitError;
+    match listener.timed_wait(|_| {}, timeout) {
+        Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
+        Err(e) => Err(ipc_err("event wait failed", e)),
+    }
 }
 
 pub fn publisher<T: Debug + ZeroCopySend + 'static>(

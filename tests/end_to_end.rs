@@ -920,31 +920,24 @@ fn serial_path_works_over_a_pseudo_terminal_pair() {
     let dir = TempDir::new("serial");
     let scenario = dir.file("slow.toml", &slow_scenario());
     let sc = scenario.to_str().unwrap();
+    let json = dir.path("serial.json");
     let inst = instance("serial");
     let cable = NullModem::new();
     let mut drive = spawn_logged(&["emulate-drive", "--serial", &cable.a, "--scenario", sc]);
-    let common = ["--mode", "hardware", "--instance", &inst, "--scenario", sc];
-    let mut bridge = Command::new(EXE)
-        .args(["plant", "--backend", "serial", "--port", &cable.b])
-        .args(common)
-        .env("RUST_LOG", "info")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn bridge");
-    let mut position = spawn_logged(&[&["position-loop"][..], &common[..]].concat());
-    let mut current = spawn_logged(&[&["current-loop"][..], &common[..]].concat());
-    let status = wait_with_timeout(&mut bridge, Duration::from_secs(60));
-    let log = stderr_of(&mut bridge);
-    for p in [&mut current, &mut position] {
-        let _ = wait_with_timeout(p, Duration::from_secs(10));
-    }
+    let out = hardware_run(&scenario, &inst, &json, &["--drive-port", &cable.b]);
     unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
     let drive_log = stderr_of(&mut drive);
-    assert!(status.success(), "bridge failed: {log}\ndrive: {drive_log}");
-    assert!(log.contains("bridge done"), "{log}");
-    assert!(log.contains("crc_errors=0"), "{log}");
+    assert!(
+        out.status.success(),
+        "run failed: {}\ndrive: {drive_log}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc = read_json(&json);
+    let run = run_of(&doc, "proposed");
+    let t = &run["timing"];
+    assert_eq!(t["crc_errors"].as_u64(), Some(0), "{t}");
+    assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
     // Most periods got their command over the serial line (2 kHz, COBS-framed).
     let applied: u64 = drive_log
         .split("commands applied ")
@@ -954,6 +947,6 @@ fn serial_path_works_over_a_pseudo_terminal_pair() {
         .unwrap_or_else(|| panic!("no drive summary: {drive_log}"));
     assert!(
         applied > 1000,
-        "only {applied} commands applied: {drive_log}\nbridge: {log}"
+        "only {applied} commands applied: {drive_log}"
     );
 }

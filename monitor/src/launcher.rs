@@ -12,6 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use stepdrive_plant::bridge::DriveAddr;
 use stepdrive_shared::messages::state_flags;
 use stepdrive_shared::pacer::WaitStrategy;
 use stepdrive_shared::poll::termination_requested;
@@ -36,7 +37,7 @@ pub struct LaunchOptions {
     /// Plant watchdog: misses in a row before outputs go off.
     pub watchdog_periods: u32,
     /// Hardware mode: the drive; `None` starts an emulated drive on loopback.
-    pub drive: Option<std::net::SocketAddr>,
+    pub drive: Option<DriveAddr>,
 }
 
 /// How one realtime process waits and which real-time settings it asks for.
@@ -265,8 +266,8 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     let mut plant_args = common.clone();
     plant_args.extend(["--wait-subscribers".to_string(), "3".to_string()]);
     if hardware {
-        let drive = match opts.drive {
-            Some(d) => d,
+        let drive = match &opts.drive {
+            Some(d) => d.clone(),
             None => {
                 let d = free_loopback_port()?;
                 let mut emu = vec![
@@ -279,7 +280,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
                 ];
                 emu.extend(opts.plant.args());
                 children.push(Supervised::spawn("emulate-drive", &emu)?);
-                d
+                DriveAddr::Udp(d)
             }
         };
         // The drive stands for separate hardware: it keeps the plant's CPU (its clock spins
@@ -295,8 +296,20 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
                 ..opts.current.rt.clone()
             },
         };
-        plant_args.extend(["--backend".to_string(), "udp".to_string()]);
-        plant_args.extend(["--drive".to_string(), drive.to_string()]);
+        match drive {
+            DriveAddr::Udp(addr) => plant_args.extend([
+                "--backend".to_string(),
+                "udp".to_string(),
+                "--drive".to_string(),
+                addr.to_string(),
+            ]),
+            DriveAddr::Serial(path) => plant_args.extend([
+                "--backend".to_string(),
+                "serial".to_string(),
+                "--port".to_string(),
+                path.display().to_string(),
+            ]),
+        }
         plant_args.extend(bridge.args());
     } else {
         plant_args.extend(role_args(&opts.plant));

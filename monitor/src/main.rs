@@ -16,7 +16,7 @@ use stepdrive_monitor::launcher::{run_stack, Interrupted, LaunchOptions, RoleRt}
 use stepdrive_monitor::metrics::RunReport;
 use stepdrive_monitor::pingpong::PingPongOptions;
 use stepdrive_monitor::report::{document, table};
-use stepdrive_monitor::simulate::simulate;
+use stepdrive_monitor::simulate::{simulate, simulate_stalls};
 use stepdrive_plant::bridge::{
     default_wait as bridge_default_wait, run_bridge, BridgeOptions, DriveAddr, EncoderCalibration,
 };
@@ -391,9 +391,14 @@ struct StackArgs {
     /// whenever ordinary tasks want it; see the README's latency section.
     #[arg(long, default_value = "on", value_parser = ["on", "off"])]
     rt_throttling: String,
-    /// Hardware mode: the drive's UDP address; without it an emulated drive is started.
+    /// Hardware mode: the drive's UDP address; without it (or --drive-port) an emulated
+    /// drive is started on loopback.
     #[arg(long, value_name = "ADDR:PORT")]
     drive: Option<std::net::SocketAddr>,
+    /// Hardware mode: the drive's serial line (an MCU board, COBS framing), e.g.
+    /// /dev/ttyACM0, instead of UDP.
+    #[arg(long, value_name = "PATH", conflicts_with = "drive")]
+    drive_port: Option<PathBuf>,
     /// Realtime: plant watchdog periods (see `stepdrive plant --help`).
     #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
     watchdog_periods: u32,
@@ -478,7 +483,11 @@ impl StackArgs {
                 ),
             },
             watchdog_periods: self.watchdog_periods,
-            drive: self.drive,
+            drive: match (&self.drive, &self.drive_port) {
+                (Some(addr), _) => Some(DriveAddr::Udp(*addr)),
+                (None, Some(path)) => Some(DriveAddr::Serial(path.clone())),
+                (None, None) => None,
+            },
         })
     }
 }
@@ -487,10 +496,39 @@ impl StackArgs {
 struct SimulateArgs {
     #[command(flatten)]
     scenario: ScenarioOpt,
+    /// Methods to run, in order (comma-separated or repeated).
     #[arg(long = "method", value_delimiter = ',', default_values = ["proposed", "lyapunov"])]
     methods: Vec<Method>,
+    /// Also write the results as JSON to FILE.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
+    /// Stall the current loop for PERIODS samples from AT seconds on (repeatable), with
+    /// the realtime plant's rules: each missing command is a miss, covered by the freshest
+    /// voltage plan (`drive.command_plan_periods`; 0 in the scenario holds the voltage
+    /// instead). Shows what a host stall of that length costs, without a clock.
+    #[arg(long = "stall", value_name = "AT:PERIODS", value_parser = parse_stall)]
+    stalls: Vec<(f64, u64)>,
+    /// With --stall: misses in a row before the plant's outputs go off.
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
+    watchdog_periods: u32,
+}
+
+/// `AT:PERIODS`, e.g. `1.2:33`.
+fn parse_stall(s: &str) -> Result<(f64, u64), String> {
+    let (at, periods) = s
+        .split_once(':')
+        .ok_or_else(|| format!("`{s}` is not AT:PERIODS (seconds:samples, e.g. 1.2:33)"))?;
+    let at: f64 = at
+        .parse()
+        .ok()
+        .filter(|t: &f64| t.is_finite() && *t >= 0.0)
+        .ok_or_else(|| format!("stall start `{at}` must be seconds ≥ 0"))?;
+    let periods: u64 = periods
+        .parse()
+        .ok()
+        .filter(|&p| p > 0)
+        .ok_or_else(|| format!("stall length `{periods}` must be a number of samples ≥ 1"))?;
+    Ok((at, periods))
 }
 
 #[derive(Args, Debug)]
@@ -547,7 +585,28 @@ fn real_main(cli: Cli) -> Result<()> {
         }
         Cmd::Simulate(a) => {
             let s = a.scenario.load()?;
-            let runs: Vec<RunReport> = a.methods.iter().map(|m| simulate(&s, *m)).collect();
+            if a.stalls.is_empty() {
+                let runs: Vec<RunReport> = a.methods.iter().map(|m| simulate(&s, *m)).collect();
+                return write_outputs(&s, &runs, a.json.as_ref());
+            }
+            let duration = s.duration_s();
+            let mut stalls = Vec::with_capacity(a.stalls.len());
+            for &(at, periods) in &a.stalls {
+                if at >= duration {
+                    anyhow::bail!("--stall {at}:{periods} starts after the run ({duration} s)");
+                }
+                let start = (at * s.rates.current_loop_hz).round() as u64;
+                stalls.push(start..start + periods);
+            }
+            let mut runs = Vec::with_capacity(a.methods.len());
+            for m in &a.methods {
+                let (report, slot) = simulate_stalls(&s, *m, &stalls, a.watchdog_periods);
+                println!(
+                    "{m}: {} periods without their command, {} of them covered by a plan, longest run {}",
+                    slot.misses, slot.planned, slot.longest_miss_run
+                );
+                runs.push(report);
+            }
             write_outputs(&s, &runs, a.json.as_ref())
         }
         Cmd::Plant(a) => {

@@ -489,9 +489,9 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
         }
         // A frame this late means the drive or the host was held up: stop spinning.
         let give_up = due.map_or(0, |d| d + (2 * period_ns).min(MAX_SPIN_PAST_DUE_NS));
-        let mut newest: Option<(DriveState, u64)> = None;
-        loop {
+        let (mut st, rx_at) = loop {
             out.forward(&commands, &plans, &mut link, &mut wire, &mut stats)?;
+            let mut newest: Option<(DriveState, u64)> = None;
             while let Some((len, _)) = wire.recv(&mut rx, 0) {
                 let now = monotonic_ns();
                 match link.on_frame(&rx[..len], now) {
@@ -515,8 +515,8 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
                     Event::Config(_) | Event::Dropped => {}
                 }
             }
-            if newest.is_some() {
-                break;
+            if let Some(taken) = newest {
+                break taken;
             }
             let now = monotonic_ns();
             if now - last_rx > silence_ns && !out.silent {
@@ -549,9 +549,6 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             } else {
                 std::hint::spin_loop();
             }
-        }
-        let Some((mut st, rx_at)) = newest else {
-            continue;
         };
         // The newest is the last sample accepted: its drive timestamp is the link's.
         let newest_stamp = link.sample_timestamp_ns;

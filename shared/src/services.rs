@@ -222,9 +222,7 @@ impl Topics {
             mode,
         })
     }
-}
 
-impl Topics {
     /// Hardware mode: the event the bridge raises after each state, so that the current
     /// loop sleeps until there is a sample to answer instead of spinning on the CPU the
     /// bridge needs (the bridge polls its drive socket there). Opened on demand.

@@ -485,6 +485,23 @@ fn run_with_frozen_current_loop(
     read_json(json)
 }
 
+/// The freeze shows as a run of at least `periods` misses, every one of them covered by a
+/// plan entry, and nothing faulted.
+fn assert_freeze_covered_by_plan(run: &Value, periods: u64) {
+    let t = &run["timing"];
+    let longest = t["longest_miss_run"].as_u64().expect("longest_miss_run");
+    let planned = t["misses_planned"].as_u64().expect("misses_planned");
+    assert!(
+        longest >= periods,
+        "the freeze shows as a run of misses: {t}"
+    );
+    assert!(
+        planned >= longest,
+        "the freeze was covered by the plan: {t}"
+    );
+    assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
+}
+
 /// The voltage plan between real processes: the current loop is frozen (SIGSTOP) for 5 ms,
 /// 100 periods, in the middle of a realtime run. The plant covers the gap from the plan the
 /// loop last sent, so the run ends with no fault and the motor on track. The watchdog is
@@ -509,18 +526,7 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
         Duration::from_millis(5),
     );
     let run = run_of(&doc, "proposed");
-    let t = &run["timing"];
-    let longest = t["longest_miss_run"].as_u64().expect("longest_miss_run");
-    let planned = t["misses_planned"].as_u64().expect("misses_planned");
-    assert!(
-        longest >= 80,
-        "the 5 ms freeze shows as a run of misses: {t}"
-    );
-    assert!(
-        planned >= longest,
-        "the freeze was covered by the plan: {t}"
-    );
-    assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
+    assert_freeze_covered_by_plan(run, 80);
     // The stall simulation (`simulate_stalls`) on this scenario, a 5.5 ms stall starting
     // anywhere after start-up: at most 4.8e-3 rad with the plan (at the reversal corner,
     // where the torque the plan assumes changes), up to 7.1e-2 rad with the voltage held.
@@ -591,8 +597,9 @@ fn spawn_logged(args: &[&str]) -> Child {
         .expect("spawn")
 }
 
-fn hardware_run(scenario: &Path, inst: &str, json: &Path, extra: &[&str]) -> Output {
-    let mut args = vec![
+/// A hardware-mode run of the proposed method, without real-time settings.
+fn hardware_args<'a>(scenario: &'a Path, inst: &'a str, json: &'a Path) -> Vec<&'a str> {
+    vec![
         "run",
         "--mode",
         "hardware",
@@ -608,7 +615,11 @@ fn hardware_run(scenario: &Path, inst: &str, json: &Path, extra: &[&str]) -> Out
         "none",
         "--json",
         json.to_str().unwrap(),
-    ];
+    ]
+}
+
+fn hardware_run(scenario: &Path, inst: &str, json: &Path, extra: &[&str]) -> Output {
+    let mut args = hardware_args(scenario, inst, json);
     args.extend(extra);
     stepdrive(&args)
 }
@@ -648,20 +659,8 @@ fn the_drive_covers_a_frozen_current_loop_with_the_plan() {
     let scenario = dir.file("slow.toml", &slow_scenario());
     let json = dir.path("hw.json");
     let inst = instance("hwfrozen");
-    let mut args = vec!["run", "--mode", "hardware", "--method", "proposed"];
-    args.extend([
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--instance",
-        &inst,
-    ]);
-    args.extend(["--priority", "0", "--cpus", "none", "--duration", "3.0"]);
-    args.extend([
-        "--watchdog-periods",
-        "1000",
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+    let mut args = hardware_args(&scenario, &inst, &json);
+    args.extend(["--duration", "3.0", "--watchdog-periods", "1000"]);
     let doc = run_with_frozen_current_loop(
         &args,
         &inst,
@@ -670,15 +669,7 @@ fn the_drive_covers_a_frozen_current_loop_with_the_plan() {
         Duration::from_millis(30),
     );
     let run = run_of(&doc, "proposed");
-    let t = &run["timing"];
-    let longest = t["longest_miss_run"].as_u64().expect("longest_miss_run");
-    let planned = t["misses_planned"].as_u64().expect("misses_planned");
-    assert!(longest >= 50, "the 30 ms freeze shows at the drive: {t}");
-    assert!(
-        planned >= longest,
-        "the drive applied the plan through it: {t}"
-    );
-    assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
+    assert_freeze_covered_by_plan(run, 50);
     assert!(num(run, "max_abs_error_rad").is_finite());
 }
 

@@ -122,20 +122,9 @@ impl SampledCurrentLaw {
     /// The voltage for period k+d, given the measured currents `i`, angle and velocity at
     /// sample k, the voltages already decided for periods k .. k+d−1 (`decided`, oldest
     /// first, d = `decided.len()`), and the desired currents: `reference(j)` is i^d at sample
-    /// k+j, evaluated at the rotor angle predicted for that instant.
-    pub fn voltage(
-        &self,
-        i: [f64; 2],
-        theta: f64,
-        omega: f64,
-        decided: &[[f64; 2]],
-        reference: impl Fn(usize) -> [f64; 2],
-    ) -> [f64; 2] {
-        self.decide(i, theta, omega, decided, reference).0
-    }
-
-    /// [`Self::voltage`], and the current it predicted at sample k+d (where that voltage
-    /// starts), from which [`Self::plan`] continues.
+    /// k+j, evaluated at the rotor angle predicted for that instant. Also returns the current
+    /// it predicted at sample k+d, where that voltage starts (from which [`Self::plan`]
+    /// continues).
     pub fn decide(
         &self,
         i: [f64; 2],
@@ -252,7 +241,7 @@ mod tests {
         let mut prev_gap = f64::INFINITY;
         for period in [1e-5, 1e-6, 1e-7, 1e-8] {
             let lw = law(&m, period, 30_000.0);
-            let v = lw.voltage(i, theta, omega, &[], |j| r_at(j as f64 * period));
+            let (v, _) = lw.decide(i, theta, omega, &[], |j| r_at(j as f64 * period));
             let gap = (v[0] - v22[0]).abs().max((v[1] - v22[1]).abs());
             assert!(gap < prev_gap / 5.0, "T={period}: gap {gap} vs {prev_gap}");
             prev_gap = gap;
@@ -280,7 +269,7 @@ mod tests {
         for _ in 0..n {
             let (theta, w) = (x[THETA], x[OMEGA]);
             errors.push(reference(theta)[0] - x[I_A]);
-            let v = lw.voltage([x[I_A], x[I_B]], theta, w, &queue, |j| {
+            let (v, _) = lw.decide([x[I_A], x[I_B]], theta, w, &queue, |j| {
                 reference(theta + w * T * j as f64)
             });
             queue.push(v);

@@ -216,9 +216,10 @@ struct ProcessArgs {
     /// stack must use the same.
     #[arg(long, default_value = "lockstep")]
     mode: Mode,
-    /// Realtime: how this loop waits: sleep (clock_nanosleep), spin, or hybrid[:µs]
-    /// (sleep to that margin before the deadline, then spin). Default: spin for the
-    /// current loop, sleep for the others.
+    /// Realtime: how this process waits: sleep (clock_nanosleep), spin, hybrid[:µs] (sleep
+    /// to that margin before the deadline, then spin), or event (current loop, hardware
+    /// mode: sleep until the bridge raises state-ready). Defaults: current loop spin
+    /// (hardware: event); bridge hybrid:30 with --priority, else sleep; others sleep.
     #[arg(long)]
     wait: Option<WaitStrategy>,
     #[command(flatten)]
@@ -630,6 +631,12 @@ fn real_main(cli: Cli) -> Result<()> {
                 };
                 if !(a.observer_hz.is_finite() && a.observer_hz > 0.0) {
                     anyhow::bail!("--observer-hz must be a positive number");
+                }
+                if a.common.wait == Some(WaitStrategy::Event) {
+                    anyhow::bail!(
+                        "--wait event is for the current loop; the bridge waits for the drive's \
+                         frames with sleep, spin or hybrid:<µs>"
+                    );
                 }
                 let b = BridgeOptions {
                     drive,

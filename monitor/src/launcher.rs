@@ -350,6 +350,15 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
             got = true;
             let expected = last_seq.map_or(0, |q| q + 1);
             last_seq = Some(state.seq);
+            if state.seq < expected {
+                // A sample repeated or published after a newer one: whatever the mode, the
+                // plant (or bridge) broke its contract.
+                bail!(
+                    "the plant published sample {} after sample {}",
+                    state.seq,
+                    expected - 1
+                );
+            }
             if state.seq != expected {
                 if !realtime {
                     bail!(
@@ -358,7 +367,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
                     );
                 }
                 // Realtime: the monitor is the one loop allowed to fall behind.
-                monitor_lost += state.seq.saturating_sub(expected);
+                monitor_lost += state.seq - expected;
             }
             first_ns.get_or_insert(state.publish_time_ns);
             last_ns = state.publish_time_ns;

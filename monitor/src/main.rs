@@ -124,6 +124,13 @@ struct EmulateArgs {
     /// Fault injection: send every N-th sample frame after the next one.
     #[arg(long, default_value_t = 0, value_name = "N")]
     reorder_every: u64,
+    /// Fault injection: hold every N-th sample frame for --delay-us before sending it.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    delay_every: u64,
+    /// Fault injection: how long --delay-every holds a frame, µs (longer than a period: it
+    /// arrives after newer frames and is dropped as out of order).
+    #[arg(long, default_value_t = 0, value_name = "US")]
+    delay_us: u64,
     /// Fault injection: send every N-th sample frame twice.
     #[arg(long, default_value_t = 0, value_name = "N")]
     duplicate_every: u64,
@@ -762,6 +769,8 @@ fn real_main(cli: Cli) -> Result<()> {
                     drop_every: a.drop_every,
                     corrupt_every: a.corrupt_every,
                     reorder_every: a.reorder_every,
+                    delay_every: a.delay_every,
+                    delay_ns: a.delay_us.saturating_mul(1000),
                     duplicate_every: a.duplicate_every,
                     stop_after_s: a.stop_after,
                     overcurrent_after_s: a.overcurrent_after,

@@ -552,6 +552,12 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
         };
         // The newest is the last sample accepted: its drive timestamp is the link's.
         let newest_stamp = link.sample_timestamp_ns;
+        if last_state.is_some_and(|prev| st.seq <= prev.seq) {
+            // The silence fault state took this index: a drive that resumes continues
+            // after it, never publishing an index twice.
+            stats.superseded += 1;
+            continue;
+        }
         if out.silent {
             // Latched: once silent, the stack stays in fault for this run.
             st.fault |= fault_bits::DRIVE_SILENT;

@@ -13,7 +13,7 @@ use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
 use stepdrive_shared::messages::DriveCommand;
-use stepdrive_shared::pacer::{Pacer, WaitStrategy};
+use stepdrive_shared::pacer::{sleep_until, Pacer, WaitStrategy};
 use stepdrive_shared::poll::termination_requested;
 use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::Scenario;
@@ -27,6 +27,10 @@ pub struct FaultInjection {
     pub corrupt_every: u64,
     /// Send every N-th SAMPLE after the next one.
     pub reorder_every: u64,
+    /// Hold every N-th SAMPLE for `delay_ns` before sending it (longer than a period: it
+    /// arrives after newer ones).
+    pub delay_every: u64,
+    pub delay_ns: u64,
     /// Send every N-th SAMPLE twice.
     pub duplicate_every: u64,
     /// Stop sending samples (but keep running) after this many seconds.
@@ -322,6 +326,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     let started = monotonic_ns();
     let mut pacer = Pacer::new(started + period_ns, period_ns, o.wait);
     let mut reordered: Option<Frame> = None;
+    let mut delayed: Option<(Frame, u64)> = None;
     let mut sample_seq: u32 = 0;
     let mut running_since: Option<u64> = None;
     loop {
@@ -371,6 +376,8 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 wire.send(&buf[..n]);
             } else if every(o.inject.reorder_every) {
                 reordered = Some(frame);
+            } else if every(o.inject.delay_every) && delayed.is_none() {
+                delayed = Some((frame, monotonic_ns() + o.inject.delay_ns));
             } else {
                 send_frame(&mut wire, &frame, &mut buf);
                 if let Some(late) = reordered.take() {
@@ -394,6 +401,15 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
             send_frame(&mut wire, &f, &mut buf);
         }
         sample_seq = sample_seq.wrapping_add(1);
+        // A delayed frame leaves when its time comes, within this period or a later one;
+        // the drive's clock never waits for it past the next deadline.
+        if let Some((frame, at)) = delayed {
+            if at < pacer.deadline(u64::from(sample_seq)) {
+                sleep_until(at);
+                send_frame(&mut wire, &frame, &mut buf);
+                delayed = None;
+            }
+        }
         // Like the simulated plant: a host stall pauses the drive's time (see plant/process).
         pacer.pause_if_late(u64::from(sample_seq), monotonic_ns());
     }

@@ -8,6 +8,9 @@ use std::net::{SocketAddr, UdpSocket};
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
 use std::path::Path;
 
+/// Bytes taken from the line per read.
+const READ_CHUNK: usize = 1024;
+
 /// A raw serial line (a UART or a pseudo-terminal), non-blocking, with COBS framing.
 pub struct SerialPort {
     fd: OwnedFd,
@@ -40,7 +43,8 @@ impl SerialPort {
         }
         Ok(Self {
             fd,
-            rx: Vec::with_capacity(4096),
+            // The most it holds before the garbage guard below clears it: never regrown.
+            rx: Vec::with_capacity(16 * MAX_FRAME + READ_CHUNK),
             framing_errors: 0,
         })
     }
@@ -70,8 +74,10 @@ impl SerialPort {
     pub fn recv(&mut self, out: &mut [u8], wait_ms: i32) -> Option<usize> {
         loop {
             if let Some(end) = self.rx.iter().position(|&b| b == 0) {
-                let chunk: Vec<u8> = self.rx.drain(..=end).collect();
-                match cobs_decode(&chunk[..chunk.len() - 1], out) {
+                // Decoded in place, then dropped from the buffer: no allocation per frame.
+                let decoded = cobs_decode(&self.rx[..end], out);
+                self.rx.drain(..=end);
+                match decoded {
                     Ok(n) if n > 0 => return Some(n),
                     _ => {
                         self.framing_errors += 1;
@@ -88,7 +94,7 @@ impl SerialPort {
             if unsafe { libc::poll(&mut pfd, 1, wait_ms) } <= 0 {
                 return None;
             }
-            let mut buf = [0u8; 1024];
+            let mut buf = [0u8; READ_CHUNK];
             // SAFETY: reading into a valid buffer from our own fd.
             let r = unsafe { libc::read(self.fd.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
             if r <= 0 {

@@ -765,6 +765,43 @@ fn late_and_out_of_order_frames_are_counted_and_never_applied_out_of_order() {
     assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
 }
 
+/// A drive that goes quiet and comes back: frozen for 150 ms (its clock paused, as when
+/// this VM's host stalls it), longer than the bridge's 100 ms silence window at 2 kHz. The
+/// bridge reports the silence (a fault state), then forwards commands again when the
+/// drive speaks; the drive, whose time paused, never trips its watchdog.
+#[test]
+fn a_drive_that_comes_back_after_silence_gets_its_commands_again() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("hwfreeze");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    let json = dir.path("hw.json");
+    let inst = instance("hwfreeze");
+    let listen = format!("127.0.0.1:{}", free_udp_port());
+    let mut drive = spawn_logged(&[
+        "emulate-drive",
+        "--listen",
+        &listen,
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--freeze-at",
+        "0.3",
+        "--freeze-ms",
+        "150",
+    ]);
+    let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
+    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
+    let drive_log = stderr_of(&mut drive);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stderr}\ndrive: {drive_log}");
+    assert!(stderr.contains("speaks again"), "{stderr}");
+    assert!(drive_log.contains("latched faults 0x0000"), "{drive_log}");
+    let doc = read_json(&json);
+    let run = run_of(&doc, "proposed");
+    // The silence itself is reported: one fault state, nothing more.
+    assert_eq!(num(run, "fault_samples"), 1.0, "{run}");
+}
+
 #[test]
 fn killing_the_current_loop_turns_the_drive_outputs_off() {
     let _turn = one_stack_at_a_time();

@@ -137,6 +137,12 @@ struct EmulateArgs {
     /// Fault injection: stop sending samples after S seconds of running.
     #[arg(long, value_name = "S")]
     stop_after: Option<f64>,
+    /// Fault injection: freeze the drive once, after S seconds of running, for
+    /// --freeze-ms (no frames, its clock paused: what a host stall does to it).
+    #[arg(long, value_name = "S")]
+    freeze_at: Option<f64>,
+    #[arg(long, default_value_t = 0, value_name = "MS")]
+    freeze_ms: u64,
     /// Fault injection: latch an over-current fault after S seconds of running.
     #[arg(long, value_name = "S")]
     overcurrent_after: Option<f64>,
@@ -774,6 +780,8 @@ fn real_main(cli: Cli) -> Result<()> {
                     duplicate_every: a.duplicate_every,
                     stop_after_s: a.stop_after,
                     overcurrent_after_s: a.overcurrent_after,
+                    freeze_at_s: a.freeze_at,
+                    freeze_ns: a.freeze_ms.saturating_mul(1_000_000),
                 },
                 duration,
             })

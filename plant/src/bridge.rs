@@ -523,7 +523,7 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
                 out.silent = true;
                 tracing::error!(
                     periods = b.silence_periods,
-                    "no valid sample from the drive: fault published, commands no longer forwarded"
+                    "no valid sample from the drive: fault published, no commands forwarded until it speaks again"
                 );
                 if let Some(mut st) = last_state {
                     st.seq += 1;
@@ -559,8 +559,17 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
             continue;
         }
         if out.silent {
-            // Latched: once silent, the stack stays in fault for this run.
-            st.fault |= fault_bits::DRIVE_SILENT;
+            // The drive speaks again. Forwarding resumes: the drive's own watchdog decides
+            // whether its outputs come back (one that missed its commands has latched a
+            // fault until RESET, and reports it in every sample). On this VM the emulated
+            // drive is the one that goes quiet when the host stalls its CPU, and its time
+            // pauses with it: nothing was missed.
+            out.silent = false;
+            tracing::warn!(
+                silent_ms = (rx_at - last_rx) as f64 * 1e-6,
+                drive_faults = st.fault >> 16,
+                "the drive speaks again; forwarding commands again"
+            );
         }
         if let Some(prev) = last_state {
             stats.period.record(rx_at.saturating_sub(prev.deadline_ns));
@@ -666,7 +675,7 @@ struct Outbox {
     plan: DrivePlan,
     plan_sent: Option<u64>,
     plan_every: u64,
-    /// Once the drive has been silent too long nothing is forwarded any more.
+    /// While the drive is silent (no sample for its silence periods) nothing is forwarded.
     silent: bool,
     /// The measured bus voltage of the last sample (volts → duty).
     bus_v: f64,

@@ -37,6 +37,10 @@ pub struct FaultInjection {
     pub stop_after_s: Option<f64>,
     /// Latch an over-current fault after this many seconds.
     pub overcurrent_after_s: Option<f64>,
+    /// Freeze the drive once, at this many seconds, for `freeze_ns`: no frames, its clock
+    /// paused, as when the host stops its process.
+    pub freeze_at_s: Option<f64>,
+    pub freeze_ns: u64,
 }
 
 /// Counters of what the drive received.
@@ -327,6 +331,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     let mut pacer = Pacer::new(started + period_ns, period_ns, o.wait);
     let mut reordered: Option<Frame> = None;
     let mut delayed: Option<(Frame, u64)> = None;
+    let mut froze = false;
     let mut sample_seq: u32 = 0;
     let mut running_since: Option<u64> = None;
     loop {
@@ -364,6 +369,14 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
         {
             core.trip(faults::OVERCURRENT);
             tracing::warn!("injected over-current: outputs off, fault latched");
+        }
+        if let Some(at) = o.inject.freeze_at_s.filter(|&a| t_s >= a && !froze) {
+            froze = true;
+            tracing::warn!(at, ms = o.inject.freeze_ns as f64 * 1e-6, "injected freeze");
+            sleep_until(monotonic_ns() + o.inject.freeze_ns);
+            // Its time paused with it, as after any host stall (see below).
+            pacer.pause_if_late(u64::from(sample_seq), monotonic_ns());
+            continue;
         }
         let frame = core.sample_frame(monotonic_ns());
         let k = u64::from(sample_seq) + 1;

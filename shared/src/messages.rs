@@ -32,7 +32,7 @@ pub mod fault_bits {
     /// Hardware: the drive reported a latched fault (its bits are in the upper 16 bits).
     pub const DRIVE_FAULT: u32 = 1 << 2;
     /// Hardware: no valid sample from the drive for the bridge's watchdog periods; the
-    /// bridge stopped forwarding commands.
+    /// bridge forwards no commands until the drive speaks again.
     pub const DRIVE_SILENT: u32 = 1 << 3;
 }
 

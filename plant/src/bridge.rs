@@ -491,6 +491,9 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
         let give_up = due.map_or(0, |d| d + (2 * period_ns).min(MAX_SPIN_PAST_DUE_NS));
         let (mut st, rx_at) = loop {
             out.forward(&commands, &plans, &mut link, &mut wire, &mut stats)?;
+            // Taken before the socket is read: if it holds nothing, nothing arrived up to
+            // here, even if this process is held up before it checks for silence.
+            let looked_at = monotonic_ns();
             let mut newest: Option<(DriveState, u64)> = None;
             while let Some((len, _)) = wire.recv(&mut rx, 0) {
                 let now = monotonic_ns();
@@ -519,7 +522,7 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
                 break taken;
             }
             let now = monotonic_ns();
-            if now - last_rx > silence_ns && !out.silent {
+            if looked_at.saturating_sub(last_rx) > silence_ns && !out.silent {
                 out.silent = true;
                 tracing::error!(
                     periods = b.silence_periods,
@@ -535,7 +538,7 @@ pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport,
                     last_state = Some(st);
                 }
             }
-            if now - last_rx > opts.peer_timeout.as_nanos() as u64 {
+            if looked_at.saturating_sub(last_rx) > opts.peer_timeout.as_nanos() as u64 {
                 return Err(PlantError::Protocol(format!(
                     "the drive at {} has been silent for {:?}",
                     b.drive, opts.peer_timeout

@@ -624,6 +624,32 @@ fn hardware_run(scenario: &Path, inst: &str, json: &Path, extra: &[&str]) -> Out
     stepdrive(&args)
 }
 
+/// A hardware run against an emulated drive started with `injection` (fault-injection
+/// options) on a free loopback port; returns the run's output and the drive's log. Fails
+/// the test if the run failed.
+fn hardware_run_against(
+    scenario: &Path,
+    inst: &str,
+    json: &Path,
+    injection: &[&str],
+) -> (Output, String) {
+    let listen = format!("127.0.0.1:{}", free_udp_port());
+    let mut args = vec!["emulate-drive", "--listen", &listen, "--scenario"];
+    args.push(scenario.to_str().unwrap());
+    args.extend(injection);
+    let mut drive = spawn_logged(&args);
+    let out = hardware_run(scenario, inst, json, &["--drive", &listen]);
+    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
+    let drive_log = stderr_of(&mut drive);
+    assert!(
+        out.status.success(),
+        "{}\ndrive: {drive_log}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out, drive_log)
+}
+
 #[test]
 fn hardware_mode_runs_against_the_emulated_drive() {
     let _turn = one_stack_at_a_time();
@@ -680,27 +706,8 @@ fn corrupted_frames_are_counted_and_not_applied() {
     let scenario = dir.file("slow.toml", &slow_scenario());
     let json = dir.path("hw.json");
     let inst = instance("hwcrc");
-    let port = free_udp_port().to_string();
-    let listen = format!("127.0.0.1:{port}");
-    let mut drive = spawn_logged(&[
-        "emulate-drive",
-        "--listen",
-        &listen,
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--corrupt-every",
-        "10",
-        "--duplicate-every",
-        "7",
-    ]);
-    let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
-    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let injection = ["--corrupt-every", "10", "--duplicate-every", "7"];
+    hardware_run_against(&scenario, &inst, &json, &injection);
     let doc = read_json(&json);
     let run = run_of(&doc, "proposed");
     let t = &run["timing"];
@@ -727,28 +734,15 @@ fn late_and_out_of_order_frames_are_counted_and_never_applied_out_of_order() {
     let scenario = dir.file("slow.toml", &slow_scenario());
     let json = dir.path("hw.json");
     let inst = instance("hwlate");
-    let listen = format!("127.0.0.1:{}", free_udp_port());
-    let mut drive = spawn_logged(&[
-        "emulate-drive",
-        "--listen",
-        &listen,
-        "--scenario",
-        scenario.to_str().unwrap(),
+    let injection = [
         "--reorder-every",
         "13",
         "--delay-every",
         "11",
         "--delay-us",
         "200",
-    ]);
-    let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
-    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    ];
+    hardware_run_against(&scenario, &inst, &json, &injection);
     let doc = read_json(&json);
     let run = run_of(&doc, "proposed");
     let t = &run["timing"];
@@ -776,24 +770,9 @@ fn a_drive_that_comes_back_after_silence_gets_its_commands_again() {
     let scenario = dir.file("slow.toml", &slow_scenario());
     let json = dir.path("hw.json");
     let inst = instance("hwfreeze");
-    let listen = format!("127.0.0.1:{}", free_udp_port());
-    let mut drive = spawn_logged(&[
-        "emulate-drive",
-        "--listen",
-        &listen,
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--freeze-at",
-        "0.3",
-        "--freeze-ms",
-        "150",
-    ]);
-    let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
-    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
-    let drive_log = stderr_of(&mut drive);
+    let injection = ["--freeze-at", "0.3", "--freeze-ms", "150"];
+    let (out, drive_log) = hardware_run_against(&scenario, &inst, &json, &injection);
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(out.status.success(), "{stderr}\ndrive: {drive_log}");
     assert!(stderr.contains("speaks again"), "{stderr}");
     assert!(drive_log.contains("latched faults 0x0000"), "{drive_log}");
     let doc = read_json(&json);

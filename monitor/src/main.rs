@@ -617,7 +617,7 @@ fn real_main(cli: Cli) -> Result<()> {
                 let (report, slot) = simulate_stalls(&s, *m, &stalls, a.watchdog_periods);
                 println!(
                     "{m}: {} periods without their command, {} of them covered by a plan, longest run {}",
-                    slot.misses, slot.planned, slot.longest_miss_run
+                    slot.misses, slot.planned, slot.runs.longest
                 );
                 runs.push(report);
             }

@@ -6,8 +6,8 @@ use std::ops::Range;
 use std::time::Instant;
 use stepdrive_controller::current_loop::CurrentLoop;
 use stepdrive_controller::position_loop::PositionLoop;
-use stepdrive_plant::sim::{CommandSlot, PlantSim, Selection};
-use stepdrive_shared::messages::{fault_bits, DriveCommand, DrivePlan};
+use stepdrive_plant::sim::{CommandSlot, PlantSim};
+use stepdrive_shared::messages::{DriveCommand, DrivePlan};
 use stepdrive_shared::{Method, Scenario};
 
 pub fn simulate(s: &Scenario, method: Method) -> RunReport {
@@ -80,18 +80,7 @@ fn step_stack(
         if last {
             break;
         }
-        match plant.needed_command() {
-            None => plant.advance(None),
-            Some(needed) => match slot.take(needed) {
-                Selection::Apply(c) => plant.advance(Some(&c)),
-                Selection::Missing(planned) => {
-                    if slot.consecutive_misses >= watchdog_periods {
-                        plant.trip(fault_bits::COMMAND_TIMEOUT);
-                    }
-                    plant.advance_missing(planned);
-                }
-            },
-        }
+        plant.advance_realtime(&mut slot, watchdog_periods);
     }
     (metrics, slot)
 }
@@ -286,7 +275,7 @@ mod tests {
         for plan in [0, 200] {
             let stall = stall_at(1.2, 200);
             let (r, slot) = simulate_stalls(&with_plan(plan), Method::Proposed, &stall, 200);
-            assert_eq!(slot.longest_miss_run, 200);
+            assert_eq!(slot.runs.longest, 200);
             assert!(r.fault_samples > 0, "plan {plan}: {r:?}");
         }
     }

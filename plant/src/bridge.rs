@@ -9,7 +9,7 @@ use crate::drive_protocol::{
 };
 use crate::drive_units::{duty_for, volts_for, Scaling, VelocityObserver};
 use crate::process::{wait_for_stack, PlantError, PlantOptions};
-use crate::wire::{enlarge_receive_buffer, SerialPort, Wire};
+use crate::wire::{enlarge_receive_buffer, SerialPort, Wire, RECEIVE_BUFFER_BYTES};
 use std::net::{SocketAddr, UdpSocket};
 use std::os::fd::RawFd;
 use stepdrive_shared::clock::monotonic_ns;
@@ -22,7 +22,7 @@ use stepdrive_shared::services::{
     connect, drain, notifier, notify, publish_stats, publisher, send, subscriber, try_receive, Sub,
     Topics, LOOP_BUFFER,
 };
-use stepdrive_shared::stats::{roles, StatsReport};
+use stepdrive_shared::stats::{roles, MissRuns, StatsReport};
 
 /// What one received datagram turned into.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -64,12 +64,10 @@ pub struct DriveLink {
     pub bad_frames: u64,
     pub rejected_commands: u64,
     /// Periods the drive reported without their COMMAND, and of those the ones it covered
-    /// with a PLAN entry; runs of such periods and the longest.
+    /// with a PLAN entry; runs of such periods.
     pub held_periods: u64,
     pub planned_periods: u64,
-    held_run: u64,
-    pub held_runs: u64,
-    pub longest_held_run: u64,
+    pub held_runs: MissRuns,
     /// Samples that never arrived: gaps in the drive's frame sequence.
     pub lost_on_wire: u64,
     /// The drive's timestamp of the last accepted sample, ns on the drive's clock.
@@ -96,9 +94,7 @@ impl DriveLink {
             rejected_commands: 0,
             held_periods: 0,
             planned_periods: 0,
-            held_run: 0,
-            held_runs: 0,
-            longest_held_run: 0,
+            held_runs: MissRuns::default(),
             lost_on_wire: 0,
             sample_timestamp_ns: 0,
         }
@@ -180,18 +176,15 @@ impl DriveLink {
                     fault = fault_bits::DRIVE_FAULT | (u32::from(s.fault_bits) << 16);
                 }
                 let mut flags = 0;
-                if s.status & status::COMMAND_HELD != 0 {
+                let held = s.status & status::COMMAND_HELD != 0;
+                self.held_runs.record(held);
+                if held {
                     flags |= state_flags::COMMAND_HELD;
                     self.held_periods += 1;
-                    self.held_run += 1;
-                    self.held_runs += u64::from(self.held_run == 1);
-                    self.longest_held_run = self.longest_held_run.max(self.held_run);
                     if s.status & status::COMMAND_PLANNED != 0 {
                         flags |= state_flags::COMMAND_PLANNED;
                         self.planned_periods += 1;
                     }
-                } else {
-                    self.held_run = 0;
                 }
                 Event::State(DriveState {
                     seq: k,
@@ -279,8 +272,7 @@ impl DriveLink {
         stats.rejected_commands = self.rejected_commands;
         stats.misses = self.held_periods;
         stats.planned = self.planned_periods;
-        stats.miss_runs = self.held_runs;
-        stats.longest_miss_run = self.longest_held_run;
+        self.held_runs.copy_to(stats);
     }
 
     pub fn control_frame(&mut self, action: Action, now_ns: u64) -> Frame {
@@ -359,10 +351,6 @@ pub fn default_wait(realtime_priority: bool) -> WaitStrategy {
 
 /// The longest the bridge polls its socket past a frame's due time before it blocks.
 const MAX_SPIN_PAST_DUE_NS: u64 = 100_000;
-
-/// Room for ~100 ms of samples at 20 kHz, so that a stalled bridge finds them queued
-/// instead of lost (the default, ~200 KB, holds a few hundred).
-const RECEIVE_BUFFER_BYTES: usize = 4 << 20;
 
 /// Runs the bridge for the scenario's duration (hardware mode).
 pub fn run_bridge(opts: &PlantOptions, b: &BridgeOptions) -> Result<StatsReport, PlantError> {

@@ -8,7 +8,7 @@ use crate::drive_protocol::{
 };
 use crate::drive_units::{default_config, volts_for, Scaling};
 use crate::sim::PlantSim;
-use crate::wire::{enlarge_receive_buffer, SerialPort, Wire};
+use crate::wire::{enlarge_receive_buffer, SerialPort, Wire, RECEIVE_BUFFER_BYTES};
 use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
@@ -315,7 +315,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
         None => {
             let sock = UdpSocket::bind(o.listen)?;
             sock.set_nonblocking(true)?;
-            enlarge_receive_buffer(&sock, 4 << 20);
+            enlarge_receive_buffer(&sock, RECEIVE_BUFFER_BYTES);
             Wire::Udp { sock, peer: None }
         }
     };

@@ -2,10 +2,9 @@
 //! for exactly the command its delay line needs, integrates one period, and repeats.
 //! Nothing is dropped and nothing depends on timing, so runs are bit-identical.
 
-use crate::sim::{CommandSlot, PlantSim, Selection};
+use crate::sim::{CommandSlot, PlantSim};
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
-use stepdrive_shared::messages::fault_bits;
 use stepdrive_shared::messages::DriveCommand;
 use stepdrive_shared::pacer::{Pacer, WaitStrategy};
 use stepdrive_shared::poll::termination_requested;
@@ -228,23 +227,11 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
         }
         // In place: a plan is ~2 KB and only the freshest is kept.
         drain(&plans, |plan| slot.offer_plan(plan))?;
-        match sim.needed_command() {
-            None => sim.advance(None),
-            Some(needed) => match slot.take(needed) {
-                Selection::Apply(c) => sim.advance(Some(&c)),
-                Selection::Missing(planned) => {
-                    if slot.consecutive_misses >= rto.watchdog_periods {
-                        if sim.state(false).fault & fault_bits::COMMAND_TIMEOUT == 0 {
-                            tracing::error!(
-                                periods = slot.consecutive_misses,
-                                "no command for the watchdog's periods: outputs off, fault latched"
-                            );
-                        }
-                        sim.trip(fault_bits::COMMAND_TIMEOUT);
-                    }
-                    sim.advance_missing(planned);
-                }
-            },
+        if sim.advance_realtime(&mut slot, rto.watchdog_periods) {
+            tracing::error!(
+                periods = slot.runs.current,
+                "no command for the watchdog's periods: outputs off, fault latched"
+            );
         }
         // The next deadline already past means the host held us up for more than a period.
         // The simulated drive is hardware that does not stall, so its time pauses with us:
@@ -277,7 +264,7 @@ pub fn run_realtime(opts: &PlantOptions, rto: &RealtimeOptions) -> Result<StatsR
         samples = n,
         misses = slot.misses,
         overruns = stats.overruns,
-        miss_runs_1_2_4_8_16_32_64_128 = ?slot.runs_by_length,
+        miss_runs_1_2_4_8_16_32_64_128 = ?slot.runs.by_length,
         "plant done"
     );
     Ok(*stats)

@@ -6,7 +6,7 @@ use crate::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
 use stepdrive_shared::messages::{
     fault_bits, state_flags, DriveCommand, DrivePlan, DriveState, NONE_SEQ,
 };
-use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::stats::{MissRuns, StatsReport};
 use stepdrive_shared::Scenario;
 
 #[derive(Debug, Clone)]
@@ -102,6 +102,31 @@ impl PlantSim {
         self.flags |= flags;
     }
 
+    /// Realtime: decides the period starting now by `slot`'s rules and integrates it. After
+    /// `watchdog_periods` misses in a row the outputs go off and [`fault_bits::COMMAND_TIMEOUT`]
+    /// latches; returns true in the period where that happens.
+    pub fn advance_realtime(&mut self, slot: &mut CommandSlot, watchdog_periods: u32) -> bool {
+        let Some(needed) = self.needed_command() else {
+            self.advance(None);
+            return false;
+        };
+        match slot.take(needed) {
+            Selection::Apply(c) => {
+                self.advance(Some(&c));
+                false
+            }
+            Selection::Missing(planned) => {
+                let timed_out = slot.runs.current >= watchdog_periods;
+                let trips = timed_out && self.fault & fault_bits::COMMAND_TIMEOUT == 0;
+                if timed_out {
+                    self.trip(fault_bits::COMMAND_TIMEOUT);
+                }
+                self.advance_missing(planned);
+                trips
+            }
+        }
+    }
+
     /// Integrates over (t_k, t_{k+1}] with `command` (the one [`Self::needed_command`] named,
     /// or `None` for outputs off) and moves to sample k+1. A non-finite command turns the
     /// outputs off and latches [`fault_bits::BAD_COMMAND`]; from then on the outputs stay off.
@@ -169,13 +194,8 @@ pub struct CommandSlot {
     pub planned: u64,
     /// Commands that arrived after their period and were dropped unapplied.
     pub late_discarded: u64,
-    /// Misses in a row, for the watchdog.
-    pub consecutive_misses: u32,
-    /// Runs of consecutive misses, and the longest one.
-    pub miss_runs: u64,
-    pub longest_miss_run: u32,
-    /// Finished runs by length: 1, 2-3, 4-7, ..., 128 and more periods.
-    pub runs_by_length: [u64; 8],
+    /// Misses in a row (the watchdog's count) and their runs.
+    pub runs: MissRuns,
 }
 
 impl CommandSlot {
@@ -188,10 +208,7 @@ impl CommandSlot {
             misses: 0,
             planned: 0,
             late_discarded: 0,
-            consecutive_misses: 0,
-            miss_runs: 0,
-            longest_miss_run: 0,
-            runs_by_length: [0; 8],
+            runs: MissRuns::default(),
         }
     }
 
@@ -200,8 +217,7 @@ impl CommandSlot {
         stats.misses = self.misses;
         stats.planned = self.planned;
         stats.late_discarded = self.late_discarded;
-        stats.miss_runs = self.miss_runs;
-        stats.longest_miss_run = u64::from(self.longest_miss_run);
+        self.runs.copy_to(stats);
     }
 
     /// Offers a received command. `next_needed` is the first sample whose command has not
@@ -230,11 +246,7 @@ impl CommandSlot {
         let slot = &mut self.pending[(needed % 8) as usize];
         match slot.take() {
             Some(c) if c.answers_seq == needed => {
-                if self.consecutive_misses > 0 {
-                    let bucket = 31 - self.consecutive_misses.leading_zeros();
-                    self.runs_by_length[(bucket as usize).min(7)] += 1;
-                }
-                self.consecutive_misses = 0;
+                self.runs.record(false);
                 Selection::Apply(c)
             }
             other => {
@@ -243,9 +255,7 @@ impl CommandSlot {
                     *slot = other;
                 }
                 self.misses += 1;
-                self.consecutive_misses = self.consecutive_misses.saturating_add(1);
-                self.miss_runs += u64::from(self.consecutive_misses == 1);
-                self.longest_miss_run = self.longest_miss_run.max(self.consecutive_misses);
+                self.runs.record(true);
                 let planned = self
                     .freshest
                     .voltage_for(needed + self.delay, self.delay)
@@ -320,7 +330,7 @@ mod tests {
         p.advance(Some(&c));
         let st = p.state(false);
         assert_eq!((st.v_a_v, st.v_b_v, st.applied_command_seq), (3.0, 4.0, 2));
-        assert_eq!(slot.consecutive_misses, 0);
+        assert_eq!(slot.runs.current, 0);
         // Commands that arrive early wait for their own period.
         slot.offer(cmd(4, 5.0, 5.0), 3);
         assert_eq!(slot.take(3), Selection::Missing(None));
@@ -384,12 +394,7 @@ mod tests {
         p.advance_missing(None);
         assert_eq!(applied(&p), (6.0, -6.0, 1, state_flags::COMMAND_HELD));
         assert_eq!(
-            (
-                slot.misses,
-                slot.planned,
-                slot.miss_runs,
-                slot.longest_miss_run
-            ),
+            (slot.misses, slot.planned, slot.runs.runs, slot.runs.longest),
             (4, 3, 1, 4)
         );
         // A plan claiming more than MAX_PLAN entries covers nothing.

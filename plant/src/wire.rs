@@ -181,6 +181,10 @@ impl Wire {
     }
 }
 
+/// Room for ~100 ms of frames at 20 kHz, so that a stalled receiver finds them queued
+/// instead of lost (the default, ~200 KB, holds a few hundred).
+pub const RECEIVE_BUFFER_BYTES: usize = 4 << 20;
+
 /// Asks for a `bytes` receive buffer (SO_RCVBUFFORCE as root, else SO_RCVBUF up to the
 /// system's rmem_max); returns what the kernel granted.
 pub fn enlarge_receive_buffer(sock: &UdpSocket, bytes: usize) -> usize {

@@ -299,6 +299,39 @@ pub struct StatsReport {
     pub round_trip: Histogram,
 }
 
+/// Runs of consecutive periods without their command: the current one (the watchdog's
+/// count), how many there were, the longest, and their lengths.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct MissRuns {
+    /// Misses in a row up to now.
+    pub current: u32,
+    pub runs: u64,
+    pub longest: u32,
+    /// Finished runs by length: 1, 2-3, 4-7, ..., 128 and more periods.
+    pub by_length: [u64; 8],
+}
+
+impl MissRuns {
+    /// One period: its command was `missed`, or not.
+    pub fn record(&mut self, missed: bool) {
+        if missed {
+            self.current = self.current.saturating_add(1);
+            self.runs += u64::from(self.current == 1);
+            self.longest = self.longest.max(self.current);
+        } else if self.current > 0 {
+            let bucket = 31 - self.current.leading_zeros();
+            self.by_length[(bucket as usize).min(7)] += 1;
+            self.current = 0;
+        }
+    }
+
+    /// Into a stats report's run counters.
+    pub fn copy_to(&self, stats: &mut StatsReport) {
+        stats.miss_runs = self.runs;
+        stats.longest_miss_run = u64::from(self.longest);
+    }
+}
+
 /// The per-cycle bookkeeping every periodic loop does, kept free of any clock so that it
 /// can be driven with known timestamps in tests.
 #[derive(Debug, Clone, Default)]

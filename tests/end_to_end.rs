@@ -438,6 +438,18 @@ fn realtime_run_reports_timing_from_every_loop() {
     // Every period either got its command or was counted as a miss.
     let misses = t["deadline_misses"].as_u64().unwrap();
     assert!(misses <= plant_cycles);
+    // The current loop's account splits them, host holds or not.
+    let holds = &t["host_holds"];
+    assert_eq!(
+        holds["deadline_misses_in_holds"].as_u64().unwrap()
+            + holds["deadline_misses_outside_holds"].as_u64().unwrap(),
+        misses,
+        "{t}"
+    );
+    assert!(
+        holds["deadline_misses_queued"].as_u64().unwrap()
+            <= holds["deadline_misses_outside_holds"].as_u64().unwrap()
+    );
     let s2a = &t["sensor_to_actuator"];
     assert!(s2a["count"].as_u64().unwrap() > 0);
     assert!(s2a["p50_us"].as_f64().unwrap() <= s2a["p99_us"].as_f64().unwrap());
@@ -527,6 +539,19 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
     );
     let run = run_of(&doc, "proposed");
     assert_freeze_covered_by_plan(run, 80);
+    // A stop signal is the guest's doing: the loop gave up its CPU without asking to sleep,
+    // so none of the freeze's misses may be put down to the host.
+    let t = &run["timing"];
+    let holds = &t["host_holds"];
+    let in_holds = holds["deadline_misses_in_holds"]
+        .as_u64()
+        .expect("host_holds.deadline_misses_in_holds");
+    let longest = t["longest_miss_run"].as_u64().expect("longest_miss_run");
+    let misses = t["deadline_misses"].as_u64().expect("deadline_misses");
+    assert!(
+        in_holds + longest <= misses,
+        "the SIGSTOP was blamed on the host: {t}"
+    );
     // The stall simulation (`simulate_stalls`) on this scenario, a 5.5 ms stall starting
     // anywhere after start-up: at most 4.8e-3 rad with the plan (at the reversal corner,
     // where the torque the plan assumes changes), up to 7.1e-2 rad with the voltage held.

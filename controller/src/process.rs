@@ -8,7 +8,7 @@ use std::fmt::Debug;
 use std::time::Duration;
 use stepdrive_shared::clock::monotonic_ns;
 use stepdrive_shared::messages::{state_flags, DriveState, TorqueSetpoint};
-use stepdrive_shared::pacer::{await_message, Arrival, Pacer, WaitStrategy};
+use stepdrive_shared::pacer::{await_message, Arrival, Pacer, WaitHooks, WaitStrategy};
 use stepdrive_shared::poll::termination_requested;
 use stepdrive_shared::poll::{poll_until, WaitError};
 use stepdrive_shared::rt::RtOptions;
@@ -18,6 +18,7 @@ use stepdrive_shared::services::{
     IpcError, Listener, Message, Sub, Topics, LOOP_BUFFER,
 };
 use stepdrive_shared::stats::{roles, CycleRecorder, StatsReport};
+use stepdrive_shared::steal::{Slept, StealMeter, HOST_HOLD_MIN_NS};
 use stepdrive_shared::{Method, Scenario};
 
 #[derive(Debug, thiserror::Error)]
@@ -182,10 +183,12 @@ fn await_newest<T: Debug + Copy + Message + 'static>(
     wait: WaitStrategy,
     expected_ns: u64,
     timeout: Duration,
+    hooks: &mut impl WaitHooks,
     peer: &'static str,
     what: &'static str,
 ) -> Result<Arrival<T>, ControllerError> {
-    await_message(wait, expected_ns, timeout, || newest(sub)).map_err(|e| wait_error(e, what, peer))
+    await_message(wait, expected_ns, timeout, hooks, || newest(sub))
+        .map_err(|e| wait_error(e, what, peer))
 }
 
 /// Waits for the next state by blocking on the producer's event (see [`WaitStrategy::Event`])
@@ -202,6 +205,7 @@ fn await_event(
                 message,
                 taken_ns: monotonic_ns(),
                 timer_latency_ns: None,
+                slept_after_wake: Slept::default(),
             });
         }
         if termination_requested() {
@@ -225,6 +229,33 @@ fn newest<T: Debug + Copy + Message + 'static>(sub: &Sub<T>) -> Result<Option<T>
         newest = Some(m);
     }
     Ok(newest)
+}
+
+/// The current loop's steal accounting around its wait (see [`StealMeter`]), booked into
+/// its statistics: host holds, and the skipped states the host and guest queueing explain.
+struct Accounting<'a> {
+    meter: &'a mut StealMeter,
+    stats: &'a mut StatsReport,
+}
+
+impl WaitHooks for Accounting<'_> {
+    fn before_sleep(&mut self) {
+        self.meter.before_sleep();
+    }
+
+    fn on_wake(&mut self, slept: Slept) {
+        let Some(w) = self.meter.at_wake(slept) else {
+            return;
+        };
+        if w.loss.held_ns >= HOST_HOLD_MIN_NS {
+            self.stats.host_held.record(w.loss.held_ns);
+        }
+        self.stats.host_missed += w.by_host;
+        self.stats.queued_missed += w.by_queue;
+        if w.unseen > 0 {
+            tracing::debug!(window = ?w, "states skipped");
+        }
+    }
 }
 
 /// Realtime current loop: woken by each state sample (by polling, see `await_newest`),
@@ -261,6 +292,12 @@ pub fn run_current_loop_realtime(
         ..Default::default()
     });
     tracing::info!(instance = %opts.instance, %method, wait = %rto.wait, "current loop up (realtime)");
+    let mut steal = StealMeter::new(period_ns);
+    if !steal.available() {
+        tracing::warn!(
+            "no /proc/thread-self/schedstat: host holds of this loop's CPU are not measured"
+        );
+    }
     let mut expected_ns = 0;
     let mut last_seq: Option<u64> = None;
     let mut prev_start = 0;
@@ -275,12 +312,15 @@ pub fn run_current_loop_realtime(
             // poll, not a spin that would hold this CPU from processes starting on it.
             let first = poll_until(timeout, || newest(&states))
                 .map_err(|e| wait_error(e, "drive/state", "plant"))?;
+            steal.restart();
             Arrival {
                 message: first,
                 taken_ns: monotonic_ns(),
                 timer_latency_ns: None,
+                slept_after_wake: Slept::default(),
             }
         } else if let Some(ready) = &ready {
+            steal.restart();
             await_event(&states, ready, timeout)?
         } else {
             await_newest(
@@ -288,13 +328,19 @@ pub fn run_current_loop_realtime(
                 rto.wait,
                 expected_ns,
                 timeout,
+                &mut Accounting {
+                    meter: &mut steal,
+                    stats: &mut stats,
+                },
                 "plant",
                 "drive/state",
             )?
         };
         let (state, start) = (arrival.message, arrival.taken_ns);
         if let Some(prev) = last_seq {
-            stats.lost += state.seq.saturating_sub(prev + 1);
+            let unseen = state.seq.saturating_sub(prev + 1);
+            stats.lost += unseen;
+            steal.after_take(unseen, arrival.slept_after_wake);
             stats.period.record(start - prev_start);
         } else {
             connect(&commands)?;

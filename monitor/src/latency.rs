@@ -352,6 +352,9 @@ pub fn table(r: &LatencyReport) -> String {
                 c.misses, c.miss_pct, c.lost
             );
         }
+        if let Some(h) = &t.host_holds {
+            let _ = writeln!(out, "{}", h.describe());
+        }
     }
     let rr = &r.ratios;
     let f = |x: Option<f64>| x.map_or("n/a".to_string(), |v| format!("{v:.2}×"));

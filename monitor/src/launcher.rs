@@ -472,6 +472,9 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
             pick(1),
             pick(2),
             monitor_lost,
+            // In hardware mode the loop sleeps on the bridge's event, whose length it
+            // does not choose, so it cannot tell a hold from a wait.
+            opts.mode == Mode::Realtime,
         ));
     }
     Ok(report)

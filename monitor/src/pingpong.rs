@@ -259,8 +259,10 @@ fn run_pong(o: &PingPongOptions, link: &mut Link) -> Result<()> {
     let mut expected = 0u64;
     loop {
         // The current loop's own wait, so the baseline differs from it only in transport.
-        let arrival = await_message(o.wait, expected, Duration::from_secs(5), || link.try_recv())
-            .map_err(|e| match e {
+        let arrival = await_message(o.wait, expected, Duration::from_secs(5), &mut (), || {
+            link.try_recv()
+        })
+        .map_err(|e| match e {
             WaitError::Source(e) => e,
             _ => anyhow::anyhow!("ping side went silent"),
         })?;

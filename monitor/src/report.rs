@@ -111,6 +111,9 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             t.late_commands_discarded,
             t.plant.as_ref().map_or(0, |p| p.overruns)
         );
+        if let Some(h) = &t.host_holds {
+            let _ = writeln!(out, "  {}", h.describe());
+        }
         let line = |name: &str, p: Option<&crate::timing::Percentiles>| match p {
             Some(p) if p.count > 0 => format!(
                 "  {name:<34} p50 {:>7.1} µs  p99 {:>7.1} µs  p99.9 {:>8.1} µs  max {:>9.1} µs\n",

@@ -2,6 +2,7 @@
 
 use serde::Serialize;
 use stepdrive_shared::stats::{Histogram, StatsReport};
+use stepdrive_shared::steal::HOST_HOLD_MIN_NS;
 use stepdrive_shared::Scenario;
 
 /// Summary of one histogram in µs.
@@ -78,6 +79,55 @@ impl LoopTiming {
     }
 }
 
+/// Cycles in which the hypervisor held the current loop's vCPU (wall time passed while the
+/// loop neither ran, nor waited in the guest's run queue, nor slept: see
+/// `stepdrive_shared::steal`), and the deadline misses they explain.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct HostHolds {
+    /// Holds of at least [`HOST_HOLD_MIN_NS`] (20 µs).
+    pub count: u64,
+    pub total_ms: f64,
+    pub longest_us: f64,
+    /// Deadline misses whose states the loop never saw because of a hold.
+    pub deadline_misses_in_holds: u64,
+    /// Of the rest, misses while the loop waited for its CPU behind another guest task.
+    pub deadline_misses_queued: u64,
+    /// The rest: the misses the guest (scheduler, interrupts, the stack) is answerable for.
+    pub deadline_misses_outside_holds: u64,
+    pub deadline_miss_pct_outside_holds: f64,
+}
+
+impl HostHolds {
+    /// One line for the tables.
+    pub fn describe(&self) -> String {
+        format!(
+            "current loop's CPU held by the host {} times (≥ {} µs; {:.1} ms in all, longest {:.0} µs); deadline misses in those holds {}, outside them {} ({:.3} %; {} of them queued behind a guest task)",
+            self.count,
+            HOST_HOLD_MIN_NS / 1000,
+            self.total_ms,
+            self.longest_us,
+            self.deadline_misses_in_holds,
+            self.deadline_misses_outside_holds,
+            self.deadline_miss_pct_outside_holds,
+            self.deadline_misses_queued
+        )
+    }
+
+    fn of(current: &StatsReport, plant: &StatsReport) -> Self {
+        let h = &current.host_held;
+        let outside = plant.misses.saturating_sub(current.host_missed);
+        Self {
+            count: h.count,
+            total_ms: h.sum_ns as f64 * 1e-6,
+            longest_us: h.max_ns as f64 * 1e-3,
+            deadline_misses_in_holds: current.host_missed.min(plant.misses),
+            deadline_misses_queued: current.queued_missed.min(outside),
+            deadline_misses_outside_holds: outside,
+            deadline_miss_pct_outside_holds: 100.0 * outside as f64 / plant.cycles.max(1) as f64,
+        }
+    }
+}
+
 /// The timing section of a realtime run's report.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct TimingReport {
@@ -112,6 +162,8 @@ pub struct TimingReport {
     pub samples_superseded: u64,
     /// Hardware mode: command frame sent → reported applied by the drive.
     pub round_trip: Option<Percentiles>,
+    /// Realtime mode: the current loop's account of its vCPU held by the host.
+    pub host_holds: Option<HostHolds>,
     #[serde(skip)]
     pub raw: [Option<Box<StatsReport>>; 3],
 }
@@ -123,6 +175,7 @@ impl TimingReport {
         current: Option<Box<StatsReport>>,
         position: Option<Box<StatsReport>>,
         monitor_lost: u64,
+        host_holds_measured: bool,
     ) -> Self {
         let (misses, pct) = plant.as_ref().map_or((0, f64::NAN), |p| {
             (p.misses, 100.0 * p.misses as f64 / p.cycles.max(1) as f64)
@@ -152,6 +205,10 @@ impl TimingReport {
                 .as_ref()
                 .filter(|p| p.round_trip.count > 0)
                 .map(|p| Percentiles::of(&p.round_trip)),
+            host_holds: match (&current, &plant) {
+                (Some(c), Some(p)) if host_holds_measured => Some(HostHolds::of(c, p)),
+                _ => None,
+            },
             raw: [plant, current, position],
         }
     }

@@ -12,6 +12,7 @@ pub mod rt;
 pub mod scenario;
 pub mod services;
 pub mod stats;
+pub mod steal;
 pub mod trajectory;
 
 pub use messages::{DriveCommand, DriveState, TorqueSetpoint};

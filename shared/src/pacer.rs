@@ -4,6 +4,7 @@
 
 use crate::clock::monotonic_ns;
 use crate::poll::{termination_requested, WaitError};
+use crate::steal::Slept;
 use std::str::FromStr;
 use std::time::Duration;
 
@@ -101,26 +102,49 @@ pub struct Arrival<T> {
     pub message: T,
     pub taken_ns: u64,
     pub timer_latency_ns: Option<u64>,
+    /// Sleeps the wait asked for after its `on_wake` call (`sleep` strategy), for
+    /// [`crate::steal`].
+    pub slept_after_wake: Slept,
 }
+
+/// What a loop does around [`await_message`]'s sleep (`()`: nothing).
+pub trait WaitHooks {
+    fn before_sleep(&mut self) {}
+    fn on_wake(&mut self, _slept: Slept) {}
+}
+
+impl WaitHooks for () {}
 
 /// Waits for a message expected at `expected_ns` (a loop woken by its input rather than a
 /// clock): `hybrid:N` sleeps on the absolute time N before `expected_ns` and polls from
 /// there, `spin` polls throughout, `sleep` polls every 10 µs. `poll` returns the message
-/// when there is one. Gives up after `timeout` or on SIGINT/SIGTERM.
+/// when there is one. `hooks` see the `hybrid` sleep from both sides; `on_wake` runs once
+/// before polling, sleep or not: work the loop does while it has slack. Gives up after
+/// `timeout` or on SIGINT/SIGTERM.
 pub fn await_message<T, E>(
     wait: WaitStrategy,
     expected_ns: u64,
     timeout: Duration,
+    hooks: &mut impl WaitHooks,
     mut poll: impl FnMut() -> Result<Option<T>, E>,
 ) -> Result<Arrival<T>, WaitError<E>> {
     let mut timer_latency_ns = None;
+    let mut hybrid_sleep = Slept::default();
     if let WaitStrategy::Hybrid { margin_ns } = wait {
         let target = expected_ns.saturating_sub(margin_ns);
-        if target > monotonic_ns() {
+        let now = monotonic_ns();
+        if target > now {
+            hooks.before_sleep();
             sleep_until(target);
+            hybrid_sleep = Slept {
+                ns: target - now,
+                calls: 1,
+            };
             timer_latency_ns = Some(monotonic_ns().saturating_sub(target));
         }
     }
+    hooks.on_wake(hybrid_sleep);
+    let mut slept = Slept::default();
     let start = monotonic_ns();
     let timeout_ns = timeout.as_nanos() as u64;
     let mut polls: u32 = 0;
@@ -130,6 +154,7 @@ pub fn await_message<T, E>(
                 message,
                 taken_ns: monotonic_ns(),
                 timer_latency_ns,
+                slept_after_wake: slept,
             });
         }
         polls = polls.wrapping_add(1);
@@ -144,6 +169,8 @@ pub fn await_message<T, E>(
             }
             if sleeps {
                 sleep_until(now + 10_000);
+                slept.ns += 10_000;
+                slept.calls += 1;
             }
         }
         std::hint::spin_loop();

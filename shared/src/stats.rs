@@ -250,7 +250,7 @@ pub mod roles {
 /// A loop's timing statistics, published at ~1 Hz and once more (`is_final`) at exit.
 #[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
 #[repr(C)]
-#[type_name("stepdrive.StatsReport.v3")]
+#[type_name("stepdrive.StatsReport.v4")]
 pub struct StatsReport {
     pub role: u32,
     pub is_final: u32,
@@ -284,6 +284,13 @@ pub struct StatsReport {
     /// Bridge: samples received but superseded by a newer one before they were published
     /// (the bridge was held up); `lost` counts those that never arrived.
     pub superseded: u64,
+    /// Current loop: of the states it never saw (`lost`), those its host holds explain
+    /// (see [`crate::steal`]): the plant missed their periods because the hypervisor held
+    /// the loop's vCPU, not because of anything in the guest.
+    pub host_missed: u64,
+    /// Current loop: of the rest, those explained by the loop waiting for its CPU behind
+    /// another task of the guest (its run-queue delay).
+    pub queued_missed: u64,
     /// Actual interval between successive cycles.
     pub period: Histogram,
     /// Wake-up latency against the absolute deadline.
@@ -297,6 +304,9 @@ pub struct StatsReport {
     /// Bridge only: command frame sent → the drive reports it applied (bridge → drive →
     /// bridge round trip, including the wait for the drive's next period).
     pub round_trip: Histogram,
+    /// Current loop: cycles in which the host held its vCPU at least
+    /// [`crate::steal::HOST_HOLD_MIN_NS`], and for how long.
+    pub host_held: Histogram,
 }
 
 /// Runs of consecutive periods without their command: the current one (the watchdog's

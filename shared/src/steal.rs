@@ -182,9 +182,10 @@ pub struct Window {
 }
 
 /// A loop's steal accounting. It reads its thread's times once per cycle, right after the
-/// wait's sleep, where the loop has slack (read before the sleep, the ~1.5 µs it costs
-/// shortened the sleep and raised the loop's wake-up latency and state hop), and
-/// attributes the states skipped at each take.
+/// wait's sleep, where the loop has slack (read after the answer, the ~1.5 µs it costs
+/// would come out of the sleep before the next sample), and attributes the states skipped
+/// at each take. The `sleep` strategy's polling sleeps are counted as asked, so there a
+/// stop can hide behind a sleep that expired at once; `hybrid` checks its sleep.
 #[derive(Debug)]
 pub struct StealMeter {
     clock: Option<ThreadClock>,
@@ -211,6 +212,11 @@ impl StealMeter {
         }
     }
 
+    /// False when the kernel has no per-thread schedstat: nothing is measured.
+    pub fn available(&self) -> bool {
+        self.clock.is_some()
+    }
+
     /// Just before the wait's sleep: what the sleep itself switches is told apart from a
     /// stop or a block elsewhere in the cycle (a sleep that expires at once does not
     /// switch, and would otherwise cover for one).
@@ -218,11 +224,6 @@ impl StealMeter {
         if self.clock.is_some() {
             self.switches_before_sleep = voluntary_switches();
         }
-    }
-
-    /// False when the kernel has no per-thread schedstat: nothing is measured.
-    pub fn available(&self) -> bool {
-        self.clock.is_some()
     }
 
     /// At a wake-up, after the wait's sleep `slept` (none if it did not sleep): closes the

@@ -258,7 +258,8 @@ fn run_pong(o: &PingPongOptions, link: &mut Link) -> Result<()> {
     let mut hop = Box::<Histogram>::default();
     let mut expected = 0u64;
     loop {
-        // The current loop's own wait, so the baseline differs from it only in transport.
+        // The current loop's own wait, so the baseline differs from it only in transport
+        // (and in the current loop's steal accounting, done while it has slack).
         let arrival = await_message(o.wait, expected, Duration::from_secs(5), &mut (), || {
             link.try_recv()
         })

@@ -2,11 +2,22 @@
 
 /// Nanoseconds on CLOCK_MONOTONIC. Comparable across processes on one host.
 pub fn monotonic_ns() -> u64 {
+    // CLOCK_MONOTONIC always exists on Linux.
+    read_ns(libc::CLOCK_MONOTONIC).unwrap_or(0)
+}
+
+/// Nanoseconds the calling thread has run (its CPU clock; steal excluded where the kernel
+/// has paravirtual steal accounting). `None` if the kernel refuses the clock.
+pub fn thread_cpu_ns() -> Option<u64> {
+    read_ns(libc::CLOCK_THREAD_CPUTIME_ID)
+}
+
+fn read_ns(clock: libc::clockid_t) -> Option<u64> {
     let mut ts = libc::timespec {
         tv_sec: 0,
         tv_nsec: 0,
     };
-    // SAFETY: `ts` is a valid, writable timespec; CLOCK_MONOTONIC always exists on Linux.
-    unsafe { libc::clock_gettime(libc::CLOCK_MONOTONIC, &mut ts) };
-    (ts.tv_sec as u64) * 1_000_000_000 + ts.tv_nsec as u64
+    // SAFETY: `ts` is a valid, writable timespec.
+    let rc = unsafe { libc::clock_gettime(clock, &mut ts) };
+    (rc == 0).then(|| ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64)
 }

@@ -7,6 +7,7 @@
 //! The per-CPU `steal` column of `/proc/stat` has the same source but 10 ms resolution; a
 //! cycle needs microseconds, hence the thread's own clocks.
 
+use crate::clock::{monotonic_ns, thread_cpu_ns};
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 
@@ -49,22 +50,12 @@ impl ThreadClock {
         let n = self.schedstat.read_at(&mut buf, 0).ok()?;
         let (_, run_delay_ns) = parse_schedstat(&buf[..n])?;
         Some(ThreadTimes {
-            wall_ns: crate::clock::monotonic_ns(),
+            wall_ns: monotonic_ns(),
             cpu_ns: thread_cpu_ns()?,
             run_delay_ns,
             voluntary_switches: voluntary_switches()?,
         })
     }
-}
-
-fn thread_cpu_ns() -> Option<u64> {
-    let mut ts = libc::timespec {
-        tv_sec: 0,
-        tv_nsec: 0,
-    };
-    // SAFETY: `ts` is a valid, writable timespec.
-    let rc = unsafe { libc::clock_gettime(libc::CLOCK_THREAD_CPUTIME_ID, &mut ts) };
-    (rc == 0).then(|| ts.tv_sec as u64 * 1_000_000_000 + ts.tv_nsec as u64)
 }
 
 fn voluntary_switches() -> Option<u64> {
@@ -280,7 +271,6 @@ impl StealMeter {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::clock::monotonic_ns;
 
     fn times(wall: u64, cpu: u64, queued: u64, switches: u64) -> ThreadTimes {
         ThreadTimes {

@@ -99,23 +99,9 @@ impl RtOptions {
             }
         }
         if let Some(cpu) = self.cpu {
-            // SAFETY: cpu_set_t is plain data; CPU_SET bounds-checks against its size.
-            let rc = unsafe {
-                let mut set: libc::cpu_set_t = std::mem::zeroed();
-                if cpu >= 8 * std::mem::size_of::<libc::cpu_set_t>() {
-                    -1
-                } else {
-                    libc::CPU_SET(cpu, &mut set);
-                    libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
-                }
-            };
-            if rc == 0 {
-                applied.pinned = true;
-            } else {
-                refuse(
-                    self.require,
-                    format!("CPU affinity {cpu}: {}", std::io::Error::last_os_error()),
-                )?;
+            match pin_to_cpu(cpu) {
+                Ok(()) => applied.pinned = true,
+                Err(e) => refuse(self.require, format!("CPU affinity {cpu}: {e}"))?,
             }
         }
         Ok(applied)
@@ -177,5 +163,23 @@ impl Drop for RtThrottlingOff {
         if let Err(e) = std::fs::write(RT_RUNTIME, self.previous.to_string()) {
             tracing::error!("could not restore {RT_RUNTIME} to {}: {e}", self.previous);
         }
+    }
+}
+
+/// Pins the calling thread to one CPU.
+pub fn pin_to_cpu(cpu: usize) -> std::io::Result<()> {
+    if cpu >= 8 * std::mem::size_of::<libc::cpu_set_t>() {
+        return Err(std::io::Error::from_raw_os_error(libc::EINVAL));
+    }
+    // SAFETY: cpu_set_t is plain data; `cpu` is within its size (checked above).
+    let rc = unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        libc::CPU_SET(cpu, &mut set);
+        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
+    };
+    if rc == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
     }
 }

@@ -381,15 +381,6 @@ mod tests {
         );
     }
 
-    fn pin_to(cpu: usize) -> bool {
-        // SAFETY: a zeroed cpu_set_t is valid; CPU_SET stays within its bounds.
-        unsafe {
-            let mut set: libc::cpu_set_t = std::mem::zeroed();
-            libc::CPU_SET(cpu, &mut set);
-            libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) == 0
-        }
-    }
-
     fn spin_for(ns: u64) {
         let end = monotonic_ns() + ns;
         while monotonic_ns() < end {
@@ -407,12 +398,12 @@ mod tests {
             return;
         };
         let cpu = 0;
-        if !pin_to(cpu) {
+        if crate::rt::pin_to_cpu(cpu).is_err() {
             eprintln!("cannot pin to CPU {cpu}: nothing to check");
             return;
         }
         let rival = std::thread::spawn(move || {
-            pin_to(cpu);
+            let _ = crate::rt::pin_to_cpu(cpu);
             spin_for(300_000_000);
         });
         let before = probe.read().expect("schedstat readable");

@@ -392,6 +392,11 @@ fn ctrl_c_stops_the_whole_stack() {
     );
 }
 
+/// A process started by hand without real-time settings: the deployment's defaults
+/// (SCHED_FIFO, pinned) are for a machine the run has to itself, not for tests that share
+/// the CI machine's two cores.
+const ORDINARY_SCHEDULING: [&str; 4] = ["--priority", "0", "--cpu", "none"];
+
 /// A realtime stack of `duration` seconds on the short scenario, with ordinary scheduling
 /// and no pinning: tests run in parallel on two cores.
 fn realtime_test_args<'a>(scenario: &'a Path, inst: &'a str, duration: &'a str) -> Vec<&'a str> {
@@ -561,7 +566,7 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
 #[test]
 fn latency_session_writes_its_files() {
     let _turn = one_stack_at_a_time();
-    use stepdrive_shared::stats::CyclictestHistogram;
+    use stepdrive_monitor::histfile::CyclictestHistogram;
     let dir = TempDir::new("latency");
     let out_dir = dir.path("report");
     let scenario = dir.file("short.toml", SHORT);
@@ -659,7 +664,9 @@ fn hardware_run_against(
     injection: &[&str],
 ) -> (Output, String) {
     let listen = format!("127.0.0.1:{}", free_udp_port());
-    let mut args = vec!["emulate-drive", "--listen", &listen, "--scenario"];
+    let mut args = vec!["emulate-drive", "--listen", &listen];
+    args.extend(ORDINARY_SCHEDULING);
+    args.push("--scenario");
     args.push(scenario.to_str().unwrap());
     args.extend(injection);
     let mut drive = spawn_logged(&args);
@@ -817,23 +824,27 @@ fn killing_the_current_loop_turns_the_drive_outputs_off() {
     let sc = scenario.to_str().unwrap();
     let inst = instance("hwkill");
     let listen = format!("127.0.0.1:{}", free_udp_port());
-    let mut drive = spawn_logged(&[
-        "emulate-drive",
-        "--listen",
-        &listen,
-        "--scenario",
-        sc,
-        "--watchdog-periods",
-        "20",
-    ]);
-    let common = ["--mode", "hardware", "--instance", &inst, "--scenario", sc];
-    let mut bridge = spawn_logged(
+    let mut drive = spawn_logged(
         &[
-            &["plant", "--backend", "udp", "--drive", &listen][..],
-            &common[..],
+            &[
+                "emulate-drive",
+                "--listen",
+                &listen,
+                "--scenario",
+                sc,
+                "--watchdog-periods",
+                "20",
+            ][..],
+            &ORDINARY_SCHEDULING[..],
         ]
         .concat(),
     );
+    let common = [
+        &["--mode", "hardware", "--instance", &inst, "--scenario", sc][..],
+        &ORDINARY_SCHEDULING[..],
+    ]
+    .concat();
+    let mut bridge = spawn_logged(&[&["plant", "--drive", &listen][..], &common[..]].concat());
     let mut position = spawn_logged(&[&["position-loop"][..], &common[..]].concat());
     let mut current = spawn_logged(&[&["current-loop"][..], &common[..]].concat());
     std::thread::sleep(Duration::from_secs(2));
@@ -873,15 +884,21 @@ fn a_silent_drive_is_reported_by_the_bridge() {
     let json = dir.path("hw.json");
     let inst = instance("hwsilent");
     let listen = format!("127.0.0.1:{}", free_udp_port());
-    let mut drive = spawn_logged(&[
-        "emulate-drive",
-        "--listen",
-        &listen,
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--stop-after",
-        "0.5",
-    ]);
+    let mut drive = spawn_logged(
+        &[
+            &[
+                "emulate-drive",
+                "--listen",
+                &listen,
+                "--scenario",
+                scenario.to_str().unwrap(),
+                "--stop-after",
+                "0.5",
+            ][..],
+            &ORDINARY_SCHEDULING[..],
+        ]
+        .concat(),
+    );
     let out = hardware_run(
         &scenario,
         &inst,
@@ -1004,7 +1021,13 @@ fn serial_path_works_over_a_pseudo_terminal_pair() {
     let json = dir.path("serial.json");
     let inst = instance("serial");
     let cable = NullModem::new();
-    let mut drive = spawn_logged(&["emulate-drive", "--serial", &cable.a, "--scenario", sc]);
+    let mut drive = spawn_logged(
+        &[
+            &["emulate-drive", "--serial", &cable.a, "--scenario", sc][..],
+            &ORDINARY_SCHEDULING[..],
+        ]
+        .concat(),
+    );
     let out = hardware_run(&scenario, &inst, &json, &["--drive-port", &cable.b]);
     unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));

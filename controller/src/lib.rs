@@ -1,8 +1,9 @@
 //! The controller: the paper's control laws as pure functions ([`laws`]), the two loop
-//! bodies built from them ([`position_loop`], [`current_loop`]), and the processes that run
-//! those bodies over iceoryx2 ([`process`]).
+//! bodies built from them ([`position_loop`], [`current_loop`]), and the nodes that run
+//! those bodies in the stack ([`position_loop_node`], [`current_loop_node`]).
 
 pub mod current_loop;
+pub mod current_loop_node;
 pub mod laws;
 pub mod position_loop;
-pub mod process;
+pub mod position_loop_node;

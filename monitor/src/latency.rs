@@ -3,15 +3,17 @@
 //! ping-pong with the current loop's wait strategy, and cyclictest when installed), prints
 //! one table, and writes latency.json, cyclictest-compatible histograms and a log-y plot.
 
+use crate::histfile::{cyclictest_file, CyclictestHistogram, SparseHistogram};
 use crate::launcher::{run_stack, LaunchOptions, Supervised};
 use crate::metrics::RunReport;
+use crate::pingpong::Transport;
 use crate::timing::Percentiles;
 use anyhow::{bail, Context, Result};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
-use stepdrive_shared::stats::{CyclictestHistogram, Histogram, SparseHistogram};
+use stepdrive_shared::stats::Histogram;
 use stepdrive_shared::{Method, Scenario};
 
 #[derive(Debug, Clone)]
@@ -76,18 +78,24 @@ fn ratio(a: Option<f64>, b: Option<f64>) -> Option<f64> {
 }
 
 /// Runs a ping-pong baseline over `transport` and returns the pong side's one-way latency.
+/// The pong side is placed and waits like the current loop, the ping side is placed like
+/// the plant (the deployment file the run used).
 fn pingpong(
-    transport: &str,
+    transport: Transport,
     o: &LatencyOptions,
     period_ns: u64,
     out_dir: &Path,
 ) -> Result<Histogram> {
-    let endpoint = format!("{}-pp-{transport}", o.launch.instance);
-    let file = out_dir.join(format!(".pong-{transport}.json"));
-    let common = |role: &str, wait: String, rt: Vec<String>| {
-        let mut a = vec![
+    let transport_name = transport.as_str();
+    let endpoint = format!("{}-pp-{transport_name}", o.launch.instance);
+    let file = out_dir.join(format!(".pong-{transport_name}.json"));
+    let deploy = out_dir.join(".deploy.toml");
+    std::fs::write(&deploy, o.launch.deployment.to_toml_string())
+        .with_context(|| format!("cannot write {}", deploy.display()))?;
+    let common = |role: &str| {
+        vec![
             "--transport".to_string(),
-            transport.to_string(),
+            transport_name.to_string(),
             "--role".to_string(),
             role.to_string(),
             "--endpoint".to_string(),
@@ -96,34 +104,26 @@ fn pingpong(
             (period_ns as f64 / 1000.0).to_string(),
             "--duration".to_string(),
             o.baseline_duration.as_secs_f64().to_string(),
-            "--wait".to_string(),
-            wait,
-        ];
-        a.extend(rt);
-        a
+            "--deploy".to_string(),
+            deploy.display().to_string(),
+        ]
     };
-    let mut pong_args = common(
-        "pong",
-        o.launch.current.wait.to_string(),
-        o.launch.current.rt.to_args(),
-    );
+    let mut pong_args = common("pong");
     pong_args.extend(["--out".to_string(), file.display().to_string()]);
     let mut pong = Supervised::spawn("pingpong", &pong_args)?;
-    let mut ping = Supervised::spawn(
-        "pingpong",
-        &common("ping", "sleep".to_string(), o.launch.plant.rt.to_args()),
-    )?;
+    let mut ping = Supervised::spawn("pingpong", &common("ping"))?;
     let limit = o.baseline_duration + Duration::from_secs(40);
     let ps = ping.finish(limit);
     let qs = pong.finish(Duration::from_secs(10));
+    let _ = std::fs::remove_file(&deploy);
     if !ps.success() {
-        bail!("{transport} ping-pong: {}", ping.describe_failure(ps));
+        bail!("{transport_name} ping-pong: {}", ping.describe_failure(ps));
     }
     if !qs.success() {
-        bail!("{transport} ping-pong: {}", pong.describe_failure(qs));
+        bail!("{transport_name} ping-pong: {}", pong.describe_failure(qs));
     }
     let text = std::fs::read_to_string(&file)
-        .with_context(|| format!("no result from the {transport} pong side"))?;
+        .with_context(|| format!("no result from the {transport_name} pong side"))?;
     let _ = std::fs::remove_file(&file);
     let sparse: SparseHistogram = serde_json::from_str(&text)?;
     sparse.to_histogram().map_err(anyhow::Error::msg)
@@ -144,10 +144,11 @@ fn cyclictest(o: &LatencyOptions, period_ns: u64, out_dir: &Path) -> Result<Opti
         .arg(format!("-i{}", (period_ns / 1000).max(1)))
         .arg(format!("-D{}s", o.baseline_duration.as_secs().max(1)))
         .arg(format!("--histfile={}", hist_file.display()));
-    if let Some(p) = o.launch.current.rt.priority {
+    let current = &o.launch.deployment.current_loop;
+    if let Some(p) = current.priority.filter(|&p| p > 0) {
         cmd.arg(format!("-p{p}"));
     }
-    if let Some(c) = o.launch.current.rt.cpu {
+    if let Some(c) = current.cpu {
         cmd.arg(format!("-a{c}"));
     }
     let out = cmd.output().context("cannot run cyclictest")?;
@@ -243,15 +244,18 @@ pub fn run_latency(s: &Scenario, o: &LatencyOptions) -> Result<LatencyReport> {
     if o.skip_baselines {
         notes.push("baselines skipped (--skip-baselines)".into());
     } else {
-        for transport in ["iceoryx2", "uds"] {
-            tracing::info!("baseline: {transport} ping-pong");
+        for transport in [Transport::Iceoryx2, Transport::Uds] {
+            let name = transport.as_str();
+            tracing::info!("baseline: {name} ping-pong");
             match pingpong(transport, o, period_ns, &o.out) {
                 Ok(h) => metrics.push(metric(
-                    &format!("pingpong_{transport}"),
-                    &format!("bare {transport} ping-pong: one-way latency, same payload and wait strategy"),
+                    &format!("pingpong_{name}"),
+                    &format!(
+                        "bare {name} ping-pong: one-way latency, same payload and wait strategy"
+                    ),
                     &h,
                 )),
-                Err(e) => notes.push(format!("{transport} ping-pong failed: {e:#}")),
+                Err(e) => notes.push(format!("{name} ping-pong failed: {e:#}")),
             }
         }
         tracing::info!("baseline: cyclictest");
@@ -293,7 +297,7 @@ pub fn run_latency(s: &Scenario, o: &LatencyOptions) -> Result<LatencyReport> {
 
 fn write_files(r: &LatencyReport, dir: &Path) -> Result<()> {
     for m in &r.metrics {
-        std::fs::write(dir.join(&m.file), m.histogram.cyclictest_file(2000))?;
+        std::fs::write(dir.join(&m.file), cyclictest_file(&m.histogram, 2000))?;
     }
     std::fs::write(
         dir.join("latency.json"),

@@ -1,7 +1,9 @@
 //! Launches the plant, the position loop and the current loop as separate processes (this
 //! same binary with a role sub-command), supervises them, and collects the plant's state
-//! stream for the metrics. Every child is killed and reaped on any exit path (drop guard),
-//! children die with us (PR_SET_PDEATHSIG), and dead nodes' shared memory is removed.
+//! stream for the metrics. Every child reads the same scenario and deployment files, so a
+//! launched stack behaves like one started by hand with those files. Every child is killed
+//! and reaped on any exit path (drop guard), children die with us (PR_SET_PDEATHSIG), and
+//! dead nodes' shared memory is removed.
 
 use crate::metrics::{Metrics, RunReport};
 use crate::timing::TimingReport;
@@ -12,53 +14,25 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use stepdrive_plant::bridge::DriveAddr;
-use stepdrive_shared::messages::state_flags;
-use stepdrive_shared::pacer::WaitStrategy;
-use stepdrive_shared::poll::termination_requested;
-use stepdrive_shared::rt::RtOptions;
+use stepdrive_runtime::deploy::{Deployment, Process};
+use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, IpcSubscriber};
+use stepdrive_runtime::poll::termination_requested;
+use stepdrive_runtime::port::Subscribe;
+use stepdrive_runtime::RunError;
+use stepdrive_shared::messages::{state_flags, DriveState};
 use stepdrive_shared::scenario::Mode;
-use stepdrive_shared::services::{
-    cleanup_dead_nodes, subscriber, try_receive, Topics, MONITOR_BUFFER,
-};
+use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::stats::{roles, StatsReport};
 use stepdrive_shared::{Method, Scenario};
 
 #[derive(Debug, Clone)]
 pub struct LaunchOptions {
     pub instance: String,
-    pub startup_timeout: Duration,
-    pub peer_timeout: Duration,
     pub mode: Mode,
-    /// Realtime settings per role (ignored in lockstep).
-    pub plant: RoleRt,
-    pub current: RoleRt,
-    pub position: RoleRt,
-    /// Plant watchdog: misses in a row before outputs go off.
-    pub watchdog_periods: u32,
-    /// Hardware mode: the drive; `None` starts an emulated drive on loopback.
-    pub drive: Option<DriveAddr>,
+    /// How every process runs; in hardware mode without `drive.address` an emulated drive
+    /// is started on loopback.
+    pub deployment: Deployment,
 }
-
-/// How one realtime process waits and which real-time settings it asks for.
-#[derive(Debug, Clone)]
-pub struct RoleRt {
-    pub wait: WaitStrategy,
-    pub rt: RtOptions,
-}
-
-impl RoleRt {
-    fn args(&self) -> Vec<String> {
-        let mut a = vec!["--wait".to_string(), self.wait.to_string()];
-        a.extend(self.rt.to_args());
-        a
-    }
-}
-
-/// Error for a Ctrl-C / SIGTERM during a run, so `main` can exit with 130.
-#[derive(Debug, thiserror::Error)]
-#[error("interrupted; all stack processes were stopped")]
-pub struct Interrupted;
 
 /// A child process that is terminated and reaped when dropped.
 pub(crate) struct Supervised {
@@ -197,43 +171,53 @@ impl Drop for Supervised {
     }
 }
 
-/// The scenario as the children read it; removed when dropped.
-struct ScenarioFile(PathBuf);
+/// The scenario and deployment as the children read them: a private directory, removed
+/// when dropped.
+struct RunFiles {
+    dir: PathBuf,
+}
 
-impl ScenarioFile {
-    fn write(s: &Scenario, instance: &str) -> Result<Self> {
-        let path =
-            std::env::temp_dir().join(format!("stepdrive-{}-{instance}.toml", std::process::id()));
-        let text = s.to_toml_string()?;
-        std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))?;
-        Ok(Self(path))
+impl RunFiles {
+    fn write(s: &Scenario, d: &Deployment, instance: &str) -> Result<Self> {
+        let dir = std::env::temp_dir().join(format!("stepdrive-{}-{instance}", std::process::id()));
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("cannot create {}", dir.display()))?;
+        let files = Self { dir };
+        let write = |path: PathBuf, text: String| {
+            std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))
+        };
+        write(files.scenario(), s.to_toml_string()?)?;
+        write(files.deployment(), d.to_toml_string())?;
+        Ok(files)
     }
-    fn path(&self) -> &Path {
-        &self.0
+
+    fn scenario(&self) -> PathBuf {
+        self.dir.join("scenario.toml")
+    }
+
+    fn deployment(&self) -> PathBuf {
+        self.dir.join("deploy.toml")
     }
 }
 
-impl Drop for ScenarioFile {
+impl Drop for RunFiles {
     fn drop(&mut self) {
-        let _ = std::fs::remove_file(&self.0);
+        let _ = std::fs::remove_dir_all(&self.dir);
     }
+}
+
+fn path_arg(p: &Path) -> String {
+    p.display().to_string()
 }
 
 /// Runs one method of one scenario on three processes and returns its report.
 pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<RunReport> {
-    let realtime = opts.mode != Mode::Lockstep;
-    let hardware = opts.mode == Mode::Hardware;
-    if realtime && opts.plant.rt.priority.is_some() {
-        // An ordinary task waking at 1 kHz is run ahead of SCHED_FIFO tasks by the kernel's
-        // fair server; at FIFO 1 the monitor waits for the loops instead (measured: the
-        // plant's wake-up p99 fell from 2.2 ms to 0.36 ms).
-        let me = RtOptions {
-            priority: Some(1),
-            require: opts.plant.rt.require,
-            ..Default::default()
-        };
-        me.apply()?;
-    }
+    let mode = opts.mode;
+    let realtime = mode != Mode::Lockstep;
+    let hardware = mode == Mode::Hardware;
+    let mut d = opts.deployment.clone();
+    // At its own priority the monitor waits for the loops (see `deploy`).
+    d.rt(Process::Monitor, mode).apply()?;
     let removed = cleanup_dead_nodes();
     if removed > 0 {
         tracing::warn!(
@@ -241,93 +225,58 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
             "removed resources of dead stepdrive/iceoryx2 nodes"
         );
     }
-    let file = ScenarioFile::write(s, &opts.instance)?;
-    let common = vec![
+    let emulated = hardware && d.drive.address.is_none();
+    if emulated {
+        d.drive.address = Some(free_loopback_port()?.to_string());
+    }
+    let files = RunFiles::write(s, &d, &opts.instance)?;
+    let common = [
         "--mode".to_string(),
-        opts.mode.as_str().to_string(),
+        mode.as_str().to_string(),
         "--instance".to_string(),
         opts.instance.clone(),
         "--scenario".to_string(),
-        file.path().display().to_string(),
-        "--startup-timeout-s".to_string(),
-        opts.startup_timeout.as_secs_f64().to_string(),
-        "--peer-timeout-s".to_string(),
-        opts.peer_timeout.as_secs_f64().to_string(),
+        path_arg(&files.scenario()),
+        "--deploy".to_string(),
+        path_arg(&files.deployment()),
     ];
 
     // The monitor subscribes before the plant may start: the plant waits for 3 subscribers.
-    let topics = Topics::open(&opts.instance, "monitor", opts.mode)
+    let bus = IpcBus::open(&opts.instance, "monitor", mode)
         .context("cannot attach the monitor to the stack's services")?;
-    let states = subscriber(&topics.state, "drive/state", MONITOR_BUFFER)?;
-    let stats_sub = subscriber(&topics.stats, "monitor/stats", 4)?;
-    let role_args = |role: &RoleRt| if realtime { role.args() } else { Vec::new() };
+    let mut states = bus.subscriber_of::<DriveState>(MONITOR_BUFFER)?;
+    let mut stats_sub = bus.subscriber_of::<StatsReport>(4)?;
 
     let mut children = Vec::with_capacity(4);
-    let mut plant_args = common.clone();
-    plant_args.extend(["--wait-subscribers".to_string(), "3".to_string()]);
-    if hardware {
-        let drive = match &opts.drive {
-            Some(d) => d.clone(),
-            None => {
-                let d = free_loopback_port()?;
-                let mut emu = vec![
-                    "--listen".to_string(),
-                    d.to_string(),
-                    "--scenario".to_string(),
-                    file.path().display().to_string(),
-                    "--watchdog-periods".to_string(),
-                    opts.watchdog_periods.min(u32::from(u16::MAX)).to_string(),
-                ];
-                emu.extend(opts.plant.args());
-                children.push(Supervised::spawn("emulate-drive", &emu)?);
-                DriveAddr::Udp(d)
-            }
-        };
-        // The drive stands for separate hardware: it keeps the plant's CPU (its clock spins
-        // the last part of each period). The bridge shares the current loop's CPU, one
-        // priority below it: it polls its socket from 30 µs before each sample is due (no
-        // wake-up on the critical path), publishes the state and raises state-ready; the
-        // loop, asleep on that event, preempts it, answers and sleeps again, and the bridge
-        // forwards the answer. Nothing on that path crosses CPUs or waits for a timer.
-        let bridge = RoleRt {
-            wait: stepdrive_plant::bridge::default_wait(opts.current.rt.priority.is_some()),
-            rt: RtOptions {
-                priority: opts.current.rt.priority.map(|p| p.saturating_sub(1).max(1)),
-                ..opts.current.rt.clone()
-            },
-        };
-        match drive {
-            DriveAddr::Udp(addr) => plant_args.extend([
-                "--backend".to_string(),
-                "udp".to_string(),
-                "--drive".to_string(),
-                addr.to_string(),
-            ]),
-            DriveAddr::Serial(path) => plant_args.extend([
-                "--backend".to_string(),
-                "serial".to_string(),
-                "--port".to_string(),
-                path.display().to_string(),
-            ]),
-        }
-        plant_args.extend(bridge.args());
-    } else {
-        plant_args.extend(role_args(&opts.plant));
-        if realtime {
-            plant_args.extend([
-                "--watchdog-periods".to_string(),
-                opts.watchdog_periods.to_string(),
-            ]);
-        }
+    if let (true, Some(addr)) = (emulated, &d.drive.address) {
+        // The drive stands for separate hardware: it keeps the plant's CPU. The bridge shares
+        // the current loop's CPU, one priority below it (see the README's hardware section).
+        let args = [
+            "--listen".to_string(),
+            addr.clone(),
+            "--scenario".to_string(),
+            path_arg(&files.scenario()),
+            "--deploy".to_string(),
+            path_arg(&files.deployment()),
+        ];
+        children.push(Supervised::spawn("emulate-drive", &args)?);
     }
-    children.push(Supervised::spawn("plant", &plant_args)?);
-    let mut pl_args = common.clone();
-    pl_args.extend(role_args(&opts.position));
-    children.push(Supervised::spawn("position-loop", &pl_args)?);
-    let mut cl_args = common.clone();
-    cl_args.extend(["--method".to_string(), method.as_str().to_string()]);
-    cl_args.extend(role_args(&opts.current));
-    children.push(Supervised::spawn("current-loop", &cl_args)?);
+    let with = |extra: &[&str]| -> Vec<String> {
+        common
+            .iter()
+            .cloned()
+            .chain(extra.iter().map(|a| a.to_string()))
+            .collect()
+    };
+    children.push(Supervised::spawn(
+        "plant",
+        &with(&["--wait-subscribers", "3"]),
+    )?);
+    children.push(Supervised::spawn("position-loop", &with(&[]))?);
+    children.push(Supervised::spawn(
+        "current-loop",
+        &with(&["--method", method.as_str()]),
+    )?);
     let mut finals: [Option<StatsReport>; 3] = [None, None, None];
     let mut latest: [Option<StatsReport>; 3] = [None, None, None];
     let mut monitor_lost = 0u64;
@@ -345,8 +294,8 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
 
     while !done {
         let mut got = false;
-        drain_stats(&stats_sub, &mut latest, &mut finals)?;
-        while let Some(state) = try_receive(&states)? {
+        drain_stats(&mut stats_sub, &mut latest, &mut finals)?;
+        while let Some(state) = states.receive()? {
             got = true;
             let expected = last_seq.map_or(0, |q| q + 1);
             last_seq = Some(state.seq);
@@ -394,12 +343,13 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         if termination_requested() {
             drop(children);
             cleanup_dead_nodes();
-            return Err(Interrupted.into());
+            return Err(anyhow::Error::new(RunError::Terminated)
+                .context("interrupted; all stack processes were stopped"));
         }
         let limit = if metrics.samples() == 0 {
-            opts.startup_timeout
+            d.startup_timeout()
         } else {
-            opts.peer_timeout
+            d.peer_timeout()
         } + Duration::from_secs(1);
         if last_sample_at.elapsed() > limit {
             bail!(
@@ -428,22 +378,22 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     }
 
     let mut failures = Vec::new();
-    if hardware && opts.drive.is_none() {
+    if emulated {
         // The emulated drive runs until told to stop; the bridge has disabled it.
         children[0].signal(libc::SIGTERM);
     }
     for child in children.iter_mut() {
         let status = child.finish(Duration::from_secs(10));
-        drain_stats(&stats_sub, &mut latest, &mut finals)?;
+        drain_stats(&mut stats_sub, &mut latest, &mut finals)?;
         if !status.success() {
             failures.push(child.describe_failure(status));
         }
     }
-    drain_stats(&stats_sub, &mut latest, &mut finals)?;
+    drain_stats(&mut stats_sub, &mut latest, &mut finals)?;
     drop(stats_sub);
     drop(children);
     drop(states);
-    drop(topics);
+    drop(bus);
     cleanup_dead_nodes();
     if !failures.is_empty() {
         bail!("{}", failures.join("; "));
@@ -451,7 +401,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     let wall = first_ns
         .map(|f| last_ns.saturating_sub(f) as f64 * 1e-9)
         .unwrap_or(0.0);
-    let mut report = metrics.finish(method, opts.mode.as_str(), wall);
+    let mut report = metrics.finish(method, mode.as_str(), wall);
     if realtime {
         let missing: Vec<&str> = ["plant", "current-loop", "position-loop"]
             .iter()
@@ -474,7 +424,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
             monitor_lost,
             // In hardware mode the loop sleeps on the bridge's event, whose length it
             // does not choose, so it cannot tell a hold from a wait.
-            opts.mode == Mode::Realtime,
+            mode == Mode::Realtime,
         ));
     }
     Ok(report)
@@ -487,11 +437,11 @@ fn free_loopback_port() -> Result<std::net::SocketAddr> {
 }
 
 fn drain_stats(
-    sub: &stepdrive_shared::services::Sub<StatsReport>,
+    sub: &mut IpcSubscriber<StatsReport>,
     latest: &mut [Option<StatsReport>; 3],
     finals: &mut [Option<StatsReport>; 3],
 ) -> Result<()> {
-    while let Some(r) = try_receive(sub)? {
+    while let Some(r) = sub.receive()? {
         let i = r.role as usize;
         if i < 3 {
             if r.is_final != 0 {

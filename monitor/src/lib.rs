@@ -1,7 +1,9 @@
 //! The operator's console: launches and supervises the stack ([`launcher`]), computes the
-//! metrics from the plant's state stream ([`metrics`]), runs the same loop bodies in one
-//! process as a reference ([`simulate`]), and reports ([`report`]).
+//! metrics from the plant's state stream ([`metrics`]), runs the same nodes in one process as
+//! a reference ([`simulate`]), reports ([`report`], [`timing`]), and measures latency against
+//! baselines ([`latency`], [`pingpong`], [`histfile`]).
 
+pub mod histfile;
 pub mod latency;
 pub mod launcher;
 pub mod metrics;

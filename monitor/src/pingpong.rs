@@ -1,50 +1,51 @@
 //! Transport baselines for `stepdrive latency`: the stack's traffic pattern with the control
 //! law taken out. The "ping" side is paced like the plant (a message every period on
 //! absolute deadlines); the "pong" side waits like the current loop, records the one-way
-//! publish → receive latency, and answers at once. Same payload size as `DriveState`.
+//! publish → receive latency, and answers at once. Same payload size as `DriveState`. Both
+//! sides are nodes of the same runner as the stack, so the baseline differs from the
+//! current loop only in its transport (and in the current loop's host-hold accounting).
 
-use anyhow::{bail, Context, Result};
+use crate::histfile::SparseHistogram;
+use anyhow::{Context, Result};
 use std::os::unix::net::UnixDatagram;
 use std::path::PathBuf;
 use std::time::Duration;
-use stepdrive_shared::clock::monotonic_ns;
+use stepdrive_runtime::deploy::Deployment;
+use stepdrive_runtime::ipc::{IpcBus, IpcPublisher, IpcSubscriber};
+use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
+use stepdrive_runtime::pacer::WaitStrategy;
+use stepdrive_runtime::port::{PortFactory, Presence, Publish, Subscribe};
+use stepdrive_runtime::rt::RtOptions;
+use stepdrive_runtime::runner::{Runner, Settings};
+use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{state_flags, DriveState};
-use stepdrive_shared::pacer::{await_message, Pacer, WaitStrategy};
-use stepdrive_shared::poll::{termination_requested, WaitError};
-use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::scenario::Mode;
-use stepdrive_shared::services::{
-    connect, publisher, send, subscriber, subscriber_count, try_receive, Pub, Sub, Topics,
-    LOOP_BUFFER,
-};
-use stepdrive_shared::stats::{Histogram, SparseHistogram};
+use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Transport {
     Iceoryx2,
     Uds,
 }
 
-impl std::str::FromStr for Transport {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "iceoryx2" => Ok(Self::Iceoryx2),
-            "uds" => Ok(Self::Uds),
-            o => Err(format!("unknown transport `{o}` (iceoryx2 or uds)")),
+impl Transport {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Transport::Iceoryx2 => "iceoryx2",
+            Transport::Uds => "uds",
         }
     }
 }
 
 /// Both directions of a ping-pong link, sending and receiving `DriveState`-sized messages.
-enum Link {
+pub enum Link {
     /// The stack's own service settings (realtime QoS), under a private instance: pings go
     /// over `<endpoint>/drive/state`, replies over `<endpoint>.back/drive/state`.
     Iceoryx2 {
-        tx: Box<Pub<DriveState>>,
-        rx: Box<Sub<DriveState>>,
-        forward: Box<Topics>,
-        _backward: Box<Topics>,
+        tx: Box<IpcPublisher<DriveState>>,
+        rx: Box<IpcSubscriber<DriveState>>,
+        presence: Box<dyn Presence>,
+        _buses: Box<[IpcBus; 2]>,
     },
     Uds {
         socket: UnixDatagram,
@@ -95,28 +96,25 @@ impl Link {
         match transport {
             Transport::Iceoryx2 => {
                 let role = if ping { "ping" } else { "pong" };
-                let forward = Box::new(Topics::open(endpoint, role, Mode::Realtime)?);
-                let backward = Box::new(Topics::open(
-                    &format!("{endpoint}.back"),
-                    role,
-                    Mode::Realtime,
-                )?);
+                let mut forward = IpcBus::open(endpoint, role, Mode::Realtime)?;
+                let backward = IpcBus::open(&format!("{endpoint}.back"), role, Mode::Realtime)?;
                 let (tx, rx) = if ping {
                     (
-                        publisher(&forward.state, "ping")?,
-                        subscriber(&backward.state, "pong", LOOP_BUFFER)?,
+                        forward.publisher_of()?,
+                        backward.subscriber_of(LOOP_BUFFER)?,
                     )
                 } else {
                     (
-                        publisher(&backward.state, "pong")?,
-                        subscriber(&forward.state, "ping", LOOP_BUFFER)?,
+                        backward.publisher_of()?,
+                        forward.subscriber_of(LOOP_BUFFER)?,
                     )
                 };
+                let presence = forward.presence()?;
                 Ok(Link::Iceoryx2 {
                     tx: Box::new(tx),
                     rx: Box::new(rx),
-                    forward,
-                    _backward: backward,
+                    presence,
+                    _buses: Box::new([forward, backward]),
                 })
             }
             Transport::Uds => {
@@ -142,7 +140,7 @@ impl Link {
     fn send(&mut self, m: &DriveState) -> Result<bool> {
         match self {
             Link::Iceoryx2 { tx, .. } => {
-                send(tx, *m)?;
+                tx.publish(m)?;
                 Ok(true)
             }
             Link::Uds { socket, peer, .. } => match socket.send_to(&encode(m), &*peer) {
@@ -166,7 +164,7 @@ impl Link {
 
     fn try_recv(&mut self) -> Result<Option<DriveState>> {
         match self {
-            Link::Iceoryx2 { rx, .. } => Ok(try_receive(rx)?),
+            Link::Iceoryx2 { rx, .. } => Ok(rx.receive()?),
             Link::Uds { socket, .. } => {
                 let mut buf = [0u8; MSG + 1];
                 match socket.recv(&mut buf) {
@@ -178,11 +176,19 @@ impl Link {
         }
     }
 
+    /// The ping side: the pong side is there to answer.
     fn peer_ready(&self) -> bool {
         match self {
-            Link::Iceoryx2 { .. } => true,
+            Link::Iceoryx2 { presence, .. } => presence.subscribers(Topic::State) >= 1,
             Link::Uds { peer, .. } => peer.exists(),
         }
+    }
+
+    fn connect(&mut self) -> Result<()> {
+        if let Link::Iceoryx2 { tx, .. } = self {
+            tx.connect()?;
+        }
+        Ok(())
     }
 }
 
@@ -199,89 +205,167 @@ pub struct PingPongOptions {
     pub out: Option<PathBuf>,
 }
 
-pub fn run(o: &PingPongOptions) -> Result<()> {
-    let mut link = Link::open(o.transport, &o.endpoint, o.ping)?;
-    o.rt.apply()?;
-    if o.ping {
-        run_ping(o, &mut link)
-    } else {
-        run_pong(o, &mut link)
+fn link_error(e: anyhow::Error) -> RunError {
+    RunError::Node {
+        role: Role::Tool("ping-pong"),
+        source: e.into(),
     }
 }
 
-fn run_ping(o: &PingPongOptions, link: &mut Link) -> Result<()> {
-    // Wait for the pong side.
-    let start = monotonic_ns();
-    loop {
-        let ready = match link {
-            Link::Iceoryx2 { forward, .. } => subscriber_count(&forward.state) >= 1,
-            Link::Uds { .. } => link.peer_ready(),
-        };
-        if ready {
-            break;
-        }
-        if termination_requested() || monotonic_ns() - start > 30_000_000_000 {
-            bail!("pong side did not come up");
-        }
-        std::thread::sleep(Duration::from_millis(5));
+/// Pings at absolute deadlines, like the plant publishes its samples.
+struct Ping {
+    period_ns: u64,
+    count: u64,
+    sent: u64,
+}
+
+impl Node for Ping {
+    type Ports = Link;
+
+    fn role(&self) -> Role {
+        Role::Tool("ping")
     }
-    if let Link::Iceoryx2 { tx, .. } = link {
-        connect(tx)?;
-    }
-    let n = o.duration.as_nanos() as u64 / o.period_ns;
-    let mut pacer = Pacer::new(
-        monotonic_ns() + 20_000_000,
-        o.period_ns,
-        WaitStrategy::Sleep,
-    );
-    for k in 0..n {
-        if termination_requested() {
-            bail!("terminated");
+
+    fn pace(&self) -> Pace {
+        Pace::Clock {
+            period_ns: self.period_ns,
+            late: Late::Pause,
         }
-        let tick = pacer.wait();
-        while link.try_recv()?.is_some() {}
+    }
+
+    fn rate_hz(&self) -> f64 {
+        1e9 / self.period_ns as f64
+    }
+
+    fn awaiting(&self) -> String {
+        "the pong side".to_string()
+    }
+
+    fn start(&mut self, link: &mut Link, cx: &mut Cx) -> Result<Start, RunError> {
+        if !link.peer_ready() {
+            return Ok(Start::Waiting);
+        }
+        Ok(Start::Ready {
+            epoch_ns: Some(cx.now() + 20_000_000),
+        })
+    }
+
+    fn connect(&mut self, link: &mut Link) -> Result<(), RunError> {
+        link.connect().map_err(link_error)
+    }
+
+    fn poll(&mut self, link: &mut Link, _cx: &mut Cx) -> Result<Poll, RunError> {
+        while link.try_recv().map_err(link_error)?.is_some() {}
+        Ok(Poll::READY)
+    }
+
+    fn step(&mut self, link: &mut Link, cx: &mut Cx) -> Result<Flow, RunError> {
+        let k = self.sent;
+        let last = k + 1 == self.count;
         let m = DriveState {
             seq: k,
-            deadline_ns: tick.deadline_ns,
-            publish_time_ns: monotonic_ns(),
-            flags: if k + 1 == n { state_flags::LAST } else { 0 },
+            deadline_ns: cx.deadline_ns,
+            publish_time_ns: cx.now(),
+            flags: if last { state_flags::LAST } else { 0 },
             ..Default::default()
         };
-        link.send(&m)?;
-        pacer.pause_if_late(k + 1, monotonic_ns());
+        link.send(&m).map_err(link_error)?;
+        self.sent += 1;
+        Ok(if last { Flow::Last } else { Flow::Continue })
     }
-    std::thread::sleep(Duration::from_millis(100));
-    Ok(())
 }
 
-fn run_pong(o: &PingPongOptions, link: &mut Link) -> Result<()> {
-    let mut hop = Box::<Histogram>::default();
-    let mut expected = 0u64;
-    loop {
-        // The current loop's own wait, so the baseline differs from it only in transport
-        // (and in the current loop's steal accounting, done while it has slack).
-        let arrival = await_message(o.wait, expected, Duration::from_secs(5), &mut (), || {
-            link.try_recv()
+/// Waits like the current loop, records the one-way latency as its input hop, answers.
+struct Pong {
+    period_ns: u64,
+    message: Option<DriveState>,
+    due_ns: Option<u64>,
+}
+
+impl Node for Pong {
+    type Ports = Link;
+
+    fn role(&self) -> Role {
+        Role::Tool("pong")
+    }
+
+    fn pace(&self) -> Pace {
+        Pace::Input
+    }
+
+    fn rate_hz(&self) -> f64 {
+        1e9 / self.period_ns as f64
+    }
+
+    fn awaiting(&self) -> String {
+        "pings".to_string()
+    }
+
+    fn poll(&mut self, link: &mut Link, _cx: &mut Cx) -> Result<Poll, RunError> {
+        self.message = link.try_recv().map_err(link_error)?;
+        Ok(if self.message.is_some() {
+            Poll::READY
+        } else {
+            Poll::Pending
         })
-        .map_err(|e| match e {
-            WaitError::Source(e) => e,
-            _ => anyhow::anyhow!("ping side went silent"),
-        })?;
-        let m = arrival.message;
+    }
+
+    fn step(&mut self, link: &mut Link, cx: &mut Cx) -> Result<Flow, RunError> {
+        let Some(m) = self.message.take() else {
+            return Ok(Flow::Continue);
+        };
         // Measured exactly as the current loop measures its state hop.
-        hop.record(arrival.taken_ns.saturating_sub(m.publish_time_ns));
+        cx.stats
+            .hop
+            .record(cx.woke_ns.saturating_sub(m.publish_time_ns));
         let reply = DriveState {
-            publish_time_ns: monotonic_ns(),
+            publish_time_ns: cx.now(),
             ..m
         };
-        link.send(&reply)?;
-        expected = m.deadline_ns + o.period_ns;
-        if m.flags & state_flags::LAST != 0 {
-            break;
-        }
+        link.send(&reply).map_err(link_error)?;
+        self.due_ns = Some(m.deadline_ns + self.period_ns);
+        Ok(if m.flags & state_flags::LAST != 0 {
+            Flow::Last
+        } else {
+            Flow::Continue
+        })
     }
+
+    fn due_ns(&self) -> Option<u64> {
+        self.due_ns
+    }
+}
+
+pub fn run(o: &PingPongOptions) -> Result<()> {
+    o.rt.apply()?;
+    let link = Link::open(o.transport, &o.endpoint, o.ping)?;
+    let d = Deployment::default();
+    let settings = Settings {
+        wait: o.wait,
+        startup_timeout: d.startup_timeout(),
+        peer_timeout: d.peer_timeout(),
+        account_host_holds: false,
+        linger: Duration::ZERO,
+    };
+    if o.ping {
+        let ping = Ping {
+            period_ns: o.period_ns,
+            count: (o.duration.as_nanos() as u64 / o.period_ns).max(1),
+            sent: 0,
+        };
+        Runner::new(ping, link, settings, None).run()?;
+        // Let the last pong arrive before our ports go away.
+        std::thread::sleep(Duration::from_millis(100));
+        return Ok(());
+    }
+    let pong = Pong {
+        period_ns: o.period_ns,
+        message: None,
+        due_ns: None,
+    };
+    let stats = Runner::new(pong, link, settings, None).run()?;
     if let Some(path) = &o.out {
-        let text = serde_json::to_string(&SparseHistogram::from(&*hop))?;
+        let text = serde_json::to_string(&SparseHistogram::from(&stats.hop))?;
         std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;
     }
     Ok(())

@@ -1,88 +1,192 @@
-//! The same loop bodies as the three processes, stepped in one process with no IPC: the
-//! reference the multi-process lockstep run must reproduce bit for bit.
+//! The stack in one process: the very nodes the processes run, stepped by the runtime's
+//! simulation on virtual time with in-memory ports (no IPC, no clock, deterministic). In
+//! lockstep it is the reference a multi-process run must reproduce bit for bit; with stalls
+//! it shows what a host stall of the current loop costs under the realtime plant's rules.
 
 use crate::metrics::{Metrics, RunReport};
 use std::ops::Range;
-use std::time::Instant;
-use stepdrive_controller::current_loop::CurrentLoop;
-use stepdrive_controller::position_loop::PositionLoop;
-use stepdrive_plant::sim::{CommandSlot, PlantSim};
-use stepdrive_shared::messages::{DriveCommand, DrivePlan};
+use std::time::{Duration, Instant};
+use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
+use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
+use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
+use stepdrive_runtime::memory::MemoryBus;
+use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role};
+use stepdrive_runtime::port::{PortFactory, Subscribe};
+use stepdrive_runtime::runner::{Runner, Settings};
+use stepdrive_runtime::simulation::{self, Hold};
+use stepdrive_runtime::RunError;
+use stepdrive_shared::messages::{state_flags, DriveState};
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::services::MONITOR_BUFFER;
+use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{Method, Scenario};
 
-pub fn simulate(s: &Scenario, method: Method) -> RunReport {
+/// The lockstep reference: one run of `method`.
+pub fn simulate(s: &Scenario, method: Method) -> Result<RunReport, RunError> {
     let started = Instant::now();
-    let (metrics, _) = step_stack(s, method, &[], 0, u32::MAX);
-    metrics.finish(method, "lockstep", started.elapsed().as_secs_f64())
+    let (metrics, _) = run_in_memory(s, method, Mode::Lockstep, &[], u32::MAX)?;
+    Ok(metrics.finish(method, "lockstep", started.elapsed().as_secs_f64()))
+}
+
+/// What the realtime plant's command rules did in a stall simulation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct CommandRecord {
+    /// Periods whose command was missing.
+    pub misses: u64,
+    /// Of those, periods covered by a plan entry.
+    pub planned: u64,
+    /// The longest run of misses in a row, periods.
+    pub longest_run: u64,
 }
 
 /// The realtime plant's command rules without the clock: the current loop skips the
 /// samples in `stalls` (the host took its CPU) while the plant and the position loop go on;
 /// a missing command is a miss, covered by the freshest plan or a held voltage, and
 /// `watchdog_periods` misses in a row turn the outputs off. Shows what a stall of a given
-/// length costs, deterministically, and what the command plan buys.
+/// length costs, deterministically, and what the command plan buys. The plant, position
+/// loop and current loop run with realtime rules on virtual time; at each sample the plant
+/// goes first, then the position loop, then the current loop, whose command therefore
+/// reaches the plant for the next period (one period of compute delay, the least a drive
+/// can have).
 pub fn simulate_stalls(
     s: &Scenario,
     method: Method,
     stalls: &[Range<u64>],
     watchdog_periods: u32,
-) -> (RunReport, CommandSlot) {
+) -> Result<(RunReport, CommandRecord), RunError> {
+    if s.rates.compute_delay_periods == 0 {
+        return Err(RunError::node(Role::Plant, NoDelay));
+    }
     let started = Instant::now();
-    let plan = s.drive.command_plan_periods as usize;
-    let (metrics, slot) = step_stack(s, method, stalls, plan, watchdog_periods);
+    let (metrics, plant) = run_in_memory(s, method, Mode::Realtime, stalls, watchdog_periods)?;
     let report = metrics.finish(method, "stall-simulation", started.elapsed().as_secs_f64());
-    (report, slot)
+    let record = CommandRecord {
+        misses: plant.misses,
+        planned: plant.planned,
+        longest_run: plant.longest_miss_run,
+    };
+    Ok((report, record))
 }
 
-/// The three loop bodies stepped in order, sample by sample. As in the realtime processes,
-/// the command answering sample k reaches the plant after it has decided period k, in time
-/// for period k+1 (with no compute delay, lockstep's plant waits for it instead).
-fn step_stack(
+/// A realtime command cannot reach the period of its own sample.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "a stall simulation runs the realtime rules, where a command reaches the plant one period \
+     after its sample at the earliest: rates.compute_delay_periods must be at least 1"
+)]
+pub struct NoDelay;
+
+/// Virtual time has no timeouts worth the name: a stuck simulation is a deadlock instead.
+const NEVER: Duration = Duration::from_secs(1_000_000_000);
+
+/// Runs the stack in `mode` in memory; returns the metrics of the plant's state stream and
+/// the plant's final statistics.
+fn run_in_memory(
     s: &Scenario,
     method: Method,
+    mode: Mode,
     stalls: &[Range<u64>],
-    plan_periods: usize,
     watchdog_periods: u32,
-) -> (Metrics, CommandSlot) {
-    let mut plant = PlantSim::new(s);
-    let mut current = CurrentLoop::new(s, method).with_plan_periods(plan_periods);
-    let mut position = PositionLoop::new(s);
-    let mut metrics = Metrics::new(s);
-    let delay = u64::from(s.rates.compute_delay_periods);
-    let mut slot = CommandSlot::new(delay);
-    let ratio = s.rate_ratio();
-    let n = s.sample_count();
-    let mut setpoint = Default::default();
-    let mut in_flight: Option<(DriveCommand, Option<DrivePlan>)> = None;
-    for k in 0..n {
-        let last = k + 1 == n;
-        let state = plant.state(last);
-        metrics.push(&state);
-        if k % ratio == 0 {
-            setpoint = position.on_tick(&state);
+) -> Result<(Metrics, StatsReport), RunError> {
+    let mut bus = MemoryBus::new(mode);
+    let settings = Settings::lockstep(NEVER, NEVER);
+    let plant = PlantNode::new(
+        s,
+        PlantSettings {
+            mode,
+            wait_subscribers: 3,
+            watchdog_periods,
+            start_delay_ns: 0,
+        },
+    );
+    let mut plant = Runner::new(
+        plant,
+        PlantPorts::open(&mut bus, mode)?,
+        settings.clone(),
+        None,
+    );
+    let mut position = Runner::new(
+        PositionLoopNode::new(s, mode, 0),
+        PositionLoopPorts::open(&mut bus)?,
+        settings.clone(),
+        None,
+    );
+    let mut current = Runner::new(
+        CurrentLoopNode::new(s, method, mode),
+        CurrentLoopPorts::open(&mut bus, mode, false)?,
+        settings.clone(),
+        None,
+    );
+    let sink = StateSink::new(s);
+    let sink_port = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
+    let mut sink = Runner::new(sink, sink_port, settings, None);
+    let period_ns = s.sample_period_ns();
+    let holds: Vec<Hold> = stalls
+        .iter()
+        .map(|r| Hold {
+            role: Role::CurrentLoop,
+            during_ns: r.start * period_ns..r.end * period_ns,
+        })
+        .collect();
+    simulation::run(
+        &mut [&mut plant, &mut position, &mut current, &mut sink],
+        &holds,
+    )?;
+    Ok((sink.node().metrics.clone(), *plant.stats()))
+}
+
+/// The monitor's part in a simulation: every state into the metrics.
+struct StateSink {
+    metrics: Metrics,
+    rate_hz: f64,
+    last_seen: bool,
+}
+
+impl StateSink {
+    fn new(s: &Scenario) -> Self {
+        Self {
+            metrics: Metrics::new(s),
+            rate_hz: s.rates.current_loop_hz,
+            last_seen: false,
         }
-        if let Some((c, plan)) = in_flight.take() {
-            slot.offer(c, k.saturating_sub(delay));
-            if let Some(plan) = plan {
-                slot.offer_plan(&plan);
-            }
-        }
-        if !stalls.iter().any(|r| r.contains(&k)) {
-            let c = current.on_sample(&state, &setpoint);
-            let plan = (plan_periods > 0).then(|| *current.plan());
-            if delay == 0 {
-                // Only lockstep can wait for the answer within its own period.
-                slot.offer(c, k);
-            } else {
-                in_flight = Some((c, plan));
-            }
-        }
-        if last {
-            break;
-        }
-        plant.advance_realtime(&mut slot, watchdog_periods);
     }
-    (metrics, slot)
+}
+
+impl Node for StateSink {
+    type Ports = Box<dyn Subscribe<DriveState>>;
+
+    fn role(&self) -> Role {
+        Role::Tool("monitor")
+    }
+
+    fn pace(&self) -> Pace {
+        Pace::Input
+    }
+
+    fn rate_hz(&self) -> f64 {
+        self.rate_hz
+    }
+
+    fn awaiting(&self) -> String {
+        "drive/state from the plant".to_string()
+    }
+
+    fn poll(&mut self, states: &mut Self::Ports, _cx: &mut Cx) -> Result<Poll, RunError> {
+        let (metrics, last_seen) = (&mut self.metrics, &mut self.last_seen);
+        states.drain(&mut |st| {
+            metrics.push(st);
+            *last_seen |= st.flags & state_flags::LAST != 0;
+        })?;
+        Ok(if self.last_seen {
+            Poll::READY
+        } else {
+            Poll::Pending
+        })
+    }
+
+    fn step(&mut self, _states: &mut Self::Ports, _cx: &mut Cx) -> Result<Flow, RunError> {
+        Ok(Flow::Last)
+    }
 }
 
 #[cfg(test)]
@@ -91,6 +195,19 @@ mod tests {
     use super::*;
     use crate::report::expected_microstepping_cruise_error;
 
+    fn sim(s: &Scenario, method: Method) -> RunReport {
+        simulate(s, method).expect("the simulation runs")
+    }
+
+    fn with_stalls(
+        s: &Scenario,
+        method: Method,
+        stalls: &[Range<u64>],
+        watchdog_periods: u32,
+    ) -> (RunReport, CommandRecord) {
+        simulate_stalls(s, method, stalls, watchdog_periods).expect("the simulation runs")
+    }
+
     fn within(value: f64, target: f64, rel: f64) -> bool {
         (value - target).abs() <= rel * target.abs()
     }
@@ -98,7 +215,7 @@ mod tests {
     #[test]
     fn proposed_method_meets_the_acceptance_figures() {
         let s = Scenario::default();
-        let r = simulate(&s, Method::Proposed);
+        let r = sim(&s, Method::Proposed);
         assert!(r.cruise_max_abs_error_rad <= 1.0e-4, "{r:?}");
         assert!(r.final_error_rad.abs() <= 1e-5, "{r:?}");
         assert!(r.cruise_mean_id_a.abs() <= 0.005, "{r:?}");
@@ -117,7 +234,7 @@ mod tests {
     #[test]
     fn lyapunov_baseline_matches_eq7_plus_load() {
         let s = Scenario::default();
-        let r = simulate(&s, Method::Lyapunov);
+        let r = sim(&s, Method::Lyapunov);
         assert!(within(r.cruise_max_abs_error_rad, 7.0e-3, 0.05), "{r:?}");
         assert!(
             within(
@@ -133,7 +250,7 @@ mod tests {
         );
         assert!(within(r.final_error_rad, 9.1e-4, 0.05), "{r:?}");
         // Remark 4: same i_q as the proposed method; but i_d > 0 all along.
-        let p = simulate(&s, Method::Proposed);
+        let p = sim(&s, Method::Proposed);
         assert!(within(r.cruise_mean_iq_a, p.cruise_mean_iq_a, 0.01));
         assert!(r.cruise_mean_id_a > 0.4);
         assert!(
@@ -149,7 +266,7 @@ mod tests {
     fn lyapunov_baseline_without_load_sits_on_eq7() {
         let mut s = Scenario::default();
         s.load.torque_nm = 0.0;
-        let r = simulate(&s, Method::Lyapunov);
+        let r = sim(&s, Method::Lyapunov);
         assert!(r.cruise_max_abs_error_rad >= s.eq7_bound_rad(), "{r:?}");
         assert!(
             within(r.cruise_max_abs_error_rad, s.eq7_bound_rad(), 0.02),
@@ -173,9 +290,9 @@ mod tests {
     fn open_loop_microstepping_steps_out_at_the_papers_speed() {
         let mut slow = Scenario::default();
         slow.trajectory.cruise_velocity_rad_s = 2.0;
-        let r = simulate(&slow, Method::OpenLoop);
+        let r = sim(&slow, Method::OpenLoop);
         assert!(r.cruise_max_abs_error_rad < 0.02, "{r:?}");
-        let fast = simulate(&Scenario::default(), Method::OpenLoop);
+        let fast = sim(&Scenario::default(), Method::OpenLoop);
         let step = std::f64::consts::TAU / 200.0;
         assert!(fast.cruise_max_abs_error_rad > 10.0 * step, "{fast:?}");
     }
@@ -185,8 +302,8 @@ mod tests {
     fn simulation_is_bit_identical_across_runs() {
         let mut s = Scenario::default();
         s.trajectory.hold_s = 0.1;
-        let mut a = simulate(&s, Method::Proposed);
-        let mut b = simulate(&s, Method::Proposed);
+        let mut a = sim(&s, Method::Proposed);
+        let mut b = sim(&s, Method::Proposed);
         a.wall_time_s = 0.0;
         b.wall_time_s = 0.0;
         assert_eq!(a, b);
@@ -220,12 +337,12 @@ mod tests {
     /// bound of 3e-4 rad.
     #[test]
     fn a_stall_in_cruise_or_hold_is_covered_by_the_plan() {
-        let (base, _) = simulate_stalls(&with_plan(200), Method::Proposed, &[], 200);
+        let (base, _) = with_stalls(&with_plan(200), Method::Proposed, &[], 200);
         let stalls: Vec<Range<u64>> = [0.9, 1.2, 2.1]
             .iter()
             .map(|&t| at(t)..at(t) + 199)
             .collect();
-        let (r, slot) = simulate_stalls(&with_plan(200), Method::Proposed, &stalls, 200);
+        let (r, slot) = with_stalls(&with_plan(200), Method::Proposed, &stalls, 200);
         assert_eq!((slot.misses, slot.planned), (3 * 199, 3 * 199));
         assert_eq!(r.fault_samples, 0);
         assert!(
@@ -235,7 +352,7 @@ mod tests {
         assert!(r.cruise_max_abs_error_rad < 1e-5, "{r:?}");
 
         let one = stall_at(1.2, 33);
-        let (held, slot) = simulate_stalls(&with_plan(0), Method::Proposed, &one, 200);
+        let (held, slot) = with_stalls(&with_plan(0), Method::Proposed, &one, 200);
         assert_eq!((slot.misses, slot.planned), (33, 0));
         assert!(held.cruise_max_abs_error_rad > 3e-4, "{held:?}");
     }
@@ -246,8 +363,8 @@ mod tests {
     #[test]
     fn a_stall_while_accelerating_costs_little_with_the_plan() {
         let stall = stall_at(0.25, 199);
-        let (planned, _) = simulate_stalls(&with_plan(200), Method::Proposed, &stall, 200);
-        let (held, _) = simulate_stalls(&with_plan(0), Method::Proposed, &stall, 200);
+        let (planned, _) = with_stalls(&with_plan(200), Method::Proposed, &stall, 200);
+        let (held, _) = with_stalls(&with_plan(0), Method::Proposed, &stall, 200);
         assert!(planned.max_abs_error_rad < 2e-3, "{planned:?}");
         assert!(held.max_abs_error_rad > 2e-2, "{held:?}");
         assert!(planned.cruise_max_abs_error_rad < 1e-5, "{planned:?}");
@@ -258,13 +375,13 @@ mod tests {
     #[test]
     fn the_plan_keeps_the_baseline_from_stepping_out() {
         let stall = stall_at(0.25, 199);
-        let (base, _) = simulate_stalls(&with_plan(200), Method::Lyapunov, &[], 200);
-        let (planned, _) = simulate_stalls(&with_plan(200), Method::Lyapunov, &stall, 200);
+        let (base, _) = with_stalls(&with_plan(200), Method::Lyapunov, &[], 200);
+        let (planned, _) = with_stalls(&with_plan(200), Method::Lyapunov, &stall, 200);
         assert!(
             (planned.max_abs_error_rad - base.max_abs_error_rad).abs() < 1e-6,
             "{planned:?} vs {base:?}"
         );
-        let (held, _) = simulate_stalls(&with_plan(0), Method::Lyapunov, &stall, 200);
+        let (held, _) = with_stalls(&with_plan(0), Method::Lyapunov, &stall, 200);
         assert!(held.max_abs_error_rad > 1.0, "{held:?}");
     }
 
@@ -274,8 +391,8 @@ mod tests {
     fn a_stall_as_long_as_the_watchdog_trips_it_plan_or_not() {
         for plan in [0, 200] {
             let stall = stall_at(1.2, 200);
-            let (r, slot) = simulate_stalls(&with_plan(plan), Method::Proposed, &stall, 200);
-            assert_eq!(slot.runs.longest, 200);
+            let (r, slot) = with_stalls(&with_plan(plan), Method::Proposed, &stall, 200);
+            assert_eq!(slot.longest_run, 200);
             assert!(r.fault_samples > 0, "plan {plan}: {r:?}");
         }
     }
@@ -285,8 +402,8 @@ mod tests {
     fn without_stalls_the_realtime_rules_are_the_reference() {
         let mut s = with_plan(200);
         s.trajectory.hold_s = 0.1;
-        let (mut r, slot) = simulate_stalls(&s, Method::Proposed, &[], 200);
-        let mut reference = simulate(&s, Method::Proposed);
+        let (mut r, slot) = with_stalls(&s, Method::Proposed, &[], 200);
+        let mut reference = sim(&s, Method::Proposed);
         assert_eq!(slot.misses, 0);
         r.wall_time_s = 0.0;
         reference.wall_time_s = 0.0;

@@ -1,8 +1,8 @@
 //! Timing figures of a realtime run, from the processes' own fixed-size histograms.
 
 use serde::Serialize;
+use stepdrive_runtime::steal::HOST_HOLD_MIN_NS;
 use stepdrive_shared::stats::{Histogram, StatsReport};
-use stepdrive_shared::steal::HOST_HOLD_MIN_NS;
 use stepdrive_shared::Scenario;
 
 /// Summary of one histogram in µs.
@@ -81,7 +81,7 @@ impl LoopTiming {
 
 /// Cycles in which the hypervisor held the current loop's vCPU (wall time passed while the
 /// loop neither ran, nor waited in the guest's run queue, nor slept: see
-/// `stepdrive_shared::steal`), and the deadline misses they explain.
+/// `stepdrive_runtime::steal`), and the deadline misses they explain.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct HostHolds {
     /// Holds of at least [`HOST_HOLD_MIN_NS`] (20 µs).

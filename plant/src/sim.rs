@@ -1,12 +1,13 @@
 //! The simulated drive: the motor of eq. (1) sampled at the current-loop rate, phase voltages
 //! limited to ±V_bus, and an explicit compute delay: the command computed from sample k is
-//! applied over (t_{k+d}, t_{k+d+1}]. This is the loop body; [`crate::process`] wraps it in IPC.
+//! applied over (t_{k+d}, t_{k+d+1}]. This is the plant's logic; [`crate::node`] runs it.
 
 use crate::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
+use stepdrive_runtime::cycle::MissRuns;
 use stepdrive_shared::messages::{
     fault_bits, state_flags, DriveCommand, DrivePlan, DriveState, NONE_SEQ,
 };
-use stepdrive_shared::stats::{MissRuns, StatsReport};
+use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
 #[derive(Debug, Clone)]

@@ -495,6 +495,11 @@ impl Scenario {
 
 /// Which control method the current loop runs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(
+    feature = "clap",
+    derive(clap::ValueEnum),
+    value(rename_all = "snake_case")
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Method {
     /// Torque modulation (12) + commutation (17) + current tracking (22).
@@ -502,6 +507,7 @@ pub enum Method {
     /// Lyapunov-based microstepping, eq. (39).
     Lyapunov,
     /// Open-loop microstepping voltages, eq. (2).
+    #[cfg_attr(feature = "clap", value(alias = "open-loop"))]
     OpenLoop,
 }
 
@@ -539,6 +545,7 @@ impl FromStr for Method {
 
 /// Timing mode of a run.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "clap", derive(clap::ValueEnum))]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
     /// Virtual time: the plant waits for each command; bit-identical results.

@@ -1,5 +1,10 @@
 //! The drive wire protocol, version 2 (`docs/drive-protocol.md` is the specification; this
-//! module is its reference codec). Frames are little-endian with fixed fields:
+//! crate is its reference codec). The codec needs no `std` and no allocator, so a drive's
+//! firmware can use this very code (`default-features = false`); with the default `std`
+//! feature the crate adds the host side's byte transports ([`transport`]: UDP, serial) and
+//! the unit conversions a CONFIG defines ([`units`]).
+//!
+//! Frames are little-endian with fixed fields:
 //!
 //! ```text
 //! 0  u16 magic 0x5344      2  u8 version (2)     3  u8 kind
@@ -11,6 +16,13 @@
 //! CRC-32/ISO-HDLC: polynomial 0x04C11DB7 (reflected 0xEDB88320), init 0xFFFFFFFF,
 //! reflected in and out, final XOR 0xFFFFFFFF; check value of "123456789" is 0xCBF43926.
 //! On UDP one datagram is one frame; on serial frames are COBS-encoded and end in 0x00.
+
+#![cfg_attr(not(feature = "std"), no_std)]
+
+#[cfg(feature = "std")]
+pub mod transport;
+#[cfg(feature = "std")]
+pub mod units;
 
 use thiserror::Error;
 
@@ -546,9 +558,9 @@ pub fn is_newer(seq: u32, last: Option<u32>) -> bool {
     }
 }
 
-/// Test helper: one encoded frame as bytes.
-#[cfg(test)]
-pub(crate) fn frame_bytes(seq: u32, message: Message) -> Vec<u8> {
+/// One encoded frame as bytes (tests and tools).
+#[cfg(feature = "std")]
+pub fn frame_bytes(seq: u32, message: Message) -> Vec<u8> {
     let mut b = [0u8; MAX_FRAME];
     let frame = Frame {
         seq,

@@ -1,7 +1,7 @@
-//! Drive units and their calibration: encoder counts, ADC counts, duties. Used by the
-//! emulated drive (SI → counts) and by the bridge (counts → SI); nowhere else.
+//! Drive units and their calibration, as a CONFIG defines them: encoder counts, ADC counts,
+//! duties. Used by the emulated drive (SI → counts) and by the bridge (counts → SI).
 
-use crate::drive_protocol::{Config, MAX_DUTY};
+use crate::{Config, MAX_DUTY};
 use std::f64::consts::TAU;
 
 /// The emulated drive's scaling (a real drive reports its own in CONFIG).
@@ -78,47 +78,6 @@ pub fn volts_for(duty: i16, bus: f64) -> f64 {
     f64::from(duty.clamp(-MAX_DUTY, MAX_DUTY)) / f64::from(MAX_DUTY) * bus
 }
 
-/// Velocity from encoder positions: a critically damped α-β tracking observer
-/// (−3 dB bandwidth ≈ `bandwidth_hz`; 400 Hz by default, a tenth of the 4 kHz that the
-/// current loop's prediction horizon can use, and lag-free for constant velocity).
-#[derive(Debug, Clone, Copy)]
-pub struct VelocityObserver {
-    alpha: f64,
-    beta_over_t: f64,
-    period: f64,
-    theta: f64,
-    omega: f64,
-    started: bool,
-}
-
-impl VelocityObserver {
-    pub fn new(bandwidth_hz: f64, period: f64) -> Self {
-        let r = (-TAU * bandwidth_hz * period).exp();
-        Self {
-            alpha: 1.0 - r * r,
-            beta_over_t: (1.0 - r) * (1.0 - r) / period,
-            period,
-            theta: 0.0,
-            omega: 0.0,
-            started: false,
-        }
-    }
-
-    /// Feeds one measured position; returns the velocity estimate.
-    pub fn update(&mut self, theta: f64) -> f64 {
-        if !self.started {
-            self.theta = theta;
-            self.started = true;
-            return 0.0;
-        }
-        let predicted = self.theta + self.omega * self.period;
-        let e = theta - predicted;
-        self.theta = predicted + self.alpha * e;
-        self.omega += self.beta_over_t * e;
-        self.omega
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -137,20 +96,5 @@ mod tests {
         assert_eq!(duty_for(f64::NAN, 24.0), None);
         assert_eq!(duty_for(25.0, 24.0), None);
         assert!((volts_for(16384, 24.0) - 12.0).abs() < 1e-3);
-    }
-
-    /// The observer tracks a ramp without lag and settles within a few time constants.
-    #[test]
-    fn observer_tracks_constant_velocity() {
-        let t = 50e-6;
-        let mut o = VelocityObserver::new(400.0, t);
-        let counts = 1u32 << 20;
-        let q = TAU / f64::from(counts);
-        let mut w = 0.0;
-        for k in 0..4000 {
-            let theta = 13.13 * t * f64::from(k);
-            w = o.update((theta / q).round() * q);
-        }
-        assert!((w - 13.13).abs() < 0.02, "ω̂ = {w}");
     }
 }

@@ -18,9 +18,44 @@ pub struct RtOptions {
     pub require: bool,
 }
 
+/// A real-time setting the system refused, with the system's reason.
 #[derive(Debug, thiserror::Error)]
-#[error("real-time setting refused: {0}")]
-pub struct RtError(pub String);
+pub enum RtError {
+    #[error("timer slack of {ns} ns refused")]
+    TimerSlack {
+        ns: u64,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("mlockall refused")]
+    LockMemory(#[source] std::io::Error),
+    #[error("SCHED_FIFO priority {priority} refused")]
+    Priority {
+        priority: u8,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot pin to CPU {cpu}")]
+    Affinity {
+        cpu: usize,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot read {RT_RUNTIME}")]
+    ReadThrottling(#[source] std::io::Error),
+    #[error("cannot write -1 to {RT_RUNTIME} (RT throttling stays on)")]
+    WriteThrottling(#[source] std::io::Error),
+}
+
+impl RtError {
+    /// The refusal with its cause, on one line.
+    pub fn describe(&self) -> String {
+        match std::error::Error::source(self) {
+            Some(cause) => format!("{self}: {cause}"),
+            None => self.to_string(),
+        }
+    }
+}
 
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct RtApplied {
@@ -30,11 +65,14 @@ pub struct RtApplied {
     pub slack: bool,
 }
 
-fn refuse(require: bool, what: String) -> Result<(), RtError> {
+fn refuse(require: bool, error: RtError) -> Result<(), RtError> {
     if require {
-        Err(RtError(what))
+        Err(error)
     } else {
-        tracing::warn!("{what}; continuing without it (use --require-rt to make this fatal)");
+        tracing::warn!(
+            "{}; continuing without it (use --require-rt to make this fatal)",
+            error.describe()
+        );
         Ok(())
     }
 }
@@ -59,10 +97,8 @@ impl RtOptions {
             if rc == 0 {
                 applied.slack = true;
             } else {
-                refuse(
-                    self.require,
-                    format!("timer slack {ns} ns: {}", std::io::Error::last_os_error()),
-                )?;
+                let source = std::io::Error::last_os_error();
+                refuse(self.require, RtError::TimerSlack { ns, source })?;
             }
         }
         if self.lock_memory {
@@ -72,10 +108,8 @@ impl RtOptions {
                 prefault_stack();
                 applied.locked = true;
             } else {
-                refuse(
-                    self.require,
-                    format!("mlockall: {}", std::io::Error::last_os_error()),
-                )?;
+                let source = std::io::Error::last_os_error();
+                refuse(self.require, RtError::LockMemory(source))?;
             }
         }
         // Priority before affinity: a process that moves to a CPU where a SCHED_FIFO loop
@@ -89,43 +123,23 @@ impl RtOptions {
             if rc == 0 {
                 applied.fifo = true;
             } else {
+                let source = std::io::Error::last_os_error();
                 refuse(
                     self.require,
-                    format!(
-                        "SCHED_FIFO priority {prio}: {}",
-                        std::io::Error::last_os_error()
-                    ),
+                    RtError::Priority {
+                        priority: prio,
+                        source,
+                    },
                 )?;
             }
         }
         if let Some(cpu) = self.cpu {
             match pin_to_cpu(cpu) {
                 Ok(()) => applied.pinned = true,
-                Err(e) => refuse(self.require, format!("CPU affinity {cpu}: {e}"))?,
+                Err(source) => refuse(self.require, RtError::Affinity { cpu, source })?,
             }
         }
         Ok(applied)
-    }
-
-    /// Command-line form, for passing the same settings to a child process.
-    pub fn to_args(&self) -> Vec<String> {
-        let mut a = Vec::new();
-        if let Some(p) = self.priority {
-            a.extend(["--priority".to_string(), p.to_string()]);
-        }
-        if let Some(c) = self.cpu {
-            a.extend(["--cpu".to_string(), c.to_string()]);
-        }
-        if self.lock_memory {
-            a.push("--mlock".to_string());
-        }
-        if let Some(s) = self.timer_slack_ns {
-            a.extend(["--timer-slack-ns".to_string(), s.to_string()]);
-        }
-        if self.require {
-            a.push("--require-rt".to_string());
-        }
-        a
     }
 }
 
@@ -146,13 +160,17 @@ pub struct RtThrottlingOff {
 
 impl RtThrottlingOff {
     pub fn engage() -> Result<Option<Self>, RtError> {
-        let previous =
-            rt_runtime_us().ok_or_else(|| RtError(format!("cannot read {RT_RUNTIME}")))?;
+        let previous = std::fs::read_to_string(RT_RUNTIME)
+            .map_err(RtError::ReadThrottling)?
+            .trim()
+            .parse::<i64>()
+            .map_err(|e| {
+                RtError::ReadThrottling(std::io::Error::new(std::io::ErrorKind::InvalidData, e))
+            })?;
         if previous == -1 {
             return Ok(None);
         }
-        std::fs::write(RT_RUNTIME, "-1")
-            .map_err(|e| RtError(format!("cannot write -1 to {RT_RUNTIME}: {e}")))?;
+        std::fs::write(RT_RUNTIME, "-1").map_err(RtError::WriteThrottling)?;
         tracing::info!("RT throttling off for this run (was {previous} µs); restored at exit");
         Ok(Some(Self { previous }))
     }

@@ -2,20 +2,20 @@
 //! wire protocol of `docs/drive-protocol.md`, with its own sample clock, in drive units
 //! (encoder counts, ADC counts, duties), a command watchdog, and fault injection for tests.
 
-use crate::drive_protocol::{
-    decode, encode, faults, is_newer, status, Action, Command, Config, FaultReport, Frame, Message,
-    Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
-};
-use crate::drive_units::{default_config, volts_for, Scaling};
-use crate::sim::PlantSim;
-use crate::wire::{enlarge_receive_buffer, SerialPort, Wire, RECEIVE_BUFFER_BYTES};
-use std::net::{SocketAddr, UdpSocket};
+use std::net::SocketAddr;
 use std::time::Duration;
-use stepdrive_shared::clock::monotonic_ns;
+use stepdrive_drive_protocol::transport::Wire;
+use stepdrive_drive_protocol::units::{default_config, volts_for, Scaling};
+use stepdrive_drive_protocol::{
+    decode, encode, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport,
+    Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
+};
+use stepdrive_plant::sim::PlantSim;
+use stepdrive_runtime::clock::monotonic_ns;
+use stepdrive_runtime::pacer::{sleep_until, Pacer, WaitStrategy};
+use stepdrive_runtime::poll::termination_requested;
+use stepdrive_runtime::rt::RtOptions;
 use stepdrive_shared::messages::DriveCommand;
-use stepdrive_shared::pacer::{sleep_until, Pacer, WaitStrategy};
-use stepdrive_shared::poll::termination_requested;
-use stepdrive_shared::rt::RtOptions;
 use stepdrive_shared::Scenario;
 
 /// Faults the emulator can inject (0 / `None` = off).
@@ -121,7 +121,7 @@ impl DriveCore {
     pub fn on_frame(&mut self, bytes: &[u8]) -> Option<Reply> {
         let frame = match decode(bytes) {
             Ok(f) => f,
-            Err(crate::drive_protocol::DecodeError::BadCrc { .. }) => {
+            Err(DecodeError::BadCrc { .. }) => {
                 self.counters.crc_errors += 1;
                 return None;
             }
@@ -297,10 +297,14 @@ pub struct EmulatorOptions {
 
 #[derive(Debug, thiserror::Error)]
 pub enum EmulatorError {
-    #[error("socket: {0}")]
-    Io(#[from] std::io::Error),
-    #[error("{0}")]
-    Rt(#[from] stepdrive_shared::rt::RtError),
+    #[error("cannot open the drive's {what}")]
+    Open {
+        what: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Rt(#[from] stepdrive_runtime::rt::RtError),
 }
 
 fn send_frame(wire: &mut Wire, frame: &Frame, buf: &mut [u8; MAX_FRAME]) {
@@ -311,13 +315,14 @@ fn send_frame(wire: &mut Wire, frame: &Frame, buf: &mut [u8; MAX_FRAME]) {
 
 pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError> {
     let mut wire = match &o.serial {
-        Some(path) => Wire::Serial(SerialPort::open(path)?),
-        None => {
-            let sock = UdpSocket::bind(o.listen)?;
-            sock.set_nonblocking(true)?;
-            enlarge_receive_buffer(&sock, RECEIVE_BUFFER_BYTES);
-            Wire::Udp { sock, peer: None }
-        }
+        Some(path) => Wire::open_serial(path).map_err(|source| EmulatorError::Open {
+            what: format!("serial line {}", path.display()),
+            source,
+        })?,
+        None => Wire::bind_udp(o.listen).map_err(|source| EmulatorError::Open {
+            what: format!("UDP socket on {}", o.listen),
+            source,
+        })?,
     };
     o.rt.apply()?;
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
@@ -344,7 +349,8 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 break;
             }
         }
-        while let Some((n, from)) = wire.recv(&mut rx, 0) {
+        // A peer that went away is no error for a drive: it waits for the next HELLO.
+        while let Ok(Some((n, from))) = wire.recv(&mut rx, 0) {
             if let Some(Reply::Config(c)) = core.on_frame(&rx[..n]) {
                 if let (Wire::Udp { peer, .. }, Some(from)) = (&mut wire, from) {
                     *peer = Some(from);
@@ -423,7 +429,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 delayed = None;
             }
         }
-        // Like the simulated plant: a host stall pauses the drive's time (see plant/process).
+        // Like the simulated plant: a host stall pauses the drive's time (`Late::Pause`).
         pacer.pause_if_late(u64::from(sample_seq), monotonic_ns());
     }
     let c = core.counters;
@@ -438,7 +444,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::drive_protocol::frame_bytes;
+    use stepdrive_drive_protocol::frame_bytes;
 
     fn cmd(answers: u32, d: i16) -> Message {
         Message::Command(Command {

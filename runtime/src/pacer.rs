@@ -3,12 +3,11 @@
 //! before the deadline and spinning the rest (iceoryx2's timers are jiffy-grained here).
 
 use crate::clock::monotonic_ns;
-use crate::poll::{termination_requested, WaitError};
-use crate::steal::Slept;
+use serde::{Deserialize, Deserializer, Serialize, Serializer};
 use std::str::FromStr;
-use std::time::Duration;
 
-/// How a loop waits for its next deadline or message.
+/// How a loop waits for its next deadline or message. Written `sleep`, `spin`,
+/// `hybrid:<µs>` or `event` on the command line and in deployment files.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WaitStrategy {
     /// clock_nanosleep to the deadline: no CPU burnt, wake-up latency of the kernel timer
@@ -57,6 +56,19 @@ impl std::fmt::Display for WaitStrategy {
     }
 }
 
+impl Serialize for WaitStrategy {
+    fn serialize<S: Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl<'de> Deserialize<'de> for WaitStrategy {
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let text = String::deserialize(d)?;
+        text.parse().map_err(serde::de::Error::custom)
+    }
+}
+
 /// Sleeps until the absolute CLOCK_MONOTONIC time `t_ns`.
 pub fn sleep_until(t_ns: u64) {
     let ts = libc::timespec {
@@ -90,88 +102,6 @@ pub fn wait_until(t_ns: u64, strategy: WaitStrategy) -> u64 {
         let now = monotonic_ns();
         if now >= t_ns {
             return now;
-        }
-        std::hint::spin_loop();
-    }
-}
-
-/// A message taken by [`await_message`], when it was taken, and the timer's wake-up
-/// latency if the wait slept on one.
-#[derive(Debug, Clone, Copy)]
-pub struct Arrival<T> {
-    pub message: T,
-    pub taken_ns: u64,
-    pub timer_latency_ns: Option<u64>,
-    /// Sleeps the wait asked for after its `on_wake` call (`sleep` strategy), for
-    /// [`crate::steal`].
-    pub slept_after_wake: Slept,
-}
-
-/// What a loop does around [`await_message`]'s sleep (`()`: nothing).
-pub trait WaitHooks {
-    fn before_sleep(&mut self) {}
-    fn on_wake(&mut self, _slept: Slept) {}
-}
-
-impl WaitHooks for () {}
-
-/// Waits for a message expected at `expected_ns` (a loop woken by its input rather than a
-/// clock): `hybrid:N` sleeps on the absolute time N before `expected_ns` and polls from
-/// there, `spin` polls throughout, `sleep` polls every 10 µs. `poll` returns the message
-/// when there is one. `hooks` see the `hybrid` sleep from both sides; `on_wake` runs once
-/// before polling, sleep or not: work the loop does while it has slack. Gives up after
-/// `timeout` or on SIGINT/SIGTERM.
-pub fn await_message<T, E>(
-    wait: WaitStrategy,
-    expected_ns: u64,
-    timeout: Duration,
-    hooks: &mut impl WaitHooks,
-    mut poll: impl FnMut() -> Result<Option<T>, E>,
-) -> Result<Arrival<T>, WaitError<E>> {
-    let mut timer_latency_ns = None;
-    let mut hybrid_sleep = Slept::default();
-    if let WaitStrategy::Hybrid { margin_ns } = wait {
-        let target = expected_ns.saturating_sub(margin_ns);
-        let now = monotonic_ns();
-        if target > now {
-            hooks.before_sleep();
-            sleep_until(target);
-            hybrid_sleep = Slept {
-                ns: target - now,
-                calls: 1,
-            };
-            timer_latency_ns = Some(monotonic_ns().saturating_sub(target));
-        }
-    }
-    hooks.on_wake(hybrid_sleep);
-    let mut slept = Slept::default();
-    let start = monotonic_ns();
-    let timeout_ns = timeout.as_nanos() as u64;
-    let mut polls: u32 = 0;
-    loop {
-        if let Some(message) = poll().map_err(WaitError::Source)? {
-            return Ok(Arrival {
-                message,
-                taken_ns: monotonic_ns(),
-                timer_latency_ns,
-                slept_after_wake: slept,
-            });
-        }
-        polls = polls.wrapping_add(1);
-        let sleeps = matches!(wait, WaitStrategy::Sleep | WaitStrategy::Event);
-        if polls % 256 == 0 || sleeps {
-            if termination_requested() {
-                return Err(WaitError::Terminated);
-            }
-            let now = monotonic_ns();
-            if now - start > timeout_ns {
-                return Err(WaitError::Timeout(timeout));
-            }
-            if sleeps {
-                sleep_until(now + 10_000);
-                slept.ns += 10_000;
-                slept.calls += 1;
-            }
         }
         std::hint::spin_loop();
     }
@@ -219,13 +149,23 @@ impl Pacer {
     /// Waits for the next deadline. If already past it, returns at once (the caller sees
     /// the lateness in the tick and decides what a missed period means for it).
     pub fn wait(&mut self) -> Tick {
+        let woke_ns = wait_until(self.next_deadline(), self.strategy);
+        self.tick_at(woke_ns)
+    }
+
+    /// The deadline the next tick is for.
+    pub fn next_deadline(&self) -> u64 {
+        self.deadline(self.next)
+    }
+
+    /// Takes the next tick as woken at `woke_ns`, without waiting (a virtual clock, or a
+    /// caller that waited itself).
+    pub fn tick_at(&mut self, woke_ns: u64) -> Tick {
         let index = self.next;
-        let deadline_ns = self.deadline(index);
-        let woke_ns = wait_until(deadline_ns, self.strategy);
         self.next += 1;
         Tick {
             index,
-            deadline_ns,
+            deadline_ns: self.deadline(index),
             woke_ns,
         }
     }

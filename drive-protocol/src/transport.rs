@@ -1,8 +1,10 @@
 //! The byte transports of the drive protocol: UDP (one datagram per frame) and a serial
 //! line (COBS-framed, 0x00-delimited), behind one interface for the bridge and the
-//! emulated drive.
+//! emulated drive. Receiving tells three things apart: a frame, nothing yet (silence), and
+//! a peer that is gone ([`WireError`]: a serial line that hung up, a UDP peer whose port
+//! answers "unreachable").
 
-use crate::drive_protocol::{cobs_decode, cobs_encode, MAX_FRAME};
+use crate::{cobs_decode, cobs_encode, MAX_FRAME};
 use std::io;
 use std::net::{SocketAddr, UdpSocket};
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
@@ -10,6 +12,17 @@ use std::path::Path;
 
 /// Bytes taken from the line per read.
 const READ_CHUNK: usize = 1024;
+
+/// The peer is gone, as opposed to silent.
+#[derive(Debug, thiserror::Error)]
+pub enum WireError {
+    #[error("the serial line hung up")]
+    HungUp,
+    #[error("nothing listens there (the host answers \"port unreachable\")")]
+    Refused,
+    #[error("receive failed")]
+    Io(#[source] io::Error),
+}
 
 /// A raw serial line (a UART or a pseudo-terminal), non-blocking, with COBS framing.
 pub struct SerialPort {
@@ -71,14 +84,14 @@ impl SerialPort {
     }
 
     /// Next complete frame (decoded) into `out`, waiting up to `wait_ms` for bytes.
-    pub fn recv(&mut self, out: &mut [u8], wait_ms: i32) -> Option<usize> {
+    pub fn recv(&mut self, out: &mut [u8], wait_ms: i32) -> Result<Option<usize>, WireError> {
         loop {
             if let Some(end) = self.rx.iter().position(|&b| b == 0) {
                 // Decoded in place, then dropped from the buffer: no allocation per frame.
                 let decoded = cobs_decode(&self.rx[..end], out);
                 self.rx.drain(..=end);
                 match decoded {
-                    Ok(n) if n > 0 => return Some(n),
+                    Ok(n) if n > 0 => return Ok(Some(n)),
                     _ => {
                         self.framing_errors += 1;
                         continue;
@@ -92,13 +105,24 @@ impl SerialPort {
             };
             // SAFETY: one valid pollfd.
             if unsafe { libc::poll(&mut pfd, 1, wait_ms) } <= 0 {
-                return None;
+                return Ok(None);
             }
             let mut buf = [0u8; READ_CHUNK];
             // SAFETY: reading into a valid buffer from our own fd.
             let r = unsafe { libc::read(self.fd.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
-            if r <= 0 {
-                return None;
+            if r == 0 {
+                return Err(WireError::HungUp);
+            }
+            if r < 0 {
+                let e = io::Error::last_os_error();
+                return match e.raw_os_error() {
+                    Some(libc::EAGAIN) | Some(libc::EINTR) => Ok(None),
+                    // A pseudo-terminal whose other side closed, a UART unplugged.
+                    Some(libc::EIO) | Some(libc::ENXIO) | Some(libc::ENODEV) => {
+                        Err(WireError::HungUp)
+                    }
+                    _ => Err(WireError::Io(e)),
+                };
             }
             self.rx.extend_from_slice(&buf[..r as usize]);
             // Garbage without a delimiter must not grow without bound.
@@ -122,12 +146,46 @@ pub enum Wire {
 }
 
 impl Wire {
+    /// The host's side: a socket connected to the drive at `drive`, with room for ~100 ms
+    /// of frames queued.
+    pub fn connect_udp(drive: SocketAddr) -> io::Result<Self> {
+        let local = match (drive.is_ipv4(), drive.ip().is_loopback()) {
+            (true, true) => "127.0.0.1:0",
+            (true, false) => "0.0.0.0:0",
+            (false, true) => "[::1]:0",
+            (false, false) => "[::]:0",
+        };
+        let sock = UdpSocket::bind(local)?;
+        sock.connect(drive)?;
+        sock.set_nonblocking(true)?;
+        let granted = enlarge_receive_buffer(&sock, RECEIVE_BUFFER_BYTES);
+        tracing::debug!(bytes = granted, "drive socket receive buffer");
+        Ok(Wire::Udp { sock, peer: None })
+    }
+
+    /// A drive's side: bound to `listen`, answering whoever sent the last HELLO.
+    pub fn bind_udp(listen: SocketAddr) -> io::Result<Self> {
+        let sock = UdpSocket::bind(listen)?;
+        sock.set_nonblocking(true)?;
+        enlarge_receive_buffer(&sock, RECEIVE_BUFFER_BYTES);
+        Ok(Wire::Udp { sock, peer: None })
+    }
+
+    pub fn open_serial(path: &Path) -> io::Result<Self> {
+        SerialPort::open(path).map(Wire::Serial)
+    }
+
     /// Receives one frame into `buf`, waiting up to `wait_ms` (0: do not wait).
-    /// Returns its length and, on UDP, its source.
-    pub fn recv(&mut self, buf: &mut [u8], wait_ms: i32) -> Option<(usize, Option<SocketAddr>)> {
+    /// Returns its length and, on UDP, its source; `None` when nothing came.
+    pub fn recv(
+        &mut self,
+        buf: &mut [u8],
+        wait_ms: i32,
+    ) -> Result<Option<(usize, Option<SocketAddr>)>, WireError> {
         match self {
             Wire::Udp { sock, .. } => {
                 let flags = if wait_ms > 0 { 0 } else { libc::MSG_DONTWAIT };
+                // SAFETY: sockaddr_storage is plain data; all zeroes is a valid value.
                 let mut addr: libc::sockaddr_storage = unsafe { std::mem::zeroed() };
                 let mut len = std::mem::size_of::<libc::sockaddr_storage>() as libc::socklen_t;
                 // SAFETY: valid buffer and address storage for recvfrom.
@@ -142,11 +200,17 @@ impl Wire {
                     )
                 };
                 if n < 0 {
-                    return None;
+                    let e = io::Error::last_os_error();
+                    return match e.raw_os_error() {
+                        Some(libc::EAGAIN) | Some(libc::EINTR) => Ok(None),
+                        // A connected socket learns from ICMP that no one listens.
+                        Some(libc::ECONNREFUSED) => Err(WireError::Refused),
+                        _ => Err(WireError::Io(e)),
+                    };
                 }
-                Some((n as usize, sockaddr_to_std(&addr)))
+                Ok(Some((n as usize, sockaddr_to_std(&addr))))
             }
-            Wire::Serial(p) => p.recv(buf, wait_ms).map(|n| (n, None)),
+            Wire::Serial(p) => Ok(p.recv(buf, wait_ms)?.map(|n| (n, None))),
         }
     }
 
@@ -170,13 +234,6 @@ impl Wire {
         match self {
             Wire::Udp { sock, .. } => sock.as_raw_fd(),
             Wire::Serial(p) => p.fd.as_raw_fd(),
-        }
-    }
-
-    pub fn has_peer(&self) -> bool {
-        match self {
-            Wire::Udp { peer, sock } => peer.is_some() || sock.peer_addr().is_ok(),
-            Wire::Serial(_) => true,
         }
     }
 }

@@ -49,36 +49,52 @@ const SPIN_POLLS: u32 = 16;
 const YIELD_PHASE: Duration = Duration::from_millis(2);
 const SLEEP_STEP: Duration = Duration::from_micros(200);
 
+/// The waiting of a loop that does not know when its input comes: spin a little, then
+/// yield the CPU, then take short sleeps.
+#[derive(Debug, Clone, Default)]
+pub struct Backoff {
+    polls: u32,
+    since: Option<Instant>,
+}
+
+impl Backoff {
+    /// Call after each empty poll: spins, yields or sleeps, by how long the wait has been.
+    /// Returns false while still in the spin phase (no need to check the clock yet).
+    pub fn pause(&mut self) -> bool {
+        self.polls = self.polls.saturating_add(1);
+        if self.polls < SPIN_POLLS {
+            std::hint::spin_loop();
+            return false;
+        }
+        let since = *self.since.get_or_insert_with(Instant::now);
+        if since.elapsed() < YIELD_PHASE {
+            std::thread::yield_now();
+        } else {
+            std::thread::sleep(SLEEP_STEP);
+        }
+        true
+    }
+}
+
 /// Polls `f` until it yields a value, the timeout passes, or termination is requested.
 /// No allocation, no blocking system call other than `sched_yield` and short sleeps.
 pub fn poll_until<T, E>(
     timeout: Duration,
     mut f: impl FnMut() -> Result<Option<T>, E>,
 ) -> Result<T, WaitError<E>> {
-    let mut polls: u32 = 0;
-    let mut start: Option<Instant> = None;
+    let start = Instant::now();
+    let mut backoff = Backoff::default();
     loop {
         if let Some(v) = f().map_err(WaitError::Source)? {
             return Ok(v);
         }
-        polls = polls.saturating_add(1);
-        if polls < SPIN_POLLS {
-            std::hint::spin_loop();
-            continue;
-        }
-        let started = *start.get_or_insert_with(Instant::now);
-        let waited = started.elapsed();
         if termination_requested() {
             return Err(WaitError::Terminated);
         }
-        if waited >= timeout {
+        if start.elapsed() >= timeout {
             return Err(WaitError::Timeout(timeout));
         }
-        if waited < YIELD_PHASE {
-            std::thread::yield_now();
-        } else {
-            std::thread::sleep(SLEEP_STEP);
-        }
+        backoff.pause();
     }
 }
 

@@ -1,0 +1,335 @@
+//! The bridge's rules, as a pure state machine: frames and messages in, frames and states
+//! out, the time passed in. No socket, no clock, no IPC, so every rule is unit-tested here:
+//!
+//! - **samples**: of the SAMPLEs read in one go the newest is published; the others are
+//!   counted as superseded, as is one whose index is not newer than the last published;
+//!   the last sample of the run carries `LAST`.
+//! - **silence**: no valid SAMPLE for `silence_periods` (measured at the last empty read of
+//!   the socket, not whenever the bridge gets to check) publishes one fault state
+//!   (`DRIVE_SILENT`, the next index) and stops forwarding. It is not latched: when the
+//!   drive speaks again forwarding resumes, after the fault state's index (no index is
+//!   published twice); the drive's own watchdog latch decides whether its outputs return.
+//! - **forwarding**: every command is forwarded (unless silent, non-finite or beyond the
+//!   measured bus); the newest plan goes out when it is `plan_every` samples newer than the
+//!   last sent, with as many entries as the drive keeps.
+//! - **arrivals**: when the drive's next SAMPLE is due, from its own timestamps
+//!   ([`ArrivalClock`]).
+
+use crate::link::{DriveLink, EncoderCalibration, Event};
+use stepdrive_drive_protocol::{Action, Config, Frame};
+use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
+use stepdrive_shared::stats::StatsReport;
+
+/// When the drive's next sample is due, in host time. Every SAMPLE carries the drive's
+/// timestamp, so the next one leaves one period after it (whatever the drive did before,
+/// pauses included); it lands the transport delay later. That delay, which also absorbs the
+/// offset between the two clocks, is the smallest seen: a sample can be held up on the way,
+/// never sped up. The estimate may grow by `CREEP_NS` a period so that it follows a drive
+/// clock running slow against the host's (up to 0.2 % at 20 kHz).
+#[derive(Debug, Clone, Copy)]
+pub struct ArrivalClock {
+    period_ns: u64,
+    /// Host time minus drive time of the fastest recent delivery, ns.
+    delay_ns: Option<i64>,
+}
+
+/// How far a period the delay estimate may grow.
+const CREEP_NS: i64 = 100;
+
+impl ArrivalClock {
+    pub fn new(period_ns: u64) -> Self {
+        Self {
+            period_ns,
+            delay_ns: None,
+        }
+    }
+
+    /// A sample stamped `drive_ns` by the drive arrived at host time `at`: returns when the
+    /// next one is due.
+    pub fn next_due(&mut self, drive_ns: u64, at: u64) -> u64 {
+        let delay = at.wrapping_sub(drive_ns) as i64;
+        let d = self.delay_ns.map_or(delay, |d| delay.min(d + CREEP_NS));
+        self.delay_ns = Some(d);
+        drive_ns.wrapping_add(self.period_ns).wrapping_add(d as u64)
+    }
+}
+
+/// The bridge's settings beside the scenario.
+#[derive(Debug, Clone, Copy)]
+pub struct CoreSettings {
+    pub sample_hz: f64,
+    /// Samples in the run; the last carries `LAST`.
+    pub samples: u64,
+    pub silence_periods: u32,
+    pub plan_every: u32,
+    pub observer_hz: f64,
+    pub calibration: EncoderCalibration,
+}
+
+/// What a frame from the drive was.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Received {
+    /// A SAMPLE, kept as the newest until it is taken.
+    Sample,
+    Config(Config),
+    /// A latched fault the drive reports (also in its samples' fault bits).
+    Fault {
+        bits: u16,
+        at_sample: u32,
+    },
+    /// Dropped and counted: bad CRC, malformed, duplicate, out of order or unexpected.
+    Dropped,
+}
+
+/// See the module documentation.
+pub struct BridgeCore {
+    link: DriveLink,
+    settings: CoreSettings,
+    period_ns: u64,
+    silence_ns: u64,
+    arrivals: ArrivalClock,
+    due_ns: Option<u64>,
+    /// The newest SAMPLE read and not yet taken, and when it was read.
+    newest: Option<(DriveState, u64)>,
+    /// The last state published (a sample or the silence fault state), and when the last
+    /// sample was read.
+    last_state: Option<DriveState>,
+    last_rx_ns: u64,
+    silent: bool,
+    /// The measured bus voltage of the last sample (volts → duty).
+    bus_v: f64,
+    /// (frame seq, send time) of recent COMMAND frames, for the round trip.
+    sent_at: [(u32, u64); 64],
+    /// The newest sample a command has answered.
+    answered: Option<u64>,
+    /// The newest plan received (~2 KB, kept in place), and the sample the last PLAN sent
+    /// continued from.
+    plan: Box<DrivePlan>,
+    plan_sent: Option<u64>,
+}
+
+impl BridgeCore {
+    pub fn new(settings: CoreSettings) -> Self {
+        let period_ns = (1e9 / settings.sample_hz).round() as u64;
+        Self {
+            link: DriveLink::new(
+                settings.sample_hz,
+                settings.observer_hz,
+                settings.calibration,
+            ),
+            period_ns,
+            silence_ns: u64::from(settings.silence_periods) * period_ns,
+            arrivals: ArrivalClock::new(period_ns),
+            due_ns: None,
+            newest: None,
+            last_state: None,
+            last_rx_ns: 0,
+            silent: false,
+            bus_v: 0.0,
+            sent_at: [(0, 0); 64],
+            answered: None,
+            plan: Box::default(),
+            plan_sent: None,
+            settings,
+        }
+    }
+
+    pub fn configured(&self) -> bool {
+        self.link.configured()
+    }
+
+    pub fn silent(&self) -> bool {
+        self.silent
+    }
+
+    /// When the drive's next SAMPLE is due (host time), once one has been published.
+    pub fn due_ns(&self) -> Option<u64> {
+        self.due_ns
+    }
+
+    /// The HELLO that asks the drive for its CONFIG.
+    pub fn hello(&mut self, now: u64) -> Frame {
+        self.link.hello_frame(now)
+    }
+
+    /// The stream starts: samples read so far are stale (the stack was coming up), the next
+    /// one is k = 0. Returns the RESET and ENABLE to send.
+    pub fn begin(&mut self, now: u64) -> [Frame; 2] {
+        self.link.restart();
+        self.newest = None;
+        self.last_rx_ns = now;
+        [
+            self.link.control_frame(Action::Reset, now),
+            self.link.control_frame(Action::Enable, now),
+        ]
+    }
+
+    /// The DISABLE to send when the bridge stops.
+    pub fn disable(&mut self, now: u64) -> Frame {
+        self.link.control_frame(Action::Disable, now)
+    }
+
+    /// A frame from the drive, read at `now`.
+    pub fn on_frame(&mut self, bytes: &[u8], now: u64, stats: &mut StatsReport) -> Received {
+        match self.link.on_frame(bytes, now) {
+            Event::State(st) => {
+                // The emulated drive shares this host's clock; for a real drive only the
+                // round trip is meaningful.
+                stats
+                    .hop
+                    .record(now.saturating_sub(self.link.sample_timestamp_ns));
+                self.round_trip(st.applied_command_seq as u32, now, stats);
+                stats.superseded += u64::from(self.newest.is_some());
+                self.newest = Some((st, now));
+                Received::Sample
+            }
+            Event::Config(c) => Received::Config(c),
+            Event::Fault(f) => {
+                tracing::error!(
+                    faults = f.fault_bits,
+                    at = f.at_sample,
+                    "drive reports a latched fault"
+                );
+                Received::Fault {
+                    bits: f.fault_bits,
+                    at_sample: f.at_sample,
+                }
+            }
+            Event::Dropped => Received::Dropped,
+        }
+    }
+
+    /// The newest sample read since the last take, with when it was read, if it may be
+    /// published (its index is newer than the last published: the silence fault state
+    /// took an index, and a drive that resumes continues after it).
+    pub fn take_sample(&mut self, stats: &mut StatsReport) -> Option<(DriveState, u64)> {
+        let (st, rx_at) = self.newest.take()?;
+        if self.last_state.is_some_and(|prev| st.seq <= prev.seq) {
+            stats.superseded += 1;
+            return None;
+        }
+        Some((st, rx_at))
+    }
+
+    /// The state to publish for a taken sample (`publish_time_ns` is the caller's). Ends a
+    /// silence, marks the run's last sample, and moves the due time on.
+    pub fn publish(&mut self, mut st: DriveState, rx_at: u64) -> DriveState {
+        if self.silent {
+            // Forwarding resumes: the drive's own watchdog decides whether its outputs come
+            // back (one that missed its commands has latched a fault until RESET, and
+            // reports it in every sample). On this VM the emulated drive is the one that
+            // goes quiet when the host stalls its CPU, and its time pauses with it: nothing
+            // was missed.
+            self.silent = false;
+            tracing::warn!(
+                silent_ms = rx_at.saturating_sub(self.last_rx_ns) as f64 * 1e-6,
+                drive_faults = st.fault >> 16,
+                "the drive speaks again; forwarding commands again"
+            );
+        }
+        if self.is_last(&st) {
+            st.flags |= state_flags::LAST;
+        }
+        self.bus_v = st.bus_voltage_v;
+        self.last_rx_ns = rx_at;
+        self.last_state = Some(st);
+        self.due_ns = Some(self.arrivals.next_due(self.link.sample_timestamp_ns, rx_at));
+        st
+    }
+
+    pub fn is_last(&self, st: &DriveState) -> bool {
+        st.seq + 1 >= self.settings.samples
+    }
+
+    /// Nothing was read at `looked_at` (taken before the read: if the socket held nothing,
+    /// nothing arrived up to then, even if the bridge is held up before it checks). After
+    /// the silence periods, once: the fault state to publish (the last state, its index
+    /// moved on, `DRIVE_SILENT` set), and forwarding stops.
+    pub fn on_quiet(&mut self, looked_at: u64, now: u64) -> Option<DriveState> {
+        if self.silent || looked_at.saturating_sub(self.last_rx_ns) <= self.silence_ns {
+            return None;
+        }
+        self.silent = true;
+        tracing::error!(
+            periods = self.settings.silence_periods,
+            "no valid sample from the drive: fault published, no commands forwarded until it speaks again"
+        );
+        let mut st = self.last_state?;
+        st.seq += 1;
+        st.fault |= fault_bits::DRIVE_SILENT;
+        st.publish_time_ns = now;
+        st.deadline_ns = now;
+        self.last_state = Some(st);
+        Some(st)
+    }
+
+    /// A command from the current loop: the frame to send, or `None` (while silent, or
+    /// refused: non-finite or beyond the measured bus, counted).
+    pub fn command(
+        &mut self,
+        c: &DriveCommand,
+        now: u64,
+        stats: &mut StatsReport,
+    ) -> Option<Frame> {
+        stats
+            .sensor_to_actuator
+            .record(c.publish_time_ns.saturating_sub(c.state_publish_time_ns));
+        self.answered = self.answered.max(Some(c.answers_seq));
+        if self.silent {
+            return None;
+        }
+        let f = self.link.command_frame(c, self.bus_v, now)?;
+        self.sent_at[(f.seq % 64) as usize] = (f.seq, now);
+        Some(f)
+    }
+
+    /// A plan from the current loop; the one continuing the newest command is kept.
+    pub fn offer_plan(&mut self, p: &DrivePlan) {
+        if p.len > 0 && (self.plan.len == 0 || p.answers_seq > self.plan.answers_seq) {
+            *self.plan = *p;
+        }
+    }
+
+    /// The PLAN frame to send now, if the newest plan is `plan_every` samples newer than
+    /// the last one sent (none while silent, or when the drive keeps no plans).
+    pub fn plan_frame(&mut self, now: u64) -> Option<Frame> {
+        let every = u64::from(self.settings.plan_every.max(1));
+        let due = self
+            .plan_sent
+            .is_none_or(|sent| self.plan.answers_seq >= sent + every);
+        if self.plan.len == 0 || !due || self.silent {
+            return None;
+        }
+        self.plan_sent = Some(self.plan.answers_seq);
+        self.link.plan_frame(&self.plan, self.bus_v, now)
+    }
+
+    /// Without real-time priorities nothing orders the current loop's answer before the
+    /// bridge's next wake-up: while the last published sample is unanswered and most of its
+    /// period is left, the bridge should look for the answer often.
+    pub fn awaiting_answer(&self, now: u64) -> bool {
+        let Some(last) = self.last_state else {
+            return false;
+        };
+        let until = self.last_rx_ns + self.period_ns * 8 / 10;
+        now < until && self.answered.is_none_or(|a| a < last.seq)
+    }
+
+    /// A sample reported command frame `seq` applied: records the round trip once.
+    fn round_trip(&mut self, seq: u32, now: u64, stats: &mut StatsReport) {
+        let slot = &mut self.sent_at[(seq % 64) as usize];
+        if slot.0 == seq && slot.1 != 0 {
+            stats.round_trip.record(now - slot.1);
+            slot.1 = 0;
+        }
+    }
+
+    /// The link's counters into a stats report (drive-held periods are its misses).
+    pub fn report(&self, stats: &mut StatsReport) {
+        self.link.copy_counters(stats);
+    }
+
+    pub fn link(&self) -> &DriveLink {
+        &self.link
+    }
+}

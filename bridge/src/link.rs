@@ -1,0 +1,411 @@
+//! Drive frames ↔ SI, without sockets or clocks: units and calibration live here and only
+//! here, so the current loop, position loop and monitor see the same `DriveState` and
+//! `DriveCommand` as with the simulated plant.
+
+use crate::observer::VelocityObserver;
+use stepdrive_drive_protocol::units::{duty_for, volts_for, Scaling};
+use stepdrive_drive_protocol::{
+    decode, is_newer, status, Action, Command, Config, DecodeError, FaultReport, Frame, Message,
+    Plan, MAX_PLAN_ENTRIES,
+};
+use stepdrive_runtime::cycle::MissRuns;
+use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
+use stepdrive_shared::stats::StatsReport;
+
+/// What one received datagram turned into.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Event {
+    State(DriveState),
+    Config(Config),
+    Fault(FaultReport),
+    /// Dropped: bad CRC, malformed, duplicate or out of order, or unexpected.
+    Dropped,
+}
+
+/// Host-side encoder calibration, over what the drive's CONFIG says.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct EncoderCalibration {
+    /// Encoder reading at θ = 0 (an absolute encoder's zero); `None` zeroes at the first
+    /// sample.
+    pub offset_counts: Option<i64>,
+    /// Counts increase for negative θ, whatever CONFIG's `encoder_direction` says (an
+    /// encoder or motor wired the other way round).
+    pub reverse: bool,
+}
+
+/// Drive frames ↔ SI, without sockets or clocks.
+pub struct DriveLink {
+    scaling: Option<Scaling>,
+    calibration: EncoderCalibration,
+    /// PLAN entries the drive keeps (from CONFIG; 0: send none).
+    plan_capacity: u16,
+    observer: VelocityObserver,
+    observer_hz: f64,
+    sample_hz: f64,
+    last_seq: Option<u32>,
+    first_seq: Option<u32>,
+    counts: i64,
+    last_raw: Option<i32>,
+    offset_counts: Option<i64>,
+    tx_seq: u32,
+    pub crc_errors: u64,
+    pub bad_frames: u64,
+    pub rejected_commands: u64,
+    /// Periods the drive reported without their COMMAND, and of those the ones it covered
+    /// with a PLAN entry; runs of such periods.
+    pub held_periods: u64,
+    pub planned_periods: u64,
+    pub held_runs: MissRuns,
+    /// Samples that never arrived: gaps in the drive's frame sequence.
+    pub lost_on_wire: u64,
+    /// The drive's timestamp of the last accepted sample, ns on the drive's clock.
+    pub sample_timestamp_ns: u64,
+}
+
+impl DriveLink {
+    pub fn new(sample_hz: f64, observer_hz: f64, calibration: EncoderCalibration) -> Self {
+        Self {
+            scaling: None,
+            calibration,
+            plan_capacity: 0,
+            observer: VelocityObserver::new(observer_hz, 1.0 / sample_hz),
+            observer_hz,
+            sample_hz,
+            last_seq: None,
+            first_seq: None,
+            counts: 0,
+            last_raw: None,
+            offset_counts: calibration.offset_counts,
+            tx_seq: 1,
+            crc_errors: 0,
+            bad_frames: 0,
+            rejected_commands: 0,
+            held_periods: 0,
+            planned_periods: 0,
+            held_runs: MissRuns::default(),
+            lost_on_wire: 0,
+            sample_timestamp_ns: 0,
+        }
+    }
+
+    pub fn configured(&self) -> bool {
+        self.scaling.is_some()
+    }
+
+    /// Forgets the sample stream (index, position, velocity, counters) so that run starts
+    /// at k = 0 with the next sample; the configuration is kept.
+    pub fn restart(&mut self) {
+        let (scaling, plan_capacity) = (self.scaling, self.plan_capacity);
+        *self = Self {
+            scaling,
+            plan_capacity,
+            tx_seq: self.tx_seq,
+            ..Self::new(self.sample_hz, self.observer_hz, self.calibration)
+        };
+    }
+
+    /// Index k of the drive sample with wire sequence `seq` (k = 0 at the first sample).
+    fn index_of(&self, seq: u32) -> u64 {
+        u64::from(seq.wrapping_sub(self.first_seq.unwrap_or(seq)))
+    }
+
+    pub fn on_frame(&mut self, bytes: &[u8], now_ns: u64) -> Event {
+        let frame = match decode(bytes) {
+            Ok(f) => f,
+            Err(DecodeError::BadCrc { .. }) => {
+                self.crc_errors += 1;
+                return Event::Dropped;
+            }
+            Err(_) => {
+                self.bad_frames += 1;
+                return Event::Dropped;
+            }
+        };
+        match frame.message {
+            Message::Config(c) => {
+                let mut c = c;
+                if self.calibration.reverse {
+                    c.encoder_direction = if c.encoder_direction < 0 { 1 } else { -1 };
+                }
+                self.scaling = Some(Scaling::new(&c));
+                self.plan_capacity = c.plan_capacity.min(MAX_PLAN_ENTRIES as u16);
+                Event::Config(c)
+            }
+            Message::FaultReport(f) => Event::Fault(f),
+            Message::Sample(s) => {
+                let Some(scaling) = self.scaling else {
+                    self.bad_frames += 1;
+                    return Event::Dropped;
+                };
+                if !is_newer(frame.seq, self.last_seq) {
+                    self.bad_frames += 1;
+                    return Event::Dropped;
+                }
+                if let Some(last) = self.last_seq {
+                    self.lost_on_wire += u64::from(frame.seq.wrapping_sub(last) - 1);
+                }
+                self.last_seq = Some(frame.seq);
+                self.sample_timestamp_ns = frame.timestamp_ns;
+                self.first_seq.get_or_insert(frame.seq);
+                // Unwrap the 32-bit counter into a 64-bit position.
+                let step = match self.last_raw {
+                    Some(prev) => i64::from(s.encoder_counts.wrapping_sub(prev)),
+                    None => i64::from(s.encoder_counts),
+                };
+                self.last_raw = Some(s.encoder_counts);
+                self.counts += step;
+                let offset = *self.offset_counts.get_or_insert(self.counts);
+                let theta = scaling.theta(self.counts - offset);
+                let omega = self.observer.update(theta);
+                let bus = scaling.bus_volts(s.adc_bus);
+                let k = self.index_of(frame.seq);
+                let mut fault = 0;
+                if s.fault_bits != 0 {
+                    fault = fault_bits::DRIVE_FAULT | (u32::from(s.fault_bits) << 16);
+                }
+                let mut flags = 0;
+                let held = s.status & status::COMMAND_HELD != 0;
+                self.held_runs.record(held);
+                if held {
+                    flags |= state_flags::COMMAND_HELD;
+                    self.held_periods += 1;
+                    if s.status & status::COMMAND_PLANNED != 0 {
+                        flags |= state_flags::COMMAND_PLANNED;
+                        self.planned_periods += 1;
+                    }
+                }
+                Event::State(DriveState {
+                    seq: k,
+                    sample_time_s: k as f64 / self.sample_hz,
+                    publish_time_ns: 0,
+                    deadline_ns: now_ns,
+                    applied_command_seq: u64::from(s.applied_command_seq),
+                    theta_rad: theta,
+                    omega_rad_s: omega,
+                    i_a_a: scaling.amps(s.adc_a),
+                    i_b_a: scaling.amps(s.adc_b),
+                    v_a_v: volts_for(s.duty_a, bus),
+                    v_b_v: volts_for(s.duty_b, bus),
+                    bus_voltage_v: bus,
+                    flags,
+                    fault,
+                })
+            }
+            _ => {
+                self.bad_frames += 1;
+                Event::Dropped
+            }
+        }
+    }
+
+    /// The frame carrying `c`, or `None` (counted) if it must not reach the drive: a
+    /// non-finite voltage or one beyond the measured bus voltage.
+    pub fn command_frame(&mut self, c: &DriveCommand, bus_v: f64, now_ns: u64) -> Option<Frame> {
+        let (Some(a), Some(b)) = (duty_for(c.v_a_v, bus_v), duty_for(c.v_b_v, bus_v)) else {
+            self.rejected_commands += 1;
+            return None;
+        };
+        let first = self.first_seq?;
+        let frame = Frame {
+            seq: self.tx_seq,
+            timestamp_ns: now_ns,
+            message: Message::Command(Command {
+                answers_sample: first.wrapping_add(c.answers_seq as u32),
+                duty_a: a,
+                duty_b: b,
+            }),
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        Some(frame)
+    }
+
+    /// The PLAN frame carrying `plan` (as many entries as the drive keeps), or `None` if the
+    /// drive keeps none or any entry must not reach it (non-finite or beyond the measured
+    /// bus: the whole plan is refused and counted with the rejected commands).
+    pub fn plan_frame(&mut self, plan: &DrivePlan, bus_v: f64, now_ns: u64) -> Option<Frame> {
+        let first = self.first_seq?;
+        let count = plan.entries().len().min(usize::from(self.plan_capacity));
+        if count == 0 {
+            return None;
+        }
+        let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
+        for (out, v) in duties.iter_mut().zip(&plan.entries()[..count]) {
+            let (Some(a), Some(b)) = (
+                duty_for(f64::from(v[0]), bus_v),
+                duty_for(f64::from(v[1]), bus_v),
+            ) else {
+                self.rejected_commands += 1;
+                return None;
+            };
+            *out = [a, b];
+        }
+        let frame = Frame {
+            seq: self.tx_seq,
+            timestamp_ns: now_ns,
+            message: Message::Plan(Plan {
+                answers_sample: first.wrapping_add(plan.answers_seq as u32),
+                count: count as u16,
+                duties,
+            }),
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        Some(frame)
+    }
+
+    /// Puts the link's counters into a stats report (drive-held periods are its misses).
+    pub fn copy_counters(&self, stats: &mut StatsReport) {
+        stats.lost = self.lost_on_wire;
+        stats.crc_errors = self.crc_errors;
+        stats.bad_frames = self.bad_frames;
+        stats.rejected_commands = self.rejected_commands;
+        stats.misses = self.held_periods;
+        stats.planned = self.planned_periods;
+        self.held_runs.copy_to(stats);
+    }
+
+    pub fn control_frame(&mut self, action: Action, now_ns: u64) -> Frame {
+        let f = Frame {
+            seq: self.tx_seq,
+            timestamp_ns: now_ns,
+            message: Message::Control(action),
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        f
+    }
+
+    pub fn hello_frame(&mut self, now_ns: u64) -> Frame {
+        let f = Frame {
+            seq: self.tx_seq,
+            timestamp_ns: now_ns,
+            message: Message::Hello,
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        f
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use stepdrive_drive_protocol::units::default_config;
+    use stepdrive_drive_protocol::{frame_bytes as bytes, Sample};
+
+    fn sample(counts: i32) -> Message {
+        Message::Sample(Sample {
+            encoder_counts: counts,
+            adc_a: 32768 + 1510,
+            adc_b: 32768,
+            adc_bus: 2400,
+            duty_a: 16384,
+            duty_b: 0,
+            applied_command_seq: 0,
+            fault_bits: 0,
+            status: 0,
+        })
+    }
+
+    #[test]
+    fn samples_become_si_states_and_bad_frames_are_dropped() {
+        let mut l = DriveLink::new(20_000.0, 400.0, zero_offset());
+        assert_eq!(
+            l.on_frame(&bytes(9, sample(5)), 0),
+            Event::Dropped,
+            "no CONFIG yet"
+        );
+        let cfg = default_config(20_000.0, 200, 200);
+        assert!(matches!(
+            l.on_frame(&bytes(0, Message::Config(cfg)), 0),
+            Event::Config(_)
+        ));
+        let Event::State(st) = l.on_frame(&bytes(100, sample(1 << 18)), 7) else {
+            panic!()
+        };
+        assert_eq!(st.seq, 0);
+        assert!((st.theta_rad - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        assert!((st.i_a_a - 0.151).abs() < 1e-9);
+        assert!((st.bus_voltage_v - 24.0).abs() < 1e-9);
+        assert!((st.v_a_v - 12.0).abs() < 1e-3);
+        assert_eq!(st.deadline_ns, 7);
+        // Corrupted: counted, no state.
+        let mut bad = bytes(101, sample(0));
+        bad[25] ^= 4;
+        assert_eq!(l.on_frame(&bad, 0), Event::Dropped);
+        assert_eq!(l.crc_errors, 1);
+        // Duplicate and out of order: counted, no state.
+        assert_eq!(l.on_frame(&bytes(100, sample(0)), 0), Event::Dropped);
+        assert_eq!(l.on_frame(&bytes(99, sample(0)), 0), Event::Dropped);
+        assert_eq!(l.bad_frames, 3);
+        // A gap is visible in the index; counter wrap-around unwraps.
+        let Event::State(st) = l.on_frame(&bytes(103, sample(i32::MAX)), 0) else {
+            panic!()
+        };
+        assert_eq!(st.seq, 3);
+        let Event::State(st2) = l.on_frame(&bytes(104, sample(i32::MIN)), 0) else {
+            panic!()
+        };
+        assert!(st2.theta_rad > st.theta_rad);
+    }
+
+    fn zero_offset() -> EncoderCalibration {
+        EncoderCalibration {
+            offset_counts: Some(0),
+            reverse: false,
+        }
+    }
+
+    /// A configured offset is θ = 0 and `reverse` flips CONFIG's direction; without an
+    /// offset the first sample is θ = 0.
+    #[test]
+    fn encoder_calibration_overrides() {
+        let quarter: i32 = 1 << 18; // a quarter turn of the 20-bit encoder
+        let theta_of = |cal: EncoderCalibration, counts: &[i32]| {
+            let mut l = DriveLink::new(20_000.0, 400.0, cal);
+            l.on_frame(
+                &bytes(0, Message::Config(default_config(20_000.0, 200, 0))),
+                0,
+            );
+            let mut theta = f64::NAN;
+            for (i, &c) in counts.iter().enumerate() {
+                if let Event::State(st) = l.on_frame(&bytes(10 + i as u32, sample(c)), 0) {
+                    theta = st.theta_rad;
+                }
+            }
+            theta
+        };
+        let half_pi = std::f64::consts::FRAC_PI_2;
+        let offset = |o: i64, reverse| EncoderCalibration {
+            offset_counts: Some(o),
+            reverse,
+        };
+        let q = i64::from(quarter);
+        assert!((theta_of(offset(q, false), &[2 * quarter]) - half_pi).abs() < 1e-12);
+        assert!((theta_of(offset(q, true), &[2 * quarter]) + half_pi).abs() < 1e-12);
+        let first = EncoderCalibration::default();
+        assert!((theta_of(first, &[quarter, 2 * quarter]) - half_pi).abs() < 1e-12);
+    }
+
+    #[test]
+    fn bad_commands_are_never_sent() {
+        let mut l = DriveLink::new(20_000.0, 400.0, zero_offset());
+        l.on_frame(
+            &bytes(0, Message::Config(default_config(20_000.0, 200, 200))),
+            0,
+        );
+        l.on_frame(&bytes(50, sample(0)), 0);
+        let c = |va: f64| DriveCommand {
+            answers_seq: 0,
+            v_a_v: va,
+            v_b_v: 0.0,
+            ..Default::default()
+        };
+        assert!(l.command_frame(&c(f64::NAN), 24.0, 0).is_none());
+        assert!(l.command_frame(&c(f64::INFINITY), 24.0, 0).is_none());
+        assert!(l.command_frame(&c(30.0), 24.0, 0).is_none());
+        assert_eq!(l.rejected_commands, 3);
+        let f = l.command_frame(&c(-12.0), 24.0, 0).expect("valid");
+        let Message::Command(cmd) = f.message else {
+            panic!()
+        };
+        assert_eq!((cmd.answers_sample, cmd.duty_a), (50, -16384));
+    }
+}

@@ -1,0 +1,448 @@
+//! The bridge as a node of the runner: the plant's place in the stack taken by a drive
+//! speaking `docs/drive-protocol.md` over UDP or a serial line. The drive's sample clock
+//! paces it: a cycle runs when a SAMPLE arrives (due from the drive's own timestamps);
+//! while it waits it forwards the current loop's commands and plans, and watches for
+//! silence. The rules are [`BridgeCore`]'s; this module moves bytes.
+
+use crate::core::{BridgeCore, CoreSettings, Received};
+use crate::link::EncoderCalibration;
+use std::net::{SocketAddr, ToSocketAddrs};
+use std::path::PathBuf;
+use stepdrive_drive_protocol::transport::{Wire, WireError};
+use stepdrive_drive_protocol::{encode, Frame, MAX_FRAME};
+use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
+use stepdrive_runtime::port::{Notify, PortFactory, Presence, Publish, Subscribe};
+use stepdrive_runtime::RunError;
+use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState};
+use stepdrive_shared::services::{Topic, LOOP_BUFFER};
+use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::Scenario;
+
+/// Where the drive is.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum DriveAddr {
+    Udp(SocketAddr),
+    /// A serial line: a UART (`/dev/ttyACM0`) or a pseudo-terminal.
+    Serial(PathBuf),
+}
+
+impl std::fmt::Display for DriveAddr {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            DriveAddr::Udp(a) => write!(f, "udp://{a}"),
+            DriveAddr::Serial(p) => write!(f, "serial:{}", p.display()),
+        }
+    }
+}
+
+/// A drive address that does not name a drive.
+#[derive(Debug, thiserror::Error)]
+#[error("`{text}` is not a drive address (host:port or udp://host:port for UDP, a device path or serial:PATH for a serial line)")]
+pub struct BadDriveAddr {
+    pub text: String,
+    #[source]
+    pub source: Option<std::io::Error>,
+}
+
+impl std::str::FromStr for DriveAddr {
+    type Err = BadDriveAddr;
+
+    /// `udp://host:port`, `host:port` (a name is resolved), `serial:PATH`, or a path.
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        if let Some(path) = text.strip_prefix("serial:") {
+            return Ok(DriveAddr::Serial(PathBuf::from(path)));
+        }
+        if text.starts_with('/') {
+            return Ok(DriveAddr::Serial(PathBuf::from(text)));
+        }
+        let host_port = text.strip_prefix("udp://").unwrap_or(text);
+        let bad = |source| BadDriveAddr {
+            text: text.to_string(),
+            source,
+        };
+        let mut addrs = host_port.to_socket_addrs().map_err(|e| bad(Some(e)))?;
+        addrs.next().map(DriveAddr::Udp).ok_or_else(|| bad(None))
+    }
+}
+
+/// What can go wrong between the bridge and its drive, naming the drive.
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    #[error("cannot open the drive at {drive}")]
+    Open {
+        drive: DriveAddr,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the drive at {drive} is gone")]
+    Gone {
+        drive: DriveAddr,
+        #[source]
+        source: WireError,
+    },
+    #[error(
+        "the drive at {drive} samples at {drive_hz} Hz, the scenario expects {scenario_hz} Hz"
+    )]
+    SampleRate {
+        drive: DriveAddr,
+        drive_hz: u32,
+        scenario_hz: f64,
+    },
+    #[error(
+        "a drive applies each COMMAND one period after its sample (docs/drive-protocol.md); the \
+         scenario's rates.compute_delay_periods is {0}, so the current loop would be designed \
+         for another drive"
+    )]
+    ComputeDelay(u32),
+}
+
+/// The bridge's settings beside the scenario.
+#[derive(Debug, Clone)]
+pub struct BridgeSettings {
+    pub drive: DriveAddr,
+    /// State subscribers to wait for before enabling the drive (the loops, a monitor).
+    pub wait_subscribers: usize,
+    pub silence_periods: u32,
+    pub plan_every: u32,
+    pub observer_hz: f64,
+    pub calibration: EncoderCalibration,
+    /// Without real-time priorities (`sleep` wait) nothing orders the current loop's answer
+    /// before the bridge's next wake-up: look for it every 20 µs while it is pending.
+    pub look_for_answers: bool,
+}
+
+/// What the bridge reads and writes: the drive's wire and the stack's ports.
+pub struct BridgePorts {
+    pub wire: Wire,
+    pub states: Box<dyn Publish<DriveState>>,
+    pub state_ready: Box<dyn Notify>,
+    pub commands: Box<dyn Subscribe<DriveCommand>>,
+    pub plans: Box<dyn Subscribe<DrivePlan>>,
+    pub presence: Box<dyn Presence>,
+}
+
+impl BridgePorts {
+    /// Opens the drive's wire and the stack's ports.
+    pub fn open(f: &mut impl PortFactory, drive: &DriveAddr) -> Result<Self, RunError> {
+        let wire = match drive {
+            DriveAddr::Udp(addr) => Wire::connect_udp(*addr),
+            DriveAddr::Serial(path) => Wire::open_serial(path),
+        }
+        .map_err(|source| {
+            RunError::node(
+                Role::Bridge,
+                BridgeError::Open {
+                    drive: drive.clone(),
+                    source,
+                },
+            )
+        })?;
+        Ok(Self {
+            wire,
+            commands: f.subscriber(LOOP_BUFFER)?,
+            plans: f.subscriber(LOOP_BUFFER)?,
+            state_ready: f.notifier()?,
+            states: f.publisher()?,
+            presence: f.presence()?,
+        })
+    }
+}
+
+/// How often a bridge without real-time priority looks for the current loop's answer.
+const ANSWER_CHECK_NS: u64 = 20_000;
+/// HELLO is repeated this often until the drive's CONFIG arrives.
+const HELLO_EVERY_NS: u64 = 50_000_000;
+/// A drive whose host answers "port unreachable" this long is not coming (it is not
+/// started, or the address is wrong): fail instead of waiting out the start-up timeout.
+const REFUSED_FOR_NS: u64 = 3_000_000_000;
+/// The longest the bridge polls its socket past a frame's due time before it blocks.
+const MAX_SPIN_PAST_DUE_NS: u64 = 100_000;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    /// HELLO until CONFIG.
+    Handshake {
+        next_hello_ns: u64,
+    },
+    /// Configured; waiting for the stack before enabling the drive.
+    Joining,
+    Running,
+}
+
+pub struct BridgeNode {
+    core: BridgeCore,
+    settings: BridgeSettings,
+    sample_hz: f64,
+    period_ns: u64,
+    phase: Phase,
+    refused_since_ns: Option<u64>,
+    /// A sample taken by `poll` for the coming cycle.
+    taken: Option<(DriveState, u64)>,
+    rx: [u8; 2048],
+}
+
+impl BridgeNode {
+    pub fn new(s: &Scenario, settings: BridgeSettings) -> Result<Self, RunError> {
+        if s.rates.compute_delay_periods != 1 {
+            return Err(RunError::node(
+                Role::Bridge,
+                BridgeError::ComputeDelay(s.rates.compute_delay_periods),
+            ));
+        }
+        Ok(Self {
+            core: BridgeCore::new(CoreSettings {
+                sample_hz: s.rates.current_loop_hz,
+                samples: s.sample_count(),
+                silence_periods: settings.silence_periods,
+                plan_every: settings.plan_every,
+                observer_hz: settings.observer_hz,
+                calibration: settings.calibration,
+            }),
+            sample_hz: s.rates.current_loop_hz,
+            period_ns: s.sample_period_ns(),
+            settings,
+            phase: Phase::Handshake { next_hello_ns: 0 },
+            refused_since_ns: None,
+            taken: None,
+            rx: [0; 2048],
+        })
+    }
+
+    pub fn core(&self) -> &BridgeCore {
+        &self.core
+    }
+
+    fn gone(&self, source: WireError) -> RunError {
+        RunError::node(
+            Role::Bridge,
+            BridgeError::Gone {
+                drive: self.settings.drive.clone(),
+                source,
+            },
+        )
+    }
+
+    /// Reads every frame queued. A refusal (nothing listens yet) is tolerated during the
+    /// handshake for a while, since the drive may be starting; a hang-up never is.
+    fn read_frames(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<(), RunError> {
+        loop {
+            match ports.wire.recv(&mut self.rx, 0) {
+                Ok(Some((len, _))) => {
+                    self.refused_since_ns = None;
+                    let now = cx.now();
+                    let received = self.core.on_frame(&self.rx[..len], now, cx.stats);
+                    if let Received::Config(c) = received {
+                        tracing::info!(?c, "drive configuration");
+                        if f64::from(c.sample_rate_hz) != self.sample_hz.round() {
+                            return Err(RunError::node(
+                                Role::Bridge,
+                                BridgeError::SampleRate {
+                                    drive: self.settings.drive.clone(),
+                                    drive_hz: c.sample_rate_hz,
+                                    scenario_hz: self.sample_hz,
+                                },
+                            ));
+                        }
+                    }
+                }
+                Ok(None) => return Ok(()),
+                Err(WireError::Refused) if matches!(self.phase, Phase::Handshake { .. }) => {
+                    let since = *self.refused_since_ns.get_or_insert(cx.now());
+                    if cx.now().saturating_sub(since) > REFUSED_FOR_NS {
+                        return Err(self.gone(WireError::Refused));
+                    }
+                    return Ok(());
+                }
+                Err(e) => return Err(self.gone(e)),
+            }
+        }
+    }
+
+    fn send(ports: &mut BridgePorts, frame: &Frame) {
+        let mut buf = [0u8; MAX_FRAME];
+        let n = encode(frame, &mut buf);
+        ports.wire.send(&buf[..n]);
+    }
+
+    /// Forwards every command queued, then the newest plan if it is due.
+    fn forward(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<(), RunError> {
+        while let Some(c) = ports.commands.receive()? {
+            if let Some(f) = self.core.command(&c, cx.now(), cx.stats) {
+                Self::send(ports, &f);
+            }
+        }
+        let core = &mut self.core;
+        ports.plans.drain(&mut |p| core.offer_plan(p))?;
+        if let Some(f) = self.core.plan_frame(cx.now()) {
+            Self::send(ports, &f);
+        }
+        Ok(())
+    }
+}
+
+impl Node for BridgeNode {
+    type Ports = BridgePorts;
+
+    fn role(&self) -> Role {
+        Role::Bridge
+    }
+
+    fn pace(&self) -> Pace {
+        Pace::Input
+    }
+
+    fn rate_hz(&self) -> f64 {
+        self.sample_hz
+    }
+
+    fn awaiting(&self) -> String {
+        let drive = &self.settings.drive;
+        match self.phase {
+            Phase::Handshake { .. } if self.refused_since_ns.is_some() => {
+                format!("a CONFIG from the drive at {drive} (nothing listens there yet)")
+            }
+            Phase::Handshake { .. } => format!("a CONFIG from the drive at {drive}"),
+            Phase::Joining => format!(
+                "the current loop, the position loop and {} state subscribers",
+                self.settings.wait_subscribers
+            ),
+            Phase::Running => format!("SAMPLE frames from the drive at {drive}"),
+        }
+    }
+
+    fn start(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<Start, RunError> {
+        if let Phase::Handshake { next_hello_ns } = self.phase {
+            let now = cx.now();
+            if now >= next_hello_ns {
+                let hello = self.core.hello(now);
+                Self::send(ports, &hello);
+                self.phase = Phase::Handshake {
+                    next_hello_ns: now + HELLO_EVERY_NS,
+                };
+            }
+            self.read_frames(ports, cx)?;
+            if !self.core.configured() {
+                return Ok(Start::Waiting);
+            }
+            self.phase = Phase::Joining;
+        }
+        let p = &ports.presence;
+        let ready = p.publishers(Topic::Command) >= 1
+            && p.publishers(Topic::Setpoint) >= 1
+            && p.subscribers(Topic::State) >= self.settings.wait_subscribers;
+        if !ready {
+            return Ok(Start::Waiting);
+        }
+        // Samples queued while the loops came up are stale: drop them and start the stream
+        // (k = 0) with the next one, then enable the drive.
+        while let Ok(Some(_)) = ports.wire.recv(&mut self.rx, 0) {}
+        for f in self.core.begin(cx.now()) {
+            Self::send(ports, &f);
+        }
+        self.phase = Phase::Running;
+        tracing::info!(drive = %self.settings.drive, "bridge running");
+        Ok(Start::NOW)
+    }
+
+    fn connect(&mut self, ports: &mut BridgePorts) -> Result<(), RunError> {
+        ports.states.connect()?;
+        Ok(())
+    }
+
+    fn poll(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<Poll, RunError> {
+        self.forward(ports, cx)?;
+        // Taken before the socket is read: if it holds nothing, nothing arrived up to here.
+        let looked_at = cx.now();
+        self.read_frames(ports, cx)?;
+        if let Some((st, rx_at)) = self.core.take_sample(cx.stats) {
+            self.taken = Some((st, rx_at));
+            cx.taken_at(rx_at);
+            return Ok(Poll::READY);
+        }
+        if let Some(fault_state) = self.core.on_quiet(looked_at, cx.now()) {
+            ports.states.publish(&fault_state)?;
+            ports.state_ready.notify()?;
+        }
+        Ok(Poll::Pending)
+    }
+
+    fn step(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<Flow, RunError> {
+        let Some((st, rx_at)) = self.taken.take() else {
+            return Ok(Flow::Continue);
+        };
+        let mut st = self.core.publish(st, rx_at);
+        st.publish_time_ns = cx.now();
+        ports.states.publish(&st)?;
+        // With real-time priorities the current loop, one above on this CPU, preempts us
+        // here and has answered when notify returns.
+        ports.state_ready.notify()?;
+        cx.answered();
+        self.forward(ports, cx)?;
+        Ok(if self.core.is_last(&st) {
+            Flow::Last
+        } else {
+            Flow::Continue
+        })
+    }
+
+    /// Asleep until the wait strategy's margin before the next frame is due, then polling:
+    /// a wake-up by the kernel would cost ~15 µs here (softirq, IPI, preemption). Without a
+    /// due time, or well past it (drive late or silent), it blocks in `poll()`.
+    fn due_ns(&self) -> Option<u64> {
+        self.core.due_ns()
+    }
+
+    fn spin_past_due_ns(&self) -> Option<u64> {
+        // A frame this late means the drive or the host was held up: stop spinning.
+        Some((2 * self.period_ns).min(MAX_SPIN_PAST_DUE_NS))
+    }
+
+    fn block(
+        &mut self,
+        ports: &mut BridgePorts,
+        now: u64,
+        until_ns: u64,
+    ) -> Result<bool, RunError> {
+        let mut until = until_ns;
+        if self.settings.look_for_answers && self.core.awaiting_answer(now) {
+            until = until.min(now + ANSWER_CHECK_NS);
+        }
+        wait_readable(ports.wire.raw_fd(), until.saturating_sub(now));
+        Ok(true)
+    }
+
+    fn report(&self, stats: &mut StatsReport) {
+        self.core.report(stats);
+    }
+
+    /// Every exit path: the drive's outputs off.
+    fn stop(&mut self, ports: &mut BridgePorts, cx: &mut Cx) {
+        if self.phase == Phase::Running {
+            let f = self.core.disable(cx.now());
+            Self::send(ports, &f);
+        }
+        let l = self.core.link();
+        tracing::info!(
+            crc_errors = l.crc_errors,
+            bad_frames = l.bad_frames,
+            rejected = l.rejected_commands,
+            lost = l.lost_on_wire,
+            "bridge stopped"
+        );
+    }
+}
+
+/// Sleeps until `fd` is readable or `timeout_ns` passes (EINTR too).
+fn wait_readable(fd: std::os::fd::RawFd, timeout_ns: u64) -> bool {
+    let mut pfd = libc::pollfd {
+        fd,
+        events: libc::POLLIN,
+        revents: 0,
+    };
+    let ts = libc::timespec {
+        tv_sec: (timeout_ns / 1_000_000_000) as libc::time_t,
+        tv_nsec: (timeout_ns % 1_000_000_000) as libc::c_long,
+    };
+    // SAFETY: one valid pollfd and timespec; no signal mask change.
+    unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) > 0 }
+}

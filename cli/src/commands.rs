@@ -1,0 +1,252 @@
+//! The sub-commands that are not a process of the stack: launching and simulating runs,
+//! measuring latency, printing and checking configuration.
+
+use crate::options::{seconds, ScenarioOpt, StackArgs, Throttling};
+use anyhow::{Context, Result};
+use clap::Args;
+use std::path::PathBuf;
+use stepdrive_monitor::latency::{run_latency, table as latency_table, LatencyOptions};
+use stepdrive_monitor::launcher::{run_stack, LaunchOptions};
+use stepdrive_monitor::metrics::RunReport;
+use stepdrive_monitor::report::{document, table};
+use stepdrive_monitor::simulate::{simulate as simulate_run, simulate_stalls};
+use stepdrive_runtime::deploy::Deployment;
+use stepdrive_runtime::rt::{rt_runtime_us, RtThrottlingOff};
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::{Method, Scenario};
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// Methods to run, in order (comma-separated or repeated): proposed, lyapunov, open_loop.
+    #[arg(long = "method", value_enum, value_delimiter = ',', default_values = ["proposed", "lyapunov"])]
+    methods: Vec<Method>,
+    /// Also write the results as JSON to FILE.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    /// lockstep: virtual time, bit-identical, as fast as possible. realtime: wall clock,
+    /// 20 kHz on absolute deadlines, late commands are held and counted. hardware: the
+    /// plant is a bridge to a drive (--drive, or an emulated one started for the run).
+    #[arg(long, value_enum, default_value_t = Mode::Lockstep)]
+    mode: Mode,
+    #[command(flatten)]
+    stack: StackArgs,
+}
+
+#[derive(Args, Debug)]
+pub struct SimulateArgs {
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// Methods to run, in order (comma-separated or repeated).
+    #[arg(long = "method", value_enum, value_delimiter = ',', default_values = ["proposed", "lyapunov"])]
+    methods: Vec<Method>,
+    /// Also write the results as JSON to FILE.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    /// Stall the current loop for PERIODS samples from AT seconds on (repeatable), with
+    /// the realtime plant's rules: each missing command is a miss, covered by the freshest
+    /// voltage plan (`drive.command_plan_periods`; 0 in the scenario holds the voltage
+    /// instead). Shows what a host stall of that length costs, without a clock.
+    #[arg(long = "stall", value_name = "AT:PERIODS", value_parser = parse_stall)]
+    stalls: Vec<(f64, u64)>,
+    /// With --stall: misses in a row before the plant's outputs go off.
+    #[arg(long, default_value_t = Deployment::default().watchdog_periods, value_parser = clap::value_parser!(u32).range(1..))]
+    watchdog_periods: u32,
+}
+
+/// `AT:PERIODS`, e.g. `1.2:33`.
+fn parse_stall(s: &str) -> Result<(f64, u64), String> {
+    let (at, periods) = s
+        .split_once(':')
+        .ok_or_else(|| format!("`{s}` is not AT:PERIODS (seconds:samples, e.g. 1.2:33)"))?;
+    let at: f64 = at
+        .parse()
+        .ok()
+        .filter(|t: &f64| t.is_finite() && *t >= 0.0)
+        .ok_or_else(|| format!("stall start `{at}` must be seconds ≥ 0"))?;
+    let periods: u64 = periods
+        .parse()
+        .ok()
+        .filter(|&p| p > 0)
+        .ok_or_else(|| format!("stall length `{periods}` must be a number of samples ≥ 1"))?;
+    Ok((at, periods))
+}
+
+#[derive(Args, Debug)]
+pub struct LatencyArgs {
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// Directory for latency.json, *.hist and latency.svg.
+    #[arg(long, value_name = "DIR", default_value = "latency-report")]
+    out: PathBuf,
+    /// Length of each baseline (ping-pongs, cyclictest), seconds; default: the run's
+    /// duration, at most 20.
+    #[arg(long, value_name = "S")]
+    baseline_duration: Option<f64>,
+    /// Only measure the stack.
+    #[arg(long)]
+    skip_baselines: bool,
+    #[command(flatten)]
+    stack: StackArgs,
+}
+
+#[derive(Args, Debug)]
+pub struct CheckArgs {
+    /// Validate this file instead of printing the defaults.
+    #[arg(long, value_name = "FILE")]
+    check: Option<PathBuf>,
+}
+
+fn write_outputs(s: &Scenario, runs: &[RunReport], json: Option<&PathBuf>) -> Result<()> {
+    println!("scenario: {}", s.name);
+    print!("{}", table(s, runs));
+    if let Some(path) = json {
+        let text = serde_json::to_string_pretty(&document(s, runs))?;
+        std::fs::write(path, text + "\n")
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        println!("results written to {}", path.display());
+    }
+    Ok(())
+}
+
+/// Applies `--rt-throttling` for the life of the returned guard.
+fn throttling_guard(a: &StackArgs, d: &Deployment, mode: Mode) -> Result<Option<RtThrottlingOff>> {
+    if mode == Mode::Lockstep {
+        return Ok(None);
+    }
+    if a.rt_throttling == Throttling::Off {
+        match RtThrottlingOff::engage() {
+            Ok(g) => return Ok(g),
+            Err(e) if d.require_rt => return Err(e.into()),
+            Err(e) => tracing::warn!("{}; continuing with RT throttling on", e.describe()),
+        }
+    }
+    // RT throttling takes a spinning SCHED_FIFO task off its CPU for up to 50 ms a second
+    // when ordinary tasks want that CPU; say so once.
+    if let Some(us) = rt_runtime_us().filter(|&us| us != -1) {
+        tracing::info!(
+            "RT throttling is on (sched_rt_runtime_us = {us}): SCHED_FIFO tasks may lose their CPU \
+             for {} ms a second when ordinary tasks need it (--rt-throttling off disables it for \
+             the run; see the README)",
+            (1_000_000 - us) / 1000
+        );
+    }
+    Ok(None)
+}
+
+pub fn run(a: RunArgs) -> Result<()> {
+    let mut s = a.scenario.load()?;
+    a.stack.apply_duration(&mut s)?;
+    let deployment = a.stack.deployment(a.mode)?;
+    let _throttling = throttling_guard(&a.stack, &deployment, a.mode)?;
+    let opts = LaunchOptions {
+        instance: a.stack.instance.clone(),
+        mode: a.mode,
+        deployment,
+    };
+    let mut runs = Vec::new();
+    for method in &a.methods {
+        tracing::info!(
+            "{method}: launching plant, position loop and current loop ({}, {:.1} s)",
+            a.mode.as_str(),
+            s.duration_s()
+        );
+        let report =
+            run_stack(&s, *method, &opts).with_context(|| format!("the {method} run failed"))?;
+        runs.push(report);
+    }
+    write_outputs(&s, &runs, a.json.as_ref())
+}
+
+pub fn simulate(a: SimulateArgs) -> Result<()> {
+    let s = a.scenario.load()?;
+    let mut runs = Vec::with_capacity(a.methods.len());
+    if a.stalls.is_empty() {
+        for m in &a.methods {
+            runs.push(simulate_run(&s, *m).with_context(|| format!("the {m} simulation failed"))?);
+        }
+        return write_outputs(&s, &runs, a.json.as_ref());
+    }
+    let duration = s.duration_s();
+    let mut stalls = Vec::with_capacity(a.stalls.len());
+    for &(at, periods) in &a.stalls {
+        if at >= duration {
+            anyhow::bail!("--stall {at}:{periods} starts after the run ({duration} s)");
+        }
+        let start = (at * s.rates.current_loop_hz).round() as u64;
+        stalls.push(start..start + periods);
+    }
+    for m in &a.methods {
+        let (report, record) = simulate_stalls(&s, *m, &stalls, a.watchdog_periods)
+            .with_context(|| format!("the {m} simulation failed"))?;
+        println!(
+            "{m}: {} periods without their command, {} of them covered by a plan, longest run {}",
+            record.misses, record.planned, record.longest_run
+        );
+        runs.push(report);
+    }
+    write_outputs(&s, &runs, a.json.as_ref())
+}
+
+pub fn latency(a: LatencyArgs) -> Result<()> {
+    let mut s = a.scenario.load()?;
+    if a.stack.duration.is_none() {
+        s.run.duration_s = Some(60.0);
+    }
+    a.stack.apply_duration(&mut s)?;
+    let deployment = a.stack.deployment(Mode::Realtime)?;
+    let _throttling = throttling_guard(&a.stack, &deployment, Mode::Realtime)?;
+    let baseline = a.baseline_duration.unwrap_or(s.duration_s().min(20.0));
+    let baseline_duration = seconds(baseline)
+        .map_err(anyhow::Error::msg)
+        .context("--baseline-duration")?;
+    let opts = LatencyOptions {
+        out: a.out.clone(),
+        baseline_duration,
+        launch: LaunchOptions {
+            instance: a.stack.instance.clone(),
+            mode: Mode::Realtime,
+            deployment,
+        },
+        skip_baselines: a.skip_baselines,
+    };
+    let report = run_latency(&s, &opts)?;
+    write_outputs(&s, std::slice::from_ref(&report.run), None)?;
+    println!();
+    print!("{}", latency_table(&report));
+    println!(
+        "written: {}/latency.json, latency.svg, *.hist",
+        a.out.display()
+    );
+    Ok(())
+}
+
+pub fn scenario(a: CheckArgs) -> Result<()> {
+    match a.check {
+        Some(path) => {
+            let s = Scenario::from_toml_file(&path)?;
+            println!(
+                "{}: valid ({} s, {} samples, {} Hz / {} Hz)",
+                path.display(),
+                s.duration_s(),
+                s.sample_count(),
+                s.rates.current_loop_hz,
+                s.rates.position_loop_hz
+            );
+        }
+        None => print!("{}", Scenario::default().to_toml_string()?),
+    }
+    Ok(())
+}
+
+pub fn deploy(a: CheckArgs) -> Result<()> {
+    match a.check {
+        Some(path) => {
+            Deployment::from_toml_file(&path)?;
+            println!("{}: valid", path.display());
+        }
+        None => print!("{}", Deployment::default().to_toml_string()),
+    }
+    Ok(())
+}

@@ -1,0 +1,114 @@
+//! `stepdrive`: one binary, one sub-command per role. `run` launches the whole stack; `plant`,
+//! `current-loop` and `position-loop` are the three processes (start them by hand in three
+//! terminals and they find each other by instance name). This crate only parses the
+//! command line and hands over: the processes are nodes of `stepdrive-runtime`'s runner.
+
+mod commands;
+mod options;
+mod roles;
+
+use clap::{Parser, Subcommand};
+use std::process::ExitCode;
+use stepdrive_runtime::poll::install_termination_handler;
+use stepdrive_runtime::RunError;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "stepdrive",
+    version,
+    about = "Position control of two-phase PM stepper motors: plant, current loop and position loop as separate processes over iceoryx2",
+    long_about = "Position control of two-phase PM stepper motors (Kim, Shin & Chung: microstepping with \
+nonlinear torque modulation). The plant, the current loop and the position/torque loop run as \
+separate processes that exchange state through iceoryx2 shared memory.\n\n\
+`stepdrive run` launches all three, runs the scenario for each method and prints a table. \
+Logs go to stderr (RUST_LOG=debug for more; IOX2_LOG_LEVEL for iceoryx2's own)."
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Cmd,
+}
+
+#[derive(Subcommand, Debug)]
+enum Cmd {
+    /// Launch plant, position loop and current loop as processes, run the scenario for each
+    /// method, print the side-by-side table (and JSON with --json).
+    Run(commands::RunArgs),
+    /// The same nodes in one process on virtual time, no IPC: the reference a `run` must
+    /// reproduce exactly; with --stall, what a host stall of the current loop costs.
+    Simulate(commands::SimulateArgs),
+    /// The plant process: motor model eq. (1), publishes drive/state, applies drive/command;
+    /// in hardware mode a bridge to a drive.
+    Plant(roles::PlantArgs),
+    /// The current-loop process: commutation (17) + sampled current tracking (22), or a baseline.
+    CurrentLoop(roles::CurrentLoopArgs),
+    /// The position/torque-loop process: trajectory + torque modulation (12).
+    PositionLoop(options::ProcessArgs),
+    /// Print the default scenario as TOML, or check a scenario file.
+    Scenario(commands::CheckArgs),
+    /// Print the default deployment (wait strategies, priorities, CPUs, timeouts, watchdog,
+    /// drive link) as TOML, or check a deployment file.
+    Deploy(commands::CheckArgs),
+    /// Latency and jitter of the live stack in realtime mode, beside bare iceoryx2 and
+    /// Unix-socket ping-pong and cyclictest: table, latency.json, cyclictest-compatible
+    /// histograms and a log-y plot in --out DIR.
+    Latency(commands::LatencyArgs),
+    /// A stand-in driver board: the motor model behind the drive wire protocol
+    /// (docs/drive-protocol.md) on UDP or a serial line, with its own sample clock and
+    /// fault injection.
+    EmulateDrive(roles::EmulateArgs),
+    /// Transport baseline process used by `latency` (ping paced like the plant, pong waiting
+    /// like the current loop).
+    #[command(hide = true)]
+    Pingpong(roles::PingpongArgs),
+}
+
+fn init_logging() {
+    use tracing_subscriber::EnvFilter;
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Warn);
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    // SAFETY: isatty only inspects a descriptor.
+    let ansi = unsafe { libc::isatty(libc::STDERR_FILENO) } == 1;
+    tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .with_ansi(ansi)
+        .with_target(false)
+        .init();
+}
+
+fn dispatch(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Cmd::Run(a) => commands::run(a),
+        Cmd::Simulate(a) => commands::simulate(a),
+        Cmd::Plant(a) => roles::plant(a),
+        Cmd::CurrentLoop(a) => roles::current_loop(a),
+        Cmd::PositionLoop(a) => roles::position_loop(a),
+        Cmd::Scenario(a) => commands::scenario(a),
+        Cmd::Deploy(a) => commands::deploy(a),
+        Cmd::Latency(a) => commands::latency(a),
+        Cmd::EmulateDrive(a) => roles::emulate_drive(a),
+        Cmd::Pingpong(a) => roles::pingpong(a),
+    }
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    init_logging();
+    install_termination_handler();
+    match dispatch(cli) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            // One line, prefixed, so a launcher can pick it out of our stderr.
+            eprintln!("error: {e:#}");
+            let terminated = e.chain().any(|c| {
+                c.downcast_ref::<RunError>()
+                    .is_some_and(RunError::is_terminated)
+            });
+            if terminated {
+                ExitCode::from(130)
+            } else {
+                ExitCode::FAILURE
+            }
+        }
+    }
+}

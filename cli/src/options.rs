@@ -1,0 +1,334 @@
+//! Command-line options shared by several sub-commands, and how they turn into a scenario
+//! and a deployment. Every deployment default lives in `stepdrive_runtime::deploy`; options
+//! here only override it.
+
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use std::path::PathBuf;
+use std::time::Duration;
+use stepdrive_runtime::deploy::{Deployment, Process};
+use stepdrive_runtime::pacer::WaitStrategy;
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::services::DEFAULT_INSTANCE;
+use stepdrive_shared::Scenario;
+
+/// A run length or timeout: positive, finite, below 1e6 s.
+pub fn seconds(v: f64) -> Result<Duration, String> {
+    if v.is_finite() && v > 0.0 && v < 1e6 {
+        Ok(Duration::from_secs_f64(v))
+    } else {
+        Err(format!(
+            "must be a positive number of seconds below 1e6 (got {v})"
+        ))
+    }
+}
+
+pub fn parse_seconds(s: &str) -> Result<Duration, String> {
+    let v: f64 = s
+        .parse()
+        .map_err(|_| format!("`{s}` is not a number of seconds"))?;
+    seconds(v)
+}
+
+/// `N` or `none`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Cpu(pub Option<usize>);
+
+impl std::str::FromStr for Cpu {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        if s == "none" {
+            return Ok(Cpu(None));
+        }
+        s.parse()
+            .map(|c| Cpu(Some(c)))
+            .map_err(|_| format!("`{s}` is not a CPU number (or `none`)"))
+    }
+}
+
+/// `PLANT,CURRENT` or `none`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Cpus(pub Option<(usize, usize)>);
+
+impl std::str::FromStr for Cpus {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        if s == "none" {
+            return Ok(Cpus(None));
+        }
+        let bad = || format!("`{s}` is not PLANT,CURRENT (two CPU numbers, e.g. 0,1) or none");
+        let (a, b) = s.split_once(',').ok_or_else(bad)?;
+        let a = a.trim().parse().map_err(|_| bad())?;
+        let b = b.trim().parse().map_err(|_| bad())?;
+        Ok(Cpus(Some((a, b))))
+    }
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct ScenarioOpt {
+    /// Scenario TOML file (motor, load, drive, gains, rates, trajectory, metrics); absent
+    /// fields take the paper's Section V defaults. `stepdrive scenario` prints them.
+    #[arg(long, value_name = "FILE")]
+    pub scenario: Option<PathBuf>,
+}
+
+impl ScenarioOpt {
+    pub fn load(&self) -> Result<Scenario> {
+        match &self.scenario {
+            Some(path) => Ok(Scenario::from_toml_file(path)?),
+            None => Ok(Scenario::default()),
+        }
+    }
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct DeployOpt {
+    /// Deployment TOML file: wait strategies, priorities, CPUs, timeouts, watchdog, drive
+    /// link (`stepdrive deploy` prints the defaults; `run` writes one for its children).
+    /// Options given on the command line override it.
+    #[arg(long = "deploy", value_name = "FILE")]
+    pub file: Option<PathBuf>,
+}
+
+impl DeployOpt {
+    pub fn load(&self) -> Result<Deployment> {
+        match &self.file {
+            Some(path) => Ok(Deployment::from_toml_file(path)?),
+            None => Ok(Deployment::default()),
+        }
+    }
+}
+
+#[derive(Args, Debug, Clone)]
+pub struct Timeouts {
+    /// Longest wait for the other processes to come up, seconds (default 30).
+    #[arg(long, value_name = "S", value_parser = parse_seconds)]
+    pub startup_timeout_s: Option<Duration>,
+    /// Longest silence of a peer before a process stops, seconds (default 5).
+    #[arg(long, value_name = "S", value_parser = parse_seconds)]
+    pub peer_timeout_s: Option<Duration>,
+}
+
+impl Timeouts {
+    pub fn apply(&self, d: &mut Deployment) {
+        if let Some(t) = self.startup_timeout_s {
+            d.startup_timeout_s = t.as_secs_f64();
+        }
+        if let Some(t) = self.peer_timeout_s {
+            d.peer_timeout_s = t.as_secs_f64();
+        }
+    }
+}
+
+/// Real-time settings of one process, as cyclictest's -p, -a, -m; override its deployment.
+#[derive(Args, Debug, Clone)]
+pub struct PlacementArgs {
+    /// Realtime: how this process waits: sleep (clock_nanosleep), spin, hybrid:<µs> (sleep to
+    /// that margin before the deadline, then spin), or event (current loop, hardware mode:
+    /// sleep until the bridge raises state-ready). Defaults (`stepdrive deploy`): plant and
+    /// emulated drive hybrid:25, current loop hybrid:40 (hardware: event), position loop
+    /// sleep, bridge hybrid:30 with a priority, else sleep.
+    #[arg(long, value_name = "STRATEGY")]
+    pub wait: Option<WaitStrategy>,
+    /// Realtime: SCHED_FIFO priority 1-99, 0 for SCHED_OTHER (default: the deployment's).
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=99))]
+    pub priority: Option<u8>,
+    /// Realtime: pin to this CPU, or `none`.
+    #[arg(long, value_name = "N|none")]
+    pub cpu: Option<Cpu>,
+    /// Realtime: do not mlockall.
+    #[arg(long)]
+    pub no_mlock: bool,
+    /// Realtime: timer slack in ns (kernel default 50000, a whole 20 kHz period).
+    #[arg(long, value_name = "NS")]
+    pub timer_slack_ns: Option<u64>,
+    /// Fail if the system refuses a real-time setting instead of warning and going on.
+    #[arg(long)]
+    pub require_rt: bool,
+}
+
+impl PlacementArgs {
+    pub fn apply(&self, d: &mut Deployment, process: Process) {
+        let p = d.placement_mut(process);
+        if self.wait.is_some() {
+            p.wait = self.wait;
+        }
+        if let Some(prio) = self.priority {
+            p.priority = (prio > 0).then_some(prio);
+        }
+        if let Some(Cpu(cpu)) = self.cpu {
+            p.cpu = cpu;
+        }
+        if self.no_mlock {
+            d.lock_memory = false;
+        }
+        if let Some(ns) = self.timer_slack_ns {
+            d.timer_slack_ns = ns;
+        }
+        d.require_rt |= self.require_rt;
+    }
+}
+
+/// What every process of the stack takes.
+#[derive(Args, Debug, Clone)]
+pub struct ProcessArgs {
+    /// Instance namespace of the services; stacks with different instances never interact.
+    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    pub instance: String,
+    #[command(flatten)]
+    pub scenario: ScenarioOpt,
+    /// Timing mode: lockstep (virtual time), realtime (wall clock) or hardware (the plant is
+    /// a bridge to a drive). All processes of a stack must use the same.
+    #[arg(long, value_enum, default_value_t = Mode::Lockstep)]
+    pub mode: Mode,
+    #[command(flatten)]
+    pub deploy: DeployOpt,
+    #[command(flatten)]
+    pub timeouts: Timeouts,
+    #[command(flatten)]
+    pub placement: PlacementArgs,
+}
+
+impl ProcessArgs {
+    /// The deployment file (or the defaults) with this command line's overrides for
+    /// `process`.
+    pub fn deployment(&self, process: Process) -> Result<Deployment> {
+        let mut d = self.deploy.load()?;
+        self.timeouts.apply(&mut d);
+        self.placement.apply(&mut d, process);
+        d.validate().context("command-line options")?;
+        Ok(d)
+    }
+}
+
+/// `--rt-throttling`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum Throttling {
+    On,
+    Off,
+}
+
+/// Options of a launched stack.
+#[derive(Args, Debug)]
+pub struct StackArgs {
+    /// Instance namespace of the services.
+    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    pub instance: String,
+    #[command(flatten)]
+    pub deploy: DeployOpt,
+    #[command(flatten)]
+    pub timeouts: Timeouts,
+    /// Run length in seconds; past one pass of the trajectory the move repeats back and forth.
+    #[arg(long, value_name = "S")]
+    pub duration: Option<f64>,
+    /// Realtime: SCHED_FIFO priority of plant and current loop (position loop: one more;
+    /// bridge: one less than the current loop); 0 keeps everything SCHED_OTHER. Default 80.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=99))]
+    pub priority: Option<u8>,
+    /// Realtime: SCHED_FIFO priority of the current loop alone (default: --priority);
+    /// 0 runs it SCHED_OTHER, which RT throttling does not touch.
+    #[arg(long, value_parser = clap::value_parser!(u8).range(0..=99))]
+    pub current_priority: Option<u8>,
+    /// Realtime: CPUs as PLANT,CURRENT: the plant and position loop (hardware: the drive) are
+    /// pinned to the first, the current loop (and the bridge) to the second. `none` disables
+    /// pinning. Default 0,1.
+    #[arg(long, value_name = "A,B|none")]
+    pub cpus: Option<Cpus>,
+    /// Realtime: do not mlockall.
+    #[arg(long)]
+    pub no_mlock: bool,
+    /// Realtime: timer slack of every loop, ns (default 1000).
+    #[arg(long, value_name = "NS")]
+    pub timer_slack_ns: Option<u64>,
+    /// Fail if the system refuses a real-time setting.
+    #[arg(long)]
+    pub require_rt: bool,
+    /// Realtime: wait strategy of the plant (default hybrid:25: sleeps to 25 µs before each
+    /// deadline and spins the rest, so samples leave on time although a timer wake-up here
+    /// takes ~25 µs).
+    #[arg(long, value_name = "STRATEGY")]
+    pub plant_wait: Option<WaitStrategy>,
+    /// Realtime: wait strategy of the current loop (default hybrid:40: sleep to 40 µs
+    /// before the next sample's deadline, then poll; hardware mode: event).
+    #[arg(long, value_name = "STRATEGY")]
+    pub current_wait: Option<WaitStrategy>,
+    /// Realtime: wait strategy of the position loop (default sleep).
+    #[arg(long, value_name = "STRATEGY")]
+    pub position_wait: Option<WaitStrategy>,
+    /// Realtime: `off` sets sched_rt_runtime_us to -1 for the run and restores it after
+    /// (root). With throttling on, SCHED_FIFO tasks lose their CPU up to 50 ms a second
+    /// whenever ordinary tasks want it; see the README's latency section.
+    #[arg(long, value_enum, default_value_t = Throttling::On)]
+    pub rt_throttling: Throttling,
+    /// Hardware mode: the drive's address, host:port on UDP (a name is resolved); without
+    /// it (or --drive-port) an emulated drive is started on loopback.
+    #[arg(long, value_name = "HOST:PORT")]
+    pub drive: Option<String>,
+    /// Hardware mode: the drive's serial line (an MCU board, COBS framing), e.g.
+    /// /dev/ttyACM0, instead of UDP.
+    #[arg(long, value_name = "PATH", conflicts_with = "drive")]
+    pub drive_port: Option<PathBuf>,
+    /// Realtime: periods without a command before the plant (or drive) turns its outputs off
+    /// and latches a fault (default 200 = 10 ms at 20 kHz).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
+    pub watchdog_periods: Option<u32>,
+}
+
+impl StackArgs {
+    /// The stack's deployment: the file (or the defaults), then this command line.
+    pub fn deployment(&self, mode: Mode) -> Result<Deployment> {
+        let mut d = self.deploy.load()?;
+        self.timeouts.apply(&mut d);
+        if self.priority.is_some() || self.current_priority.is_some() {
+            let plant = self.priority.or(d.plant.priority).unwrap_or(0);
+            let current = self.current_priority.or(self.priority).unwrap_or(plant);
+            d.set_priorities(plant, current);
+        }
+        if let Some(Cpus(cpus)) = self.cpus {
+            d.set_cpus(cpus);
+        }
+        if self.no_mlock {
+            d.lock_memory = false;
+        }
+        if let Some(ns) = self.timer_slack_ns {
+            d.timer_slack_ns = ns;
+        }
+        d.require_rt |= self.require_rt;
+        for (wait, process) in [
+            (self.plant_wait, Process::Plant),
+            (self.current_wait, Process::CurrentLoop),
+            (self.position_wait, Process::PositionLoop),
+        ] {
+            if wait.is_some() {
+                d.placement_mut(process).wait = wait;
+            }
+        }
+        if let Some(n) = self.watchdog_periods {
+            d.watchdog_periods = n;
+        }
+        let drive = match (&self.drive, &self.drive_port) {
+            (Some(addr), _) => Some(addr.clone()),
+            (None, Some(path)) => Some(format!("serial:{}", path.display())),
+            (None, None) => None,
+        };
+        if drive.is_some() && mode != Mode::Hardware {
+            anyhow::bail!(
+                "--drive and --drive-port are for --mode hardware (this run is {})",
+                mode.as_str()
+            );
+        }
+        if drive.is_some() {
+            d.drive.address = drive;
+        }
+        d.validate().context("command-line options")?;
+        Ok(d)
+    }
+
+    pub fn apply_duration(&self, s: &mut Scenario) -> Result<()> {
+        if let Some(d) = self.duration {
+            s.run.duration_s = Some(d);
+            s.validate().context("--duration")?;
+        }
+        Ok(())
+    }
+}

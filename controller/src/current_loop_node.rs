@@ -1,0 +1,254 @@
+//! The current loop as a node of the runner: woken by each state sample, it answers with
+//! the command computed by [`CurrentLoop`] from that state and the position loop's latest
+//! setpoint, then publishes the voltage plan (realtime). In lockstep it answers every sample
+//! in order and waits for the setpoint of each position-loop tick; in realtime it answers
+//! the newest sample and uses the newest setpoint. Its deadline for sample k is the plant's
+//! deadline k + d, the period the answer is applied in.
+
+use crate::current_loop::CurrentLoop;
+use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
+use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
+use stepdrive_runtime::RunError;
+use stepdrive_shared::messages::{
+    state_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint,
+};
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::services::{Topic, LOOP_BUFFER};
+use stepdrive_shared::{Method, Scenario};
+
+/// What the current loop reads and writes.
+pub struct CurrentLoopPorts {
+    pub states: Box<dyn Subscribe<DriveState>>,
+    pub setpoints: Box<dyn Subscribe<TorqueSetpoint>>,
+    pub commands: Box<dyn Publish<DriveCommand>>,
+    /// Realtime: the voltage plan after each command.
+    pub plans: Option<Box<dyn Publish<DrivePlan>>>,
+    /// `event` wait (hardware mode): the bridge's state-ready event.
+    pub state_ready: Option<Box<dyn Listen>>,
+    pub presence: Box<dyn Presence>,
+}
+
+impl CurrentLoopPorts {
+    pub fn open(f: &mut impl PortFactory, mode: Mode, event: bool) -> Result<Self, PortError> {
+        Ok(Self {
+            states: f.subscriber(LOOP_BUFFER)?,
+            setpoints: f.subscriber(LOOP_BUFFER)?,
+            commands: f.publisher()?,
+            plans: match mode {
+                Mode::Lockstep => None,
+                _ => Some(f.publisher()?),
+            },
+            state_ready: if event { Some(f.listener()?) } else { None },
+            presence: f.presence()?,
+        })
+    }
+}
+
+/// A lockstep stream that skipped or reordered: the plant or position loop broke the
+/// protocol.
+#[derive(Debug, thiserror::Error)]
+pub enum SequenceError {
+    #[error("expected state sample {expected}, got {got} (lockstep never skips)")]
+    State { expected: u64, got: u64 },
+    #[error("a setpoint computed from sample {got} arrived for sample {expected}")]
+    Setpoint { expected: u64, got: u64 },
+}
+
+pub struct CurrentLoopNode {
+    body: CurrentLoop,
+    lockstep: bool,
+    ratio: u64,
+    period_ns: u64,
+    answer_budget_ns: u64,
+    rate_hz: f64,
+    setpoint: TorqueSetpoint,
+    /// Lockstep: the sample `setpoint` was computed from.
+    setpoint_for: Option<u64>,
+    /// The state taken for the coming cycle.
+    state: Option<DriveState>,
+    last_seq: Option<u64>,
+    due_ns: Option<u64>,
+    started: bool,
+}
+
+impl CurrentLoopNode {
+    pub fn new(s: &Scenario, method: Method, mode: Mode) -> Self {
+        let lockstep = mode == Mode::Lockstep;
+        let body = CurrentLoop::new(s, method);
+        let period_ns = s.sample_period_ns();
+        Self {
+            // The lockstep plant waits for every command, so it never needs a plan.
+            body: if lockstep {
+                body.with_plan_periods(0)
+            } else {
+                body
+            },
+            lockstep,
+            ratio: s.rate_ratio(),
+            period_ns,
+            answer_budget_ns: period_ns * u64::from(s.rates.compute_delay_periods.max(1)),
+            rate_hz: s.rates.current_loop_hz,
+            setpoint: TorqueSetpoint::default(),
+            setpoint_for: None,
+            state: None,
+            last_seq: None,
+            due_ns: None,
+            started: false,
+        }
+    }
+
+    fn poll_lockstep(&mut self, ports: &mut CurrentLoopPorts) -> Result<Poll, RunError> {
+        let state = match self.state {
+            Some(s) => s,
+            None => {
+                let Some(s) = ports.states.receive()? else {
+                    return Ok(Poll::Pending);
+                };
+                let expected = self.last_seq.map_or(0, |q| q + 1);
+                if s.seq != expected {
+                    let e = SequenceError::State {
+                        expected,
+                        got: s.seq,
+                    };
+                    return Err(RunError::node(Role::CurrentLoop, e));
+                }
+                self.state = Some(s);
+                s
+            }
+        };
+        if state.seq % self.ratio == 0 && self.setpoint_for != Some(state.seq) {
+            let Some(sp) = ports.setpoints.receive()? else {
+                return Ok(Poll::Pending);
+            };
+            if sp.from_state_seq != state.seq {
+                let e = SequenceError::Setpoint {
+                    expected: state.seq,
+                    got: sp.from_state_seq,
+                };
+                return Err(RunError::node(Role::CurrentLoop, e));
+            }
+            self.setpoint = sp;
+            self.setpoint_for = Some(state.seq);
+        }
+        Ok(Poll::READY)
+    }
+
+    fn poll_realtime(&mut self, ports: &mut CurrentLoopPorts) -> Result<Poll, RunError> {
+        // Older states are stale for a realtime loop; they show up as skipped.
+        let Some(state) = ports.states.newest()? else {
+            return Ok(Poll::Pending);
+        };
+        let skipped = self
+            .last_seq
+            .map_or(0, |prev| state.seq.saturating_sub(prev + 1));
+        self.state = Some(state);
+        if let Some(sp) = ports.setpoints.newest()? {
+            self.setpoint = sp;
+        }
+        Ok(Poll::Ready {
+            fresh: true,
+            skipped,
+        })
+    }
+}
+
+impl Node for CurrentLoopNode {
+    type Ports = CurrentLoopPorts;
+
+    fn role(&self) -> Role {
+        Role::CurrentLoop
+    }
+
+    fn pace(&self) -> Pace {
+        Pace::Input
+    }
+
+    fn rate_hz(&self) -> f64 {
+        self.rate_hz
+    }
+
+    fn awaiting(&self) -> String {
+        match self.state {
+            _ if !self.started => "a plant subscribed to drive/command".to_string(),
+            Some(s) => format!("the setpoint for sample {} from the position loop", s.seq),
+            None => "drive/state from the plant".to_string(),
+        }
+    }
+
+    fn start(&mut self, ports: &mut CurrentLoopPorts, _cx: &mut Cx) -> Result<Start, RunError> {
+        self.started = ports.presence.subscribers(Topic::Command) >= 1;
+        Ok(if self.started {
+            Start::NOW
+        } else {
+            Start::Waiting
+        })
+    }
+
+    fn connect(&mut self, ports: &mut CurrentLoopPorts) -> Result<(), RunError> {
+        ports.commands.connect()?;
+        if let Some(plans) = &mut ports.plans {
+            plans.connect()?;
+        }
+        Ok(())
+    }
+
+    fn poll(&mut self, ports: &mut CurrentLoopPorts, _cx: &mut Cx) -> Result<Poll, RunError> {
+        if self.lockstep {
+            self.poll_lockstep(ports)
+        } else {
+            self.poll_realtime(ports)
+        }
+    }
+
+    fn step(&mut self, ports: &mut CurrentLoopPorts, cx: &mut Cx) -> Result<Flow, RunError> {
+        let Some(state) = self.state.take() else {
+            return Ok(Flow::Continue);
+        };
+        cx.stats
+            .hop
+            .record(cx.woke_ns.saturating_sub(state.publish_time_ns));
+        let mut command = self.body.on_sample(&state, &self.setpoint);
+        command.publish_time_ns = cx.now();
+        ports.commands.publish(&command)?;
+        let done = cx.answered();
+        if !self.lockstep && done > state.deadline_ns + self.answer_budget_ns {
+            cx.stats.misses += 1;
+        }
+        // After the command, so that planning never delays it.
+        if let Some(plans) = &mut ports.plans {
+            let mut plan = *self.body.plan();
+            if plan.len > 0 {
+                plan.publish_time_ns = cx.now();
+                plans.publish(&plan)?;
+            }
+        }
+        self.last_seq = Some(state.seq);
+        if !self.lockstep {
+            self.due_ns = Some(state.deadline_ns + self.period_ns);
+        }
+        Ok(if state.flags & state_flags::LAST != 0 {
+            Flow::Last
+        } else {
+            Flow::Continue
+        })
+    }
+
+    fn due_ns(&self) -> Option<u64> {
+        self.due_ns
+    }
+
+    /// `event` wait: asleep until the bridge raises state-ready (its 1 ms timeout is
+    /// jiffy-grained here, the wake-up on the event is not).
+    fn block(
+        &mut self,
+        ports: &mut CurrentLoopPorts,
+        _now_ns: u64,
+        _until_ns: u64,
+    ) -> Result<bool, RunError> {
+        let Some(ready) = &mut ports.state_ready else {
+            return Ok(false);
+        };
+        ready.wait(std::time::Duration::from_millis(1))?;
+        Ok(true)
+    }
+}

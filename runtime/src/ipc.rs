@@ -1,0 +1,374 @@
+//! Ports on iceoryx2 shared memory: the transport between the stack's processes. Every
+//! service is opened with the settings the contract gives its topic
+//! (`stepdrive_shared::services::Topic::qos`), so every opener agrees.
+
+use crate::port::{
+    BoxedError, Listen, Notify, PortError, PortFactory, Presence, Publish, Subscribe,
+};
+use iceoryx2::port::listener::ListenerWaitError;
+use iceoryx2::port::update_connections::UpdateConnections;
+use iceoryx2::prelude::*;
+use iceoryx2::service::port_factory::PortFactory as _;
+use std::time::{Duration, Instant};
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::services::{Message, ServiceNames, Topic};
+use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::{DriveCommand, DriveState, TorqueSetpoint};
+
+type Ipc = ipc::Service;
+type TopicFactory<M> = iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, M, ()>;
+type EventFactory = iceoryx2::service::port_factory::event::PortFactory<Ipc>;
+
+fn boxed<E: std::error::Error + Send + Sync + 'static>(e: E) -> BoxedError {
+    Box::new(e)
+}
+
+/// iceoryx2 configuration built in code: without it iceoryx2 would silently read a
+/// `config/iceoryx2.toml` from the working directory or the user's home.
+pub fn iceoryx_config() -> Config {
+    Config::default()
+}
+
+/// One process's iceoryx2 node on one stack instance: opens the stack's ports.
+pub struct IpcBus {
+    node: Node<Ipc>,
+    names: ServiceNames,
+    mode: Mode,
+}
+
+impl IpcBus {
+    /// Creates this process's node (named `role`) on `instance`; every port it opens uses the
+    /// settings of `mode` (all processes of a stack must run the same mode).
+    pub fn open(instance: &str, role: &str, mode: Mode) -> Result<Self, PortError> {
+        let names = ServiceNames::new(instance)?;
+        let node_name = names.node(role);
+        let node_error = |source| PortError::Node {
+            node: node_name.clone(),
+            source,
+        };
+        let name: NodeName = node_name
+            .as_str()
+            .try_into()
+            .map_err(|e| node_error(boxed(e)))?;
+        let node = NodeBuilder::new()
+            .name(&name)
+            .config(&iceoryx_config())
+            // We handle SIGINT/SIGTERM ourselves (`poll::install_termination_handler`).
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<Ipc>()
+            .map_err(|e| node_error(boxed(e)))?;
+        Ok(Self { node, names, mode })
+    }
+
+    pub fn mode(&self) -> Mode {
+        self.mode
+    }
+
+    /// Opens or creates a service with `open`. Two processes starting together may race to
+    /// create a service; the loser sees a transient error and retries.
+    fn service<F, E: std::error::Error + Send + Sync + 'static>(
+        &self,
+        name: &str,
+        open: impl Fn(iceoryx2::service::builder::Builder<Ipc>) -> Result<F, E>,
+    ) -> Result<F, PortError> {
+        let error = |source| PortError::Open {
+            service: name.to_string(),
+            source,
+        };
+        let service_name: ServiceName = name.try_into().map_err(|e| error(boxed(e)))?;
+        let deadline = Instant::now() + Duration::from_secs(5);
+        loop {
+            match open(self.node.service_builder(&service_name)) {
+                Ok(t) => return Ok(t),
+                Err(e) if Instant::now() < deadline => {
+                    tracing::debug!(service = name, error = ?e, "service not ready yet, retrying");
+                    std::thread::sleep(Duration::from_millis(5));
+                }
+                Err(e) => return Err(error(boxed(e))),
+            }
+        }
+    }
+
+    fn topic<M: Message>(&self) -> Result<(String, TopicFactory<M>), PortError> {
+        let name = self.names.topic(M::TOPIC);
+        let qos = M::TOPIC.qos(self.mode);
+        let factory = self.service(&name, |builder| {
+            builder
+                .publish_subscribe::<M>()
+                .max_publishers(qos.max_publishers)
+                .max_subscribers(qos.max_subscribers)
+                .subscriber_max_buffer_size(qos.max_buffer)
+                .history_size(0)
+                .enable_safe_overflow(qos.safe_overflow)
+                .open_or_create()
+        })?;
+        Ok((name, factory))
+    }
+
+    fn state_ready(&self) -> Result<(String, EventFactory), PortError> {
+        let name = self.names.state_ready();
+        let factory = self.service(&name, |builder| {
+            builder
+                .event()
+                .max_notifiers(1)
+                .max_listeners(2)
+                .event_id_max_value(0)
+                .open_or_create()
+        })?;
+        Ok((name, factory))
+    }
+
+    /// A subscriber with its concrete type, for the monitor (which is not a node).
+    pub fn subscriber_of<M: Message>(&self, depth: usize) -> Result<IpcSubscriber<M>, PortError> {
+        let (service, factory) = self.topic::<M>()?;
+        let subscriber = factory
+            .subscriber_builder()
+            .buffer_size(depth)
+            .create()
+            .map_err(|e| PortError::Create {
+                service: service.clone(),
+                port: "subscriber",
+                what: M::TOPIC.path(),
+                source: boxed(e),
+            })?;
+        Ok(IpcSubscriber {
+            subscriber,
+            service,
+            _factory: factory,
+        })
+    }
+
+    /// A publisher with its concrete type.
+    pub fn publisher_of<M: Message>(&self) -> Result<IpcPublisher<M>, PortError> {
+        let (service, factory) = self.topic::<M>()?;
+        let publisher = factory
+            .publisher_builder()
+            .backpressure_strategy(BackpressureStrategy::RetryUntilDelivered)
+            .create()
+            .map_err(|e| PortError::Create {
+                service: service.clone(),
+                port: "publisher",
+                what: M::TOPIC.path(),
+                source: boxed(e),
+            })?;
+        Ok(IpcPublisher {
+            publisher,
+            service,
+            _factory: factory,
+        })
+    }
+}
+
+impl PortFactory for IpcBus {
+    fn publisher<M: Message>(&mut self) -> Result<Box<dyn Publish<M>>, PortError> {
+        Ok(Box::new(self.publisher_of::<M>()?))
+    }
+
+    fn subscriber<M: Message>(&mut self, depth: usize) -> Result<Box<dyn Subscribe<M>>, PortError> {
+        Ok(Box::new(self.subscriber_of::<M>(depth)?))
+    }
+
+    fn notifier(&mut self) -> Result<Box<dyn Notify>, PortError> {
+        let (service, factory) = self.state_ready()?;
+        let notifier = factory
+            .notifier_builder()
+            .create()
+            .map_err(|e| PortError::Create {
+                service: service.clone(),
+                port: "notifier",
+                what: "state-ready",
+                source: boxed(e),
+            })?;
+        Ok(Box::new(IpcNotifier {
+            notifier,
+            service,
+            _factory: factory,
+        }))
+    }
+
+    fn listener(&mut self) -> Result<Box<dyn Listen>, PortError> {
+        let (service, factory) = self.state_ready()?;
+        let listener = factory
+            .listener_builder()
+            .create()
+            .map_err(|e| PortError::Create {
+                service: service.clone(),
+                port: "listener",
+                what: "state-ready",
+                source: boxed(e),
+            })?;
+        Ok(Box::new(IpcListener {
+            listener,
+            service,
+            _factory: factory,
+        }))
+    }
+
+    fn presence(&mut self) -> Result<Box<dyn Presence>, PortError> {
+        Ok(Box::new(IpcPresence {
+            state: self.topic::<DriveState>()?.1,
+            command: self.topic::<DriveCommand>()?.1,
+            setpoint: self.topic::<TorqueSetpoint>()?.1,
+            stats: self.topic::<StatsReport>()?.1,
+        }))
+    }
+}
+
+pub struct IpcPublisher<M: Message> {
+    publisher: iceoryx2::port::publisher::Publisher<Ipc, M, ()>,
+    service: String,
+    _factory: TopicFactory<M>,
+}
+
+impl<M: Message> Publish<M> for IpcPublisher<M> {
+    fn publish(&mut self, message: &M) -> Result<(), PortError> {
+        self.publisher
+            .send_copy(*message)
+            .map(|_| ())
+            .map_err(|e| PortError::Transfer {
+                service: self.service.clone(),
+                operation: "send",
+                source: boxed(e),
+            })
+    }
+
+    fn connect(&mut self) -> Result<(), PortError> {
+        self.publisher
+            .update_connections()
+            .map_err(|e| PortError::Transfer {
+                service: self.service.clone(),
+                operation: "connect",
+                source: boxed(e),
+            })
+    }
+}
+
+pub struct IpcSubscriber<M: Message> {
+    subscriber: iceoryx2::port::subscriber::Subscriber<Ipc, M, ()>,
+    service: String,
+    _factory: TopicFactory<M>,
+}
+
+impl<M: Message> IpcSubscriber<M> {
+    fn receive_error(&self, e: iceoryx2::port::ReceiveError) -> PortError {
+        PortError::Transfer {
+            service: self.service.clone(),
+            operation: "receive",
+            source: boxed(e),
+        }
+    }
+}
+
+impl<M: Message> Subscribe<M> for IpcSubscriber<M> {
+    fn receive(&mut self) -> Result<Option<M>, PortError> {
+        match self.subscriber.receive() {
+            Ok(Some(sample)) => Ok(Some(*sample.payload())),
+            Ok(None) => Ok(None),
+            Err(e) => Err(self.receive_error(e)),
+        }
+    }
+
+    fn drain(&mut self, f: &mut dyn FnMut(&M)) -> Result<(), PortError> {
+        loop {
+            match self.subscriber.receive() {
+                Ok(Some(sample)) => f(sample.payload()),
+                Ok(None) => return Ok(()),
+                Err(e) => return Err(self.receive_error(e)),
+            }
+        }
+    }
+}
+
+struct IpcNotifier {
+    notifier: iceoryx2::port::notifier::Notifier<Ipc>,
+    service: String,
+    _factory: EventFactory,
+}
+
+impl Notify for IpcNotifier {
+    /// One `sendto` on a Unix socket.
+    fn notify(&mut self) -> Result<(), PortError> {
+        self.notifier
+            .notify()
+            .map(|_| ())
+            .map_err(|e| PortError::Transfer {
+                service: self.service.clone(),
+                operation: "notify",
+                source: boxed(e),
+            })
+    }
+}
+
+struct IpcListener {
+    listener: iceoryx2::port::listener::Listener<Ipc>,
+    service: String,
+    _factory: EventFactory,
+}
+
+impl Listen for IpcListener {
+    /// The timeout is jiffy-grained here, the wake-up on an event is not. A signal (SIGCONT
+    /// after a stop, SIGTERM) just ends the wait: the caller re-checks its flags.
+    fn wait(&mut self, timeout: Duration) -> Result<(), PortError> {
+        match self.listener.timed_wait(|_| {}, timeout) {
+            Ok(_) | Err(ListenerWaitError::InterruptSignal) => Ok(()),
+            Err(e) => Err(PortError::Transfer {
+                service: self.service.clone(),
+                operation: "event wait",
+                source: boxed(e),
+            }),
+        }
+    }
+}
+
+struct IpcPresence {
+    state: TopicFactory<DriveState>,
+    command: TopicFactory<DriveCommand>,
+    setpoint: TopicFactory<TorqueSetpoint>,
+    stats: TopicFactory<StatsReport>,
+}
+
+impl IpcPresence {
+    fn counts(&self, topic: Topic) -> (usize, usize) {
+        fn of<M: Message>(f: &TopicFactory<M>) -> (usize, usize) {
+            let c = f.dynamic_config();
+            (c.number_of_publishers(), c.number_of_subscribers())
+        }
+        match topic {
+            Topic::State => of(&self.state),
+            Topic::Command => of(&self.command),
+            Topic::Setpoint => of(&self.setpoint),
+            Topic::Stats => of(&self.stats),
+            // Nobody waits for the plan's peers.
+            Topic::Plan => (0, 0),
+        }
+    }
+}
+
+impl Presence for IpcPresence {
+    fn publishers(&self, topic: Topic) -> usize {
+        self.counts(topic).0
+    }
+    fn subscribers(&self, topic: Topic) -> usize {
+        self.counts(topic).1
+    }
+}
+
+/// Removes what crashed processes left behind (nodes, ports, shared memory). Call it
+/// before starting a stack and after its processes have been reaped.
+pub fn cleanup_dead_nodes() -> usize {
+    let config = iceoryx_config();
+    let mut removed = 0;
+    let result = Node::<Ipc>::list(&config, |state| {
+        if let NodeState::Dead(view) = state {
+            match view.try_remove_stale_resources() {
+                Ok(()) => removed += 1,
+                Err(e) => tracing::warn!(error = ?e, "could not remove a dead node's resources"),
+            }
+        }
+        CallbackProgression::Continue
+    });
+    if let Err(e) = result {
+        tracing::warn!(error = ?e, "could not list iceoryx2 nodes");
+    }
+    removed
+}

@@ -1,0 +1,103 @@
+//! Ports: how a node sends and receives, without knowing over what. [`crate::ipc`] implements
+//! them on iceoryx2 shared memory between processes, [`crate::memory`] on in-process queues
+//! for simulation and tests. A node holds its ports as trait objects, opened once at
+//! start-up; sending and receiving never allocate.
+
+use std::time::Duration;
+use stepdrive_shared::services::{Message, Topic};
+
+/// Why a port could not be opened or used.
+#[derive(Debug, thiserror::Error)]
+pub enum PortError {
+    #[error(transparent)]
+    BadInstance(#[from] stepdrive_shared::services::BadInstance),
+    #[error("cannot create this process's iceoryx2 node `{node}`")]
+    Node {
+        node: String,
+        #[source]
+        source: BoxedError,
+    },
+    #[error("cannot open service `{service}`")]
+    Open {
+        service: String,
+        #[source]
+        source: BoxedError,
+    },
+    #[error(
+        "cannot create the {what} {port} of `{service}` (is another one running on this instance?)"
+    )]
+    Create {
+        service: String,
+        port: &'static str,
+        what: &'static str,
+        #[source]
+        source: BoxedError,
+    },
+    #[error("{operation} on `{service}` failed")]
+    Transfer {
+        service: String,
+        operation: &'static str,
+        #[source]
+        source: BoxedError,
+    },
+}
+
+pub type BoxedError = Box<dyn std::error::Error + Send + Sync>;
+
+/// Sends messages of one topic.
+pub trait Publish<M> {
+    /// Publishes a copy of `message` (the messages are small; a copy into the loaned
+    /// shared-memory slot is what zero-copy means here).
+    fn publish(&mut self, message: &M) -> Result<(), PortError>;
+    /// Establishes the connections to the subscribers present now, so that the first real
+    /// message does not pay for them.
+    fn connect(&mut self) -> Result<(), PortError> {
+        Ok(())
+    }
+}
+
+/// Receives messages of one topic, oldest first.
+pub trait Subscribe<M> {
+    /// The next queued message, copied out.
+    fn receive(&mut self) -> Result<Option<M>, PortError>;
+    /// Hands every queued message to `f` in place (for large ones).
+    fn drain(&mut self, f: &mut dyn FnMut(&M)) -> Result<(), PortError>;
+    /// The newest queued message; older ones are dropped (stale for a realtime loop).
+    fn newest(&mut self) -> Result<Option<M>, PortError> {
+        let mut newest = None;
+        while let Some(m) = self.receive()? {
+            newest = Some(m);
+        }
+        Ok(newest)
+    }
+}
+
+/// Raises the "a state was published" event (hardware mode).
+pub trait Notify {
+    fn notify(&mut self) -> Result<(), PortError>;
+}
+
+/// Waits for that event.
+pub trait Listen {
+    /// Blocks until the event is raised or `timeout` passes, and consumes what is pending.
+    /// A signal just ends the wait.
+    fn wait(&mut self, timeout: Duration) -> Result<(), PortError>;
+}
+
+/// Who else is attached to the stack: a node that must not start before its peers asks.
+pub trait Presence {
+    fn publishers(&self, topic: Topic) -> usize;
+    fn subscribers(&self, topic: Topic) -> usize;
+}
+
+/// Opens ports: one implementation per transport, so a role's ports are built the same way
+/// for a process and for a simulation.
+pub trait PortFactory {
+    fn publisher<M: Message>(&mut self) -> Result<Box<dyn Publish<M>>, PortError>;
+    /// `depth`: messages queued before the oldest is overwritten (realtime) or the
+    /// publisher waits (lockstep).
+    fn subscriber<M: Message>(&mut self, depth: usize) -> Result<Box<dyn Subscribe<M>>, PortError>;
+    fn notifier(&mut self) -> Result<Box<dyn Notify>, PortError>;
+    fn listener(&mut self) -> Result<Box<dyn Listen>, PortError>;
+    fn presence(&mut self) -> Result<Box<dyn Presence>, PortError>;
+}

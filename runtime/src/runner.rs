@@ -1,0 +1,523 @@
+//! The runner: everything around a [`Node`] that is the same for every role and timing
+//! mode. [`Runner`] is a state machine that never waits — start-up, the cycle (poll, step,
+//! bookkeeping), peer liveness, the last-sample rule, statistics and shutdown — driven by
+//! [`Runner::run`] in a process (the wall clock, the wait strategies) or by
+//! [`crate::simulation`] in one thread (virtual time).
+//!
+//! What it records for every node: cycles, the interval between cycles, the wake-up latency
+//! (a clock-paced node's against its deadline, an input-paced node's timer when a `hybrid`
+//! wait slept), the compute time (cycle start → [`Cx::answered`] or the end of the step),
+//! inputs lost, and, for a clock-paced node, deadline misses and overruns. The node adds its
+//! own figures (hops, counters).
+
+use crate::clock::{monotonic_ns, Clock, Monotonic};
+use crate::cycle::CycleRecorder;
+use crate::error::RunError;
+use crate::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
+use crate::pacer::{sleep_until, Pacer, Tick, WaitStrategy};
+use crate::poll::{termination_requested, Backoff};
+use crate::port::Publish;
+use crate::steal::{Slept, StealMeter, HOST_HOLD_MIN_NS};
+use std::time::Duration;
+use stepdrive_shared::stats::StatsReport;
+
+/// How a runner runs its node.
+#[derive(Debug, Clone)]
+pub struct Settings {
+    pub wait: WaitStrategy,
+    /// Longest wait for the stack to come up (start-up and the first input).
+    pub startup_timeout: Duration,
+    /// Longest silence of a peer, once heard, before the node is stopped.
+    pub peer_timeout: Duration,
+    /// Account the host's holds of this thread's vCPU around each wait ([`crate::steal`]):
+    /// the realtime current loop's deadline misses are split by them.
+    pub account_host_holds: bool,
+    /// After the final statistics, wait this long before the ports go away, so that a
+    /// monitor draining at ~1 kHz takes them.
+    pub linger: Duration,
+}
+
+impl Settings {
+    /// Lockstep or simulation: no waiting strategy matters, no statistics linger.
+    pub fn lockstep(startup_timeout: Duration, peer_timeout: Duration) -> Self {
+        Self {
+            wait: WaitStrategy::Sleep,
+            startup_timeout,
+            peer_timeout,
+            account_host_holds: false,
+            linger: Duration::ZERO,
+        }
+    }
+}
+
+/// A node's wait-up before a cycle, as the waiting driver saw it.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Wake {
+    /// A timer's wake-up latency, when the wait slept on one.
+    pub timer_latency_ns: Option<u64>,
+    /// Sleeps asked for after the wake-up ([`crate::steal`]).
+    pub slept: Slept,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Phase {
+    New,
+    Starting { since_ns: u64 },
+    Running,
+    Done,
+}
+
+/// How long a waiting driver blocks on a node's input at most between checks of the time
+/// and the termination flag.
+const BLOCK_NS: u64 = 1_000_000;
+/// `sleep` strategy: the nap between polls of an input-paced node with nothing to block on.
+const NAP_NS: u64 = 10_000;
+
+/// One node, its ports and everything the runner keeps about it.
+pub struct Runner<N: Node> {
+    node: N,
+    ports: N::Ports,
+    settings: Settings,
+    role: Role,
+    pace: Pace,
+    stats: Box<StatsReport>,
+    stats_port: Option<Box<dyn Publish<StatsReport>>>,
+    stats_every: u64,
+    recorder: CycleRecorder,
+    phase: Phase,
+    pacer: Option<Pacer>,
+    /// When the peer was last heard, and whether it has been at all.
+    heard_ns: u64,
+    heard_once: bool,
+    last_taken_ns: Option<u64>,
+    /// `Late::Pause`: time paused through stalls, ns.
+    paused_ns: u64,
+    steal: Option<StealMeter>,
+}
+
+impl<N: Node> Runner<N> {
+    /// `stats_port`: where statistics go (~1 Hz and at exit); `None` keeps them in the
+    /// runner (lockstep, simulation).
+    pub fn new(
+        node: N,
+        ports: N::Ports,
+        settings: Settings,
+        stats_port: Option<Box<dyn Publish<StatsReport>>>,
+    ) -> Self {
+        let role = node.role();
+        let pace = node.pace();
+        let period_ns = match pace {
+            Pace::Clock { period_ns, .. } => period_ns,
+            Pace::Input => (1e9 / node.rate_hz()).round() as u64,
+        };
+        // Heap-allocated once: the report is ~90 KB.
+        let stats = Box::new(StatsReport {
+            role: role.stats_role(),
+            ..Default::default()
+        });
+        let steal = (settings.account_host_holds && settings.wait != WaitStrategy::Event)
+            .then(|| StealMeter::new(period_ns));
+        if steal.as_ref().is_some_and(|m| !m.available()) {
+            tracing::warn!(
+                "no /proc/thread-self/schedstat: host holds of this loop's CPU are not measured"
+            );
+        }
+        Self {
+            stats_every: (node.rate_hz().round() as u64).max(1),
+            node,
+            ports,
+            settings,
+            role,
+            pace,
+            stats,
+            stats_port,
+            recorder: CycleRecorder::new(period_ns),
+            phase: Phase::New,
+            pacer: None,
+            heard_ns: 0,
+            heard_once: false,
+            last_taken_ns: None,
+            paused_ns: 0,
+            steal,
+        }
+    }
+
+    pub fn node(&self) -> &N {
+        &self.node
+    }
+
+    pub fn role(&self) -> Role {
+        self.role
+    }
+
+    pub fn stats(&self) -> &StatsReport {
+        &self.stats
+    }
+
+    pub fn finished(&self) -> bool {
+        self.phase == Phase::Done
+    }
+
+    /// What the node waits for, for a deadlock or timeout report.
+    pub fn awaiting(&self) -> String {
+        self.node.awaiting()
+    }
+
+    /// The next deadline of a started clock-paced node.
+    pub fn next_deadline(&self) -> Option<u64> {
+        match self.phase {
+            Phase::Running => self.pacer.as_ref().map(Pacer::next_deadline),
+            _ => None,
+        }
+    }
+
+    /// A started clock-paced node's next tick, taken at `woke_ns` without waiting.
+    pub fn take_tick(&mut self, woke_ns: u64) -> Tick {
+        match &mut self.pacer {
+            Some(p) => p.tick_at(woke_ns),
+            None => unreachable!("take_tick before a clock-paced node started"),
+        }
+    }
+
+    /// One start-up poll. True once the node runs.
+    pub fn try_start(&mut self, clock: &dyn Clock) -> Result<bool, RunError> {
+        let now = clock.now_ns();
+        let since_ns = match self.phase {
+            Phase::New => {
+                self.phase = Phase::Starting { since_ns: now };
+                now
+            }
+            Phase::Starting { since_ns } => since_ns,
+            Phase::Running | Phase::Done => return Ok(true),
+        };
+        let mut cx = Cx::new(clock, &mut self.stats);
+        match self.node.start(&mut self.ports, &mut cx)? {
+            Start::Waiting => {
+                if now.saturating_sub(since_ns) > self.settings.startup_timeout.as_nanos() as u64 {
+                    return Err(RunError::Startup {
+                        role: self.role,
+                        awaiting: self.node.awaiting(),
+                        timeout: self.settings.startup_timeout,
+                    });
+                }
+                Ok(false)
+            }
+            Start::Ready { epoch_ns } => {
+                self.node.connect(&mut self.ports)?;
+                if let Pace::Clock { period_ns, .. } = self.pace {
+                    let epoch = epoch_ns.unwrap_or(now);
+                    self.pacer = Some(Pacer::new(epoch, period_ns, self.settings.wait));
+                }
+                self.heard_ns = now;
+                self.phase = Phase::Running;
+                tracing::debug!(role = %self.role, "started");
+                Ok(true)
+            }
+        }
+    }
+
+    /// An input-paced node: polls once and runs the cycle if its input is there.
+    pub fn try_input_cycle(
+        &mut self,
+        clock: &dyn Clock,
+        wake: Wake,
+    ) -> Result<Option<Flow>, RunError> {
+        let mut cx = Cx::new(clock, &mut self.stats);
+        let (fresh, skipped) = match self.node.poll(&mut self.ports, &mut cx)? {
+            Poll::Pending => return Ok(None),
+            Poll::Finished => {
+                self.phase = Phase::Done;
+                return Ok(Some(Flow::Last));
+            }
+            Poll::Ready { fresh, skipped } => (fresh, skipped),
+        };
+        let taken = cx.taken_ns.unwrap_or_else(|| clock.now_ns());
+        cx.woke_ns = taken;
+        let flow = self.node.step(&mut self.ports, &mut cx)?;
+        let done = cx.answered_ns.unwrap_or_else(|| clock.now_ns());
+        let stats = &mut *self.stats;
+        if let Some(prev) = self.last_taken_ns.replace(taken) {
+            stats.period.record(taken.saturating_sub(prev));
+        }
+        if let Some(latency) = wake.timer_latency_ns {
+            stats.wakeup.record(latency);
+        }
+        stats.compute.record(done.saturating_sub(taken));
+        stats.cycles += 1;
+        stats.lost += skipped;
+        if let Some(meter) = &mut self.steal {
+            meter.after_take(skipped, wake.slept);
+        }
+        if fresh {
+            self.heard(taken);
+        }
+        self.after_cycle(clock, flow)?;
+        Ok(Some(flow))
+    }
+
+    /// A clock-paced node: the cycle of deadline `tick`.
+    pub fn clock_cycle(&mut self, clock: &dyn Clock, tick: Tick) -> Result<Flow, RunError> {
+        let Pace::Clock { period_ns, late } = self.pace else {
+            unreachable!("clock_cycle on an input-paced node")
+        };
+        if late == Late::Skip && tick.latency_ns() > period_ns {
+            self.stats.overruns += 1;
+            if let Some(p) = &mut self.pacer {
+                p.skip_to(tick.woke_ns);
+            }
+        }
+        let mut cx = Cx::new(clock, &mut self.stats);
+        cx.deadline_ns = tick.deadline_ns;
+        cx.woke_ns = tick.woke_ns;
+        let (fresh, skipped) = match self.node.poll(&mut self.ports, &mut cx)? {
+            Poll::Pending => (false, 0),
+            Poll::Finished => {
+                self.phase = Phase::Done;
+                return Ok(Flow::Last);
+            }
+            Poll::Ready { fresh, skipped } => (fresh, skipped),
+        };
+        let flow = self.node.step(&mut self.ports, &mut cx)?;
+        let done = cx.answered_ns.unwrap_or_else(|| clock.now_ns());
+        self.recorder
+            .record(&mut self.stats, tick.deadline_ns, tick.woke_ns, done);
+        self.stats.lost += skipped;
+        let now = clock.now_ns();
+        if fresh {
+            self.heard(now);
+        } else {
+            self.check_alive(now)?;
+        }
+        if late == Late::Pause && flow == Flow::Continue {
+            // The next deadline already past means the process was held up for more than
+            // a period: the device's time pauses with it (see [`Late::Pause`]); the stall
+            // stays visible in the wake-up and period figures.
+            if let Some(p) = &mut self.pacer {
+                if let Some(late_ns) = p.pause_if_late(tick.index + 1, now) {
+                    self.stats.overruns += 1;
+                    self.paused_ns += late_ns;
+                }
+            }
+        }
+        self.after_cycle(clock, flow)?;
+        Ok(flow)
+    }
+
+    fn heard(&mut self, now: u64) {
+        self.heard_ns = now;
+        self.heard_once = true;
+    }
+
+    /// Fails once the peer has been silent for longer than the start-up timeout (before it
+    /// was first heard) or the peer timeout.
+    pub fn check_alive(&self, now: u64) -> Result<(), RunError> {
+        let timeout = if self.heard_once {
+            self.settings.peer_timeout
+        } else {
+            self.settings.startup_timeout
+        };
+        if now.saturating_sub(self.heard_ns) > timeout.as_nanos() as u64 {
+            return Err(RunError::PeerSilent {
+                role: self.role,
+                awaiting: self.node.awaiting(),
+                timeout,
+            });
+        }
+        Ok(())
+    }
+
+    fn after_cycle(&mut self, clock: &dyn Clock, flow: Flow) -> Result<(), RunError> {
+        match flow {
+            Flow::Last => self.phase = Phase::Done,
+            Flow::Continue => {
+                if self.stats.cycles % self.stats_every == 0 {
+                    self.publish_stats(clock, false)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn publish_stats(&mut self, clock: &dyn Clock, is_final: bool) -> Result<(), RunError> {
+        self.node.report(&mut self.stats);
+        let Some(port) = &mut self.stats_port else {
+            return Ok(());
+        };
+        let stats = &mut *self.stats;
+        stats.is_final = u32::from(is_final);
+        stats.seq += 1;
+        stats.publish_time_ns = clock.now_ns();
+        port.publish(stats)?;
+        Ok(())
+    }
+
+    /// Every exit path: the node stops (outputs safe); after a complete run the final
+    /// statistics go out.
+    pub fn finish(&mut self, clock: &dyn Clock, completed: bool) -> Result<(), RunError> {
+        let mut cx = Cx::new(clock, &mut self.stats);
+        self.node.stop(&mut self.ports, &mut cx);
+        self.phase = Phase::Done;
+        if self.stats.overruns > 0
+            && matches!(
+                self.pace,
+                Pace::Clock {
+                    late: Late::Pause,
+                    ..
+                }
+            )
+        {
+            tracing::warn!(
+                role = %self.role,
+                stalls = self.stats.overruns,
+                paused_ms = self.paused_ns as f64 * 1e-6,
+                "the host stalled this process; its simulated time paused through the stalls"
+            );
+        }
+        if !completed {
+            return Ok(());
+        }
+        self.publish_stats(clock, true)?;
+        if self.stats_port.is_some() && !self.settings.linger.is_zero() {
+            std::thread::sleep(self.settings.linger);
+        }
+        tracing::info!(
+            role = %self.role,
+            cycles = self.stats.cycles,
+            misses = self.stats.misses,
+            overruns = self.stats.overruns,
+            "{} done",
+            self.role
+        );
+        Ok(())
+    }
+
+    /// Runs the node to the end of the run on the wall clock: waits for each cycle with the
+    /// settings' strategy, stops on SIGINT/SIGTERM or a silent peer, and returns the final
+    /// statistics. The node's `stop` runs on every exit path.
+    pub fn run(mut self) -> Result<Box<StatsReport>, RunError> {
+        let clock = Monotonic;
+        let outcome = self.drive(&clock);
+        let finished = self.finish(&clock, outcome.is_ok());
+        outcome.and(finished)?;
+        Ok(self.stats)
+    }
+
+    fn drive(&mut self, clock: &Monotonic) -> Result<(), RunError> {
+        let mut backoff = Backoff::default();
+        while !self.try_start(clock)? {
+            if termination_requested() {
+                return Err(RunError::Terminated);
+            }
+            backoff.pause();
+        }
+        loop {
+            if termination_requested() {
+                return Err(RunError::Terminated);
+            }
+            let flow = match self.pace {
+                Pace::Input => self.await_input_cycle(clock)?,
+                Pace::Clock { .. } => {
+                    let Some(pacer) = &mut self.pacer else {
+                        unreachable!("a started clock-paced node has a pacer")
+                    };
+                    let tick = pacer.wait();
+                    self.clock_cycle(clock, tick)?
+                }
+            };
+            if flow == Flow::Last {
+                return Ok(());
+            }
+        }
+    }
+
+    /// Waits for an input-paced node's input and runs its cycle. `hybrid` sleeps until its
+    /// margin before the input is due, then polls; `spin` polls throughout; `sleep` naps
+    /// 10 µs between polls; a node with something to block on (a socket, an event) blocks
+    /// there instead of napping; with no due time it backs off (spin, yield, sleep).
+    fn await_input_cycle(&mut self, clock: &Monotonic) -> Result<Flow, RunError> {
+        let wait = self.settings.wait;
+        let due = self.node.due_ns();
+        let mut wake = Wake::default();
+        let mut hybrid_sleep = Slept::default();
+        if let (WaitStrategy::Hybrid { margin_ns }, Some(due)) = (wait, due) {
+            let target = due.saturating_sub(margin_ns);
+            let now = monotonic_ns();
+            if target > now {
+                if let Some(m) = &mut self.steal {
+                    m.before_sleep();
+                }
+                sleep_until(target);
+                hybrid_sleep = Slept {
+                    ns: target - now,
+                    calls: 1,
+                };
+                wake.timer_latency_ns = Some(monotonic_ns().saturating_sub(target));
+            }
+        }
+        self.account_wake(due.is_some(), hybrid_sleep);
+        let spins = matches!(wait, WaitStrategy::Spin | WaitStrategy::Hybrid { .. });
+        let spin_until = due.map(|d| match self.node.spin_past_due_ns() {
+            Some(past) => d.saturating_add(past),
+            None => u64::MAX,
+        });
+        let mut backoff = Backoff::default();
+        let mut polls: u32 = 0;
+        loop {
+            if let Some(flow) = self.try_input_cycle(clock, wake)? {
+                return Ok(flow);
+            }
+            polls = polls.wrapping_add(1);
+            let spinning = spins && spin_until.is_some_and(|until| monotonic_ns() <= until);
+            if spinning {
+                if polls % 256 == 0 {
+                    self.check_waiting(monotonic_ns())?;
+                }
+                std::hint::spin_loop();
+                continue;
+            }
+            let now = monotonic_ns();
+            self.check_waiting(now)?;
+            if self.node.block(&mut self.ports, now, now + BLOCK_NS)? {
+                continue;
+            }
+            if due.is_some() && wait == WaitStrategy::Sleep {
+                sleep_until(now + NAP_NS);
+                wake.slept.ns += NAP_NS;
+                wake.slept.calls += 1;
+            } else {
+                backoff.pause();
+            }
+        }
+    }
+
+    fn check_waiting(&self, now: u64) -> Result<(), RunError> {
+        if termination_requested() {
+            return Err(RunError::Terminated);
+        }
+        self.check_alive(now)
+    }
+
+    /// Closes the steal meter's window at a wake-up and books the host holds it found.
+    fn account_wake(&mut self, timed: bool, slept: Slept) {
+        let Some(meter) = &mut self.steal else {
+            return;
+        };
+        if !timed {
+            // Before the first input there is no cycle to account for.
+            meter.restart();
+            return;
+        }
+        let Some(w) = meter.at_wake(slept) else {
+            return;
+        };
+        let stats = &mut *self.stats;
+        if w.loss.held_ns >= HOST_HOLD_MIN_NS {
+            stats.host_held.record(w.loss.held_ns);
+        }
+        stats.host_missed += w.by_host;
+        stats.queued_missed += w.by_queue;
+        if w.unseen > 0 {
+            tracing::debug!(window = ?w, "states skipped");
+        }
+    }
+}

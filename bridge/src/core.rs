@@ -333,3 +333,238 @@ impl BridgeCore {
         &self.link
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use stepdrive_drive_protocol::units::default_config;
+    use stepdrive_drive_protocol::{frame_bytes, Message, Sample, MAX_PLAN_ENTRIES};
+
+    const PERIOD: u64 = 50_000;
+
+    fn core(samples: u64) -> BridgeCore {
+        let mut c = BridgeCore::new(CoreSettings {
+            sample_hz: 20_000.0,
+            samples,
+            silence_periods: 4,
+            plan_every: 3,
+            observer_hz: 400.0,
+            calibration: EncoderCalibration {
+                offset_counts: Some(0),
+                reverse: false,
+            },
+        });
+        let mut stats = StatsReport::default();
+        let config = frame_bytes(0, Message::Config(default_config(20_000.0, 200, 8)));
+        assert!(matches!(
+            c.on_frame(&config, 0, &mut stats),
+            Received::Config(_)
+        ));
+        c.begin(0);
+        c
+    }
+
+    /// A SAMPLE frame: wire seq `seq` (the drive's first is 100), reporting command frame
+    /// `applied` applied.
+    fn sample(seq: u32, applied: u32) -> Vec<u8> {
+        frame_bytes(
+            seq,
+            Message::Sample(Sample {
+                encoder_counts: 0,
+                adc_a: 32768,
+                adc_b: 32768,
+                adc_bus: 2400,
+                duty_a: 0,
+                duty_b: 0,
+                applied_command_seq: applied,
+                fault_bits: 0,
+                status: 0,
+            }),
+        )
+    }
+
+    fn command(answers: u64, v: f64) -> DriveCommand {
+        DriveCommand {
+            seq: answers,
+            answers_seq: answers,
+            v_a_v: v,
+            v_b_v: -v,
+            ..Default::default()
+        }
+    }
+
+    /// Reads `frames` at `at`, takes and publishes the newest, as the node does.
+    fn cycle(
+        c: &mut BridgeCore,
+        frames: &[Vec<u8>],
+        at: u64,
+        stats: &mut StatsReport,
+    ) -> Option<DriveState> {
+        for f in frames {
+            c.on_frame(f, at, stats);
+        }
+        let (st, rx) = c.take_sample(stats)?;
+        Some(c.publish(st, rx))
+    }
+
+    #[test]
+    fn the_newest_sample_is_published_older_ones_are_superseded_and_the_last_is_marked() {
+        let mut c = core(3);
+        let mut stats = StatsReport::default();
+        let st = cycle(&mut c, &[sample(100, 0)], PERIOD, &mut stats).expect("a sample");
+        assert_eq!((st.seq, st.flags & state_flags::LAST), (0, 0));
+        // Two arrive in one read (the bridge was held up): the newer one is published.
+        let st = cycle(
+            &mut c,
+            &[sample(101, 0), sample(102, 0)],
+            3 * PERIOD,
+            &mut stats,
+        )
+        .expect("a sample");
+        assert_eq!(st.seq, 2);
+        assert_eq!(stats.superseded, 1);
+        assert_ne!(st.flags & state_flags::LAST, 0, "sample 2 of 3 is the last");
+        assert!((st.bus_voltage_v - 24.0).abs() < 1e-9);
+        // Nothing new: nothing to take.
+        assert_eq!(c.take_sample(&mut stats), None);
+    }
+
+    #[test]
+    fn silence_publishes_one_fault_state_stops_forwarding_and_a_sample_resumes_it() {
+        let mut c = core(1000);
+        let mut stats = StatsReport::default();
+        let t0 = PERIOD;
+        let st = cycle(&mut c, &[sample(100, 0)], t0, &mut stats).expect("a sample");
+        assert!(c.command(&command(0, 1.0), t0, &mut stats).is_some());
+        // Within the silence periods (4): quiet, and measured when the socket was read, not
+        // when the bridge gets to check.
+        assert_eq!(c.on_quiet(t0 + 4 * PERIOD, t0 + 100 * PERIOD), None);
+        let fault = c
+            .on_quiet(t0 + 4 * PERIOD + 1, t0 + 5 * PERIOD)
+            .expect("a fault state");
+        assert_eq!(
+            fault.seq,
+            st.seq + 1,
+            "the fault state takes the next index"
+        );
+        assert_ne!(fault.fault & fault_bits::DRIVE_SILENT, 0);
+        assert_eq!(fault.publish_time_ns, t0 + 5 * PERIOD);
+        assert!(c.silent());
+        assert_eq!(c.on_quiet(t0 + 50 * PERIOD, t0 + 50 * PERIOD), None, "once");
+        // Silent: commands and plans are not forwarded, but answers are still noted.
+        assert_eq!(c.command(&command(1, 1.0), t0, &mut stats), None);
+        let mut plan = DrivePlan {
+            command_seq: 1,
+            answers_seq: 1,
+            len: 4,
+            ..Default::default()
+        };
+        plan.v[..4].copy_from_slice(&[[1.0, -1.0]; 4]);
+        c.offer_plan(&plan);
+        assert_eq!(c.plan_frame(t0), None);
+        // The drive speaks again with the index the fault state took: superseded, still
+        // silent. The next one resumes forwarding, with no fault of the bridge's own.
+        assert_eq!(
+            cycle(&mut c, &[sample(101, 0)], t0 + 60 * PERIOD, &mut stats),
+            None
+        );
+        assert!(c.silent());
+        let st = cycle(&mut c, &[sample(102, 0)], t0 + 61 * PERIOD, &mut stats).expect("resumed");
+        assert_eq!((st.seq, st.fault), (2, 0));
+        assert!(!c.silent());
+        assert!(c.command(&command(2, 1.0), t0, &mut stats).is_some());
+        assert!(
+            c.plan_frame(t0).is_some(),
+            "the plan kept while silent goes out"
+        );
+    }
+
+    #[test]
+    fn commands_are_forwarded_refused_when_bad_and_timed_to_their_sample() {
+        let mut c = core(1000);
+        let mut stats = StatsReport::default();
+        cycle(&mut c, &[sample(100, 0)], PERIOD, &mut stats).expect("a sample");
+        assert!(c.awaiting_answer(PERIOD), "sample 0 unanswered");
+        let f = c
+            .command(&command(0, 12.0), PERIOD + 5_000, &mut stats)
+            .expect("forwarded");
+        let Message::Command(cmd) = f.message else {
+            panic!("{f:?}")
+        };
+        assert_eq!((cmd.answers_sample, cmd.duty_a), (100, 16384));
+        assert!(!c.awaiting_answer(PERIOD + 6_000));
+        // Non-finite, beyond the bus: refused, counted.
+        assert_eq!(c.command(&command(1, f64::NAN), PERIOD, &mut stats), None);
+        assert_eq!(c.command(&command(1, 30.0), PERIOD, &mut stats), None);
+        assert_eq!(c.link().rejected_commands, 2);
+        assert_eq!(stats.sensor_to_actuator.count, 3);
+        // The drive reports that frame applied: one round trip, from the moment it was sent.
+        cycle(&mut c, &[sample(101, f.seq)], PERIOD + 80_000, &mut stats).expect("a sample");
+        assert_eq!(stats.round_trip.count, 1);
+        assert_eq!(stats.round_trip.max_ns, 75_000);
+    }
+
+    #[test]
+    fn the_newest_plan_goes_out_every_plan_every_samples_with_the_drives_capacity() {
+        let mut c = core(1000);
+        let mut stats = StatsReport::default();
+        cycle(&mut c, &[sample(100, 0)], PERIOD, &mut stats).expect("a sample");
+        let plan = |answers: u64| {
+            let mut p = DrivePlan {
+                command_seq: answers,
+                answers_seq: answers,
+                len: 20,
+                ..Default::default()
+            };
+            p.v[..20].copy_from_slice(&[[2.0, -2.0]; 20]);
+            p
+        };
+        let sent = |c: &mut BridgeCore, answers: u64| {
+            c.offer_plan(&plan(answers));
+            c.plan_frame(0).map(|f| match f.message {
+                Message::Plan(p) => (p.answers_sample, usize::from(p.count)),
+                other => panic!("{other:?}"),
+            })
+        };
+        // The drive keeps 8 entries (its CONFIG), so 8 of the 20 go out.
+        assert_eq!(sent(&mut c, 0), Some((100, 8)));
+        assert_eq!(sent(&mut c, 1), None);
+        assert_eq!(sent(&mut c, 2), None);
+        assert_eq!(sent(&mut c, 3), Some((103, 8)), "plan_every = 3");
+        // An older plan never replaces a newer one.
+        c.offer_plan(&plan(2));
+        assert_eq!(c.plan_frame(0), None);
+        assert!(MAX_PLAN_ENTRIES >= 8);
+    }
+
+    /// The due time follows the drive's own timestamps (a pause of the drive moves it at
+    /// once), plus the fastest delivery seen; a slower delivery does not move it, a steadily
+    /// growing delay (a slow drive clock) is followed at CREEP_NS a period.
+    #[test]
+    fn arrival_clock_follows_the_drive_timestamps() {
+        let mut c = ArrivalClock::new(50_000);
+        // Drive clock 7 ms behind the host's, 3 µs on the way.
+        let host = |drive: u64, on_the_way: u64| drive + 7_000_000 + on_the_way;
+        assert_eq!(
+            c.next_due(1_000_000, host(1_000_000, 3_000)),
+            host(1_050_000, 3_000)
+        );
+        // Held up 20 µs on the way: the next is still due 3 µs after it leaves.
+        assert_eq!(
+            c.next_due(1_050_000, host(1_050_000, 23_000)),
+            host(1_100_000, 3_000 + CREEP_NS as u64)
+        );
+        // The drive paused 400 µs: its timestamp says so.
+        assert_eq!(
+            c.next_due(1_500_000, host(1_500_000, 3_000)),
+            host(1_550_000, 3_000)
+        );
+        // A drive clock 1 µs a period slower than the host's: the delay estimate follows.
+        let mut due = 0;
+        for k in 0..200u64 {
+            let sent = 2_000_000 + k * 50_000;
+            due = c.next_due(sent, host(sent, 3_000 + k * 1_000));
+        }
+        assert!(due >= host(2_000_000 + 200 * 50_000, 3_000 + 199 * CREEP_NS as u64 - 1));
+    }
+}

@@ -269,6 +269,7 @@ impl BridgeNode {
         while let Some(c) = ports.commands.receive()? {
             if let Some(f) = self.core.command(&c, cx.now(), cx.stats) {
                 Self::send(ports, &f);
+                self.core.sent(f.seq, cx.now());
             }
         }
         let core = &mut self.core;

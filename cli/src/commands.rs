@@ -98,6 +98,16 @@ pub struct CheckArgs {
     check: Option<PathBuf>,
 }
 
+#[derive(Args, Debug)]
+pub struct DeployArgs {
+    #[command(flatten)]
+    check: CheckArgs,
+    /// The mode whose wait strategies the printed defaults spell out (the current loop's
+    /// differs in hardware mode).
+    #[arg(long, value_enum, default_value_t = Mode::Realtime)]
+    mode: Mode,
+}
+
 fn write_outputs(s: &Scenario, runs: &[RunReport], json: Option<&PathBuf>) -> Result<()> {
     println!("scenario: {}", s.name);
     print!("{}", table(s, runs));
@@ -240,13 +250,16 @@ pub fn scenario(a: CheckArgs) -> Result<()> {
     Ok(())
 }
 
-pub fn deploy(a: CheckArgs) -> Result<()> {
-    match a.check {
+pub fn deploy(a: DeployArgs) -> Result<()> {
+    match a.check.check {
         Some(path) => {
             Deployment::from_toml_file(&path)?;
             println!("{}: valid", path.display());
         }
-        None => print!("{}", Deployment::default().to_toml_string()),
+        None => print!(
+            "{}",
+            Deployment::default().resolved(a.mode).to_toml_string()
+        ),
     }
     Ok(())
 }

@@ -47,7 +47,8 @@ enum Cmd {
     Scenario(commands::CheckArgs),
     /// Print the default deployment (wait strategies, priorities, CPUs, timeouts, watchdog,
     /// drive link) as TOML, or check a deployment file.
-    Deploy(commands::CheckArgs),
+    Deploy(commands::DeployArgs),
+
     /// Latency and jitter of the live stack in realtime mode, beside bare iceoryx2 and
     /// Unix-socket ping-pong and cyclictest: table, latency.json, cyclictest-compatible
     /// histograms and a log-y plot in --out DIR.

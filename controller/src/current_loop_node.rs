@@ -133,11 +133,17 @@ impl CurrentLoopNode {
         Ok(Poll::READY)
     }
 
-    fn poll_realtime(&mut self, ports: &mut CurrentLoopPorts) -> Result<Poll, RunError> {
+    fn poll_realtime(
+        &mut self,
+        ports: &mut CurrentLoopPorts,
+        cx: &mut Cx,
+    ) -> Result<Poll, RunError> {
         // Older states are stale for a realtime loop; they show up as skipped.
         let Some(state) = ports.states.newest()? else {
             return Ok(Poll::Pending);
         };
+        // The state hop ends here, before the setpoints are read.
+        cx.taken_at(cx.now());
         let skipped = self
             .last_seq
             .map_or(0, |prev| state.seq.saturating_sub(prev + 1));
@@ -192,11 +198,11 @@ impl Node for CurrentLoopNode {
         Ok(())
     }
 
-    fn poll(&mut self, ports: &mut CurrentLoopPorts, _cx: &mut Cx) -> Result<Poll, RunError> {
+    fn poll(&mut self, ports: &mut CurrentLoopPorts, cx: &mut Cx) -> Result<Poll, RunError> {
         if self.lockstep {
             self.poll_lockstep(ports)
         } else {
-            self.poll_realtime(ports)
+            self.poll_realtime(ports, cx)
         }
     }
 

@@ -229,7 +229,8 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     if emulated {
         d.drive.address = Some(free_loopback_port()?.to_string());
     }
-    let files = RunFiles::write(s, &d, &opts.instance)?;
+    let files = RunFiles::write(s, &d.resolved(mode), &opts.instance)?;
+
     let common = [
         "--mode".to_string(),
         mode.as_str().to_string(),

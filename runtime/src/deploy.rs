@@ -109,11 +109,10 @@ pub struct Deployment {
 }
 
 /// The defaults' priorities: the plant's and current loop's. The position loop runs one
-/// above the plant (below it, it would only get the gaps between the plant's spins:
-/// measured wake-up p50 112 µs, p99 3.7 ms; above: 27 / 55 µs); the bridge one below the
-/// current loop, which preempts it to answer; the monitor at 1 (an ordinary task waking at
-/// 1 kHz is run ahead of SCHED_FIFO tasks by the kernel's fair server: measured, the
-/// plant's wake-up p99 fell from 2.2 ms to 0.36 ms).
+/// above the plant (below it, it would only get the gaps between the plant's spins); the
+/// bridge one below the current loop, which preempts it to answer; the monitor at 1 (an
+/// ordinary task waking at 1 kHz is run ahead of SCHED_FIFO tasks by the kernel's fair
+/// server, and delays them). The README's realtime section has the measurements.
 pub const DEFAULT_PRIORITY: u8 = 80;
 
 impl Default for Deployment {
@@ -297,9 +296,9 @@ impl Deployment {
     }
 
     /// How `process` waits in `mode`: its placement's strategy, or its default. The
-    /// defaults: the plant and emulated drive `hybrid:25` (a timer wake-up here takes ~25 µs;
-    /// measured publish latency p50 31 µs with `sleep`, 3-5 µs with `hybrid:25`); the
-    /// current loop `hybrid:40` against the next sample (a pure spin holds a whole CPU),
+    /// defaults: the plant and emulated drive `hybrid:25` (a timer wake-up can take most of
+    /// a 50 µs period, so they sleep to 25 µs before it and spin the rest); the current loop
+    /// `hybrid:40` against the next sample (a pure spin holds a whole CPU),
     /// `event` in hardware mode (asleep until the bridge raises state-ready); the position
     /// loop `sleep`; the bridge `hybrid:30` with a real-time priority (asleep until 30 µs
     /// before the drive's frame is due, then polling its socket), `sleep` without (polling
@@ -318,6 +317,23 @@ impl Deployment {
             }
             Process::Bridge => WaitStrategy::Sleep,
         }
+    }
+
+    /// This deployment with every process's wait strategy written out as `mode` resolves
+    /// it: what a file written for a run, or printed for a user, should say.
+    pub fn resolved(&self, mode: Mode) -> Deployment {
+        let mut d = self.clone();
+        for process in [
+            Process::Plant,
+            Process::CurrentLoop,
+            Process::PositionLoop,
+            Process::Bridge,
+            Process::EmulatedDrive,
+        ] {
+            let wait = self.wait(process, mode);
+            d.placement_mut(process).wait = Some(wait);
+        }
+        d
     }
 
     /// The real-time settings `process` applies to itself in `mode` (none in lockstep).

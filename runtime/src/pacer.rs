@@ -10,8 +10,8 @@ use std::str::FromStr;
 /// `hybrid:<µs>` or `event` on the command line and in deployment files.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WaitStrategy {
-    /// clock_nanosleep to the deadline: no CPU burnt, wake-up latency of the kernel timer
-    /// (≈ 25 µs median on this VM, per cyclictest).
+    /// clock_nanosleep to the deadline: no CPU burnt, the kernel timer's wake-up latency
+    /// (tens of µs on a VM; see the README's wait strategies).
     Sleep,
     /// Busy-wait: microsecond-exact, one whole core. On 2 cores only one process can.
     Spin,

@@ -41,11 +41,11 @@ pub enum WaitError<E> {
 }
 
 /// Spin this many polls before yielding the CPU. In lockstep three processes wait on each
-/// other on two cores, so a long spin starves the very peer being waited for: measured on
-/// this VM, 1000 spins made the default run 8× slower than 16.
+/// other, on two cores in this project's target, so a long spin starves the very peer being
+/// waited for (the README's lockstep section has the measurement).
 const SPIN_POLLS: u32 = 16;
 /// Yield for this long before falling back to short sleeps, so an idle process does not
-/// burn a core that its peers need (this machine has two).
+/// burn a core that its peers need.
 const YIELD_PHASE: Duration = Duration::from_millis(2);
 const SLEEP_STEP: Duration = Duration::from_micros(200);
 

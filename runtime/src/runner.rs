@@ -455,11 +455,15 @@ impl<N: Node> Runner<N> {
             }
         }
         self.account_wake(due.is_some(), hybrid_sleep);
-        let spins = matches!(wait, WaitStrategy::Spin | WaitStrategy::Hybrid { .. });
-        let spin_until = due.map(|d| match self.node.spin_past_due_ns() {
-            Some(past) => d.saturating_add(past),
-            None => u64::MAX,
-        });
+        // Spinning (`spin`, `hybrid`) polls as fast as it can: the flags are checked every
+        // 256 polls, and the clock read on each poll only when the spin has a budget
+        // (`spin_past_due_ns`).
+        let mut spinning =
+            due.is_some() && matches!(wait, WaitStrategy::Spin | WaitStrategy::Hybrid { .. });
+        let spin_until = match (due, self.node.spin_past_due_ns()) {
+            (Some(d), Some(past)) => Some(d.saturating_add(past)),
+            _ => None,
+        };
         let mut backoff = Backoff::default();
         let mut polls: u32 = 0;
         loop {
@@ -467,10 +471,12 @@ impl<N: Node> Runner<N> {
                 return Ok(flow);
             }
             polls = polls.wrapping_add(1);
-            let spinning = spins && spin_until.is_some_and(|until| monotonic_ns() <= until);
             if spinning {
                 if polls % 256 == 0 {
                     self.check_waiting(monotonic_ns())?;
+                }
+                if let Some(until) = spin_until {
+                    spinning = monotonic_ns() <= until;
                 }
                 std::hint::spin_loop();
                 continue;

@@ -158,16 +158,15 @@ fn sink(lockstep: bool, fail_at: Option<u64>, stopped: &Rc<RefCell<bool>>) -> Si
     }
 }
 
-fn pair(
-    mode: Mode,
-    samples: u64,
-    fail_at: Option<u64>,
-) -> (
+/// A source and a sink joined by a queue, and the flags their `stop` sets.
+type Pair = (
     Runner<Source>,
     Runner<Sink>,
     Rc<RefCell<bool>>,
     Rc<RefCell<bool>>,
-) {
+);
+
+fn pair(mode: Mode, samples: u64, fail_at: Option<u64>) -> Pair {
     let mut bus = MemoryBus::new(mode);
     let (a, b) = (flag(), flag());
     let source = source(samples, Late::Pause, 0, &a);

@@ -382,6 +382,18 @@ mod tests {
         assert_eq!(d.rt(Process::Plant, Mode::Lockstep), RtOptions::default());
         let back: Deployment = toml::from_str(&d.to_toml_string()).expect("parses");
         assert_eq!(back, d);
+        // Written out for a mode, every wait strategy is spelled out and reads back the same.
+        let hardware = d.resolved(Mode::Hardware);
+        assert_eq!(hardware.current_loop.wait, Some(WaitStrategy::Event));
+        assert_eq!(
+            hardware.plant.wait,
+            Some(WaitStrategy::Hybrid { margin_ns: 25_000 })
+        );
+        let back: Deployment = toml::from_str(&hardware.to_toml_string()).expect("parses");
+        assert_eq!(
+            back.wait(Process::CurrentLoop, Mode::Hardware),
+            WaitStrategy::Event
+        );
         // A file may give only what differs.
         let partial: Deployment =
             toml::from_str("[current_loop]\nwait = \"spin\"\n").expect("parses");

@@ -50,7 +50,7 @@ impl Settings {
     }
 }
 
-/// A node's wait-up before a cycle, as the waiting driver saw it.
+/// A node's wake-up before a cycle, as the waiting driver saw it.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct Wake {
     /// A timer's wake-up latency, when the wait slept on one.

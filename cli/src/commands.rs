@@ -15,8 +15,9 @@ use stepdrive_runtime::rt::{rt_runtime_us, RtThrottlingOff};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::{Method, Scenario};
 
+/// What a run or simulation computes and where its results go.
 #[derive(Args, Debug)]
-pub struct RunArgs {
+pub struct Selection {
     #[command(flatten)]
     scenario: ScenarioOpt,
     /// Methods to run, in order (comma-separated or repeated): proposed, lyapunov, open_loop.
@@ -25,6 +26,12 @@ pub struct RunArgs {
     /// Also write the results as JSON to FILE.
     #[arg(long, value_name = "FILE")]
     json: Option<PathBuf>,
+}
+
+#[derive(Args, Debug)]
+pub struct RunArgs {
+    #[command(flatten)]
+    select: Selection,
     /// lockstep: virtual time, bit-identical, as fast as possible. realtime: wall clock,
     /// 20 kHz on absolute deadlines, late commands are held and counted. hardware: the
     /// plant is a bridge to a drive (--drive, or an emulated one started for the run).
@@ -37,13 +44,7 @@ pub struct RunArgs {
 #[derive(Args, Debug)]
 pub struct SimulateArgs {
     #[command(flatten)]
-    scenario: ScenarioOpt,
-    /// Methods to run, in order (comma-separated or repeated).
-    #[arg(long = "method", value_enum, value_delimiter = ',', default_values = ["proposed", "lyapunov"])]
-    methods: Vec<Method>,
-    /// Also write the results as JSON to FILE.
-    #[arg(long, value_name = "FILE")]
-    json: Option<PathBuf>,
+    select: Selection,
     /// Stall the current loop for PERIODS samples from AT seconds on (repeatable), with
     /// the realtime plant's rules: each missing command is a miss, covered by the freshest
     /// voltage plan (`drive.command_plan_periods`; 0 in the scenario holds the voltage
@@ -146,7 +147,7 @@ fn throttling_guard(a: &StackArgs, d: &Deployment, mode: Mode) -> Result<Option<
 }
 
 pub fn run(a: RunArgs) -> Result<()> {
-    let mut s = a.scenario.load()?;
+    let mut s = a.select.scenario.load()?;
     a.stack.apply_duration(&mut s)?;
     let deployment = a.stack.deployment(a.mode)?;
     let _throttling = throttling_guard(&a.stack, &deployment, a.mode)?;
@@ -156,7 +157,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         deployment,
     };
     let mut runs = Vec::new();
-    for method in &a.methods {
+    for method in &a.select.methods {
         tracing::info!(
             "{method}: launching plant, position loop and current loop ({}, {:.1} s)",
             a.mode.as_str(),
@@ -166,17 +167,17 @@ pub fn run(a: RunArgs) -> Result<()> {
             run_stack(&s, *method, &opts).with_context(|| format!("the {method} run failed"))?;
         runs.push(report);
     }
-    write_outputs(&s, &runs, a.json.as_ref())
+    write_outputs(&s, &runs, a.select.json.as_ref())
 }
 
 pub fn simulate(a: SimulateArgs) -> Result<()> {
-    let s = a.scenario.load()?;
-    let mut runs = Vec::with_capacity(a.methods.len());
+    let s = a.select.scenario.load()?;
+    let mut runs = Vec::with_capacity(a.select.methods.len());
     if a.stalls.is_empty() {
-        for m in &a.methods {
+        for m in &a.select.methods {
             runs.push(simulate_run(&s, *m).with_context(|| format!("the {m} simulation failed"))?);
         }
-        return write_outputs(&s, &runs, a.json.as_ref());
+        return write_outputs(&s, &runs, a.select.json.as_ref());
     }
     let duration = s.duration_s();
     let mut stalls = Vec::with_capacity(a.stalls.len());
@@ -187,7 +188,7 @@ pub fn simulate(a: SimulateArgs) -> Result<()> {
         let start = (at * s.rates.current_loop_hz).round() as u64;
         stalls.push(start..start + periods);
     }
-    for m in &a.methods {
+    for m in &a.select.methods {
         let (report, record) = simulate_stalls(&s, *m, &stalls, a.watchdog_periods)
             .with_context(|| format!("the {m} simulation failed"))?;
         println!(
@@ -196,7 +197,7 @@ pub fn simulate(a: SimulateArgs) -> Result<()> {
         );
         runs.push(report);
     }
-    write_outputs(&s, &runs, a.json.as_ref())
+    write_outputs(&s, &runs, a.select.json.as_ref())
 }
 
 pub fn latency(a: LatencyArgs) -> Result<()> {

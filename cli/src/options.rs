@@ -136,15 +136,35 @@ pub struct PlacementArgs {
     /// Realtime: pin to this CPU, or `none`.
     #[arg(long, value_name = "N|none")]
     pub cpu: Option<Cpu>,
+    #[command(flatten)]
+    pub rt: RtArgs,
+}
+
+/// Real-time settings every process of a stack shares.
+#[derive(Args, Debug, Clone)]
+pub struct RtArgs {
     /// Realtime: do not mlockall.
     #[arg(long)]
     pub no_mlock: bool,
-    /// Realtime: timer slack in ns (kernel default 50000, a whole 20 kHz period).
+    /// Realtime: timer slack in ns (default 1000; the kernel's, 50000, is a whole 20 kHz
+    /// period).
     #[arg(long, value_name = "NS")]
     pub timer_slack_ns: Option<u64>,
     /// Fail if the system refuses a real-time setting instead of warning and going on.
     #[arg(long)]
     pub require_rt: bool,
+}
+
+impl RtArgs {
+    pub fn apply(&self, d: &mut Deployment) {
+        if self.no_mlock {
+            d.lock_memory = false;
+        }
+        if let Some(ns) = self.timer_slack_ns {
+            d.timer_slack_ns = ns;
+        }
+        d.require_rt |= self.require_rt;
+    }
 }
 
 impl PlacementArgs {
@@ -159,13 +179,7 @@ impl PlacementArgs {
         if let Some(Cpu(cpu)) = self.cpu {
             p.cpu = cpu;
         }
-        if self.no_mlock {
-            d.lock_memory = false;
-        }
-        if let Some(ns) = self.timer_slack_ns {
-            d.timer_slack_ns = ns;
-        }
-        d.require_rt |= self.require_rt;
+        self.rt.apply(d);
     }
 }
 
@@ -234,15 +248,8 @@ pub struct StackArgs {
     /// pinning. Default 0,1.
     #[arg(long, value_name = "A,B|none")]
     pub cpus: Option<Cpus>,
-    /// Realtime: do not mlockall.
-    #[arg(long)]
-    pub no_mlock: bool,
-    /// Realtime: timer slack of every loop, ns (default 1000).
-    #[arg(long, value_name = "NS")]
-    pub timer_slack_ns: Option<u64>,
-    /// Fail if the system refuses a real-time setting.
-    #[arg(long)]
-    pub require_rt: bool,
+    #[command(flatten)]
+    pub rt: RtArgs,
     /// Realtime: wait strategy of the plant (default hybrid:25: sleeps to 25 µs before each
     /// deadline and spins the rest, so samples leave on time although a timer wake-up here
     /// takes ~25 µs).
@@ -287,13 +294,7 @@ impl StackArgs {
         if let Some(Cpus(cpus)) = self.cpus {
             d.set_cpus(cpus);
         }
-        if self.no_mlock {
-            d.lock_memory = false;
-        }
-        if let Some(ns) = self.timer_slack_ns {
-            d.timer_slack_ns = ns;
-        }
-        d.require_rt |= self.require_rt;
+        self.rt.apply(&mut d);
         for (wait, process) in [
             (self.plant_wait, Process::Plant),
             (self.current_wait, Process::CurrentLoop),

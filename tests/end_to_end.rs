@@ -361,10 +361,10 @@ fn a_dying_child_fails_the_run_and_leaves_nothing_behind() {
     unsafe { libc::kill(victim as i32, libc::SIGKILL) };
     let status = wait_with_timeout(&mut run, Duration::from_secs(30));
     let stderr = stderr_of(&mut run);
-    assert_eq!(status.code(), Some(1), "{stderr}");
+    assert_eq!(status.code(), Some(5), "{stderr}");
     assert!(
-        stderr.contains("current-loop"),
-        "error does not name the dead child: {stderr}"
+        stderr.contains("PROCESS DIED") && stderr.contains("current-loop"),
+        "the headline does not name the dead child: {stderr}"
     );
     assert!(
         wait_until(Duration::from_secs(5), || processes_with(&inst).is_empty()),
@@ -908,7 +908,7 @@ fn a_silent_drive_is_reported_by_the_bridge() {
     unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert_eq!(out.status.code(), Some(5), "{stderr}");
     assert!(
         stderr.contains("no valid sample from the drive"),
         "{stderr}"

@@ -164,6 +164,15 @@ impl BridgeCore {
         ]
     }
 
+    /// The RESET and ENABLE to send when a reset is requested: the drive clears its
+    /// latched faults (and aligns) and takes commands again.
+    pub fn reset(&mut self, now: u64) -> [Frame; 2] {
+        [
+            self.link.control_frame(Action::Reset, now),
+            self.link.control_frame(Action::Enable, now),
+        ]
+    }
+
     /// The DISABLE to send when the bridge stops.
     pub fn disable(&mut self, now: u64) -> Frame {
         self.link.control_frame(Action::Disable, now)
@@ -235,6 +244,12 @@ impl BridgeCore {
         self.last_state = Some(st);
         self.due_ns = Some(self.arrivals.next_due(self.link.sample_timestamp_ns, rx_at));
         st
+    }
+
+    /// The fault bits of the last state published (the drive's latched faults in the upper
+    /// 16 bits).
+    pub fn last_fault(&self) -> u32 {
+        self.last_state.map_or(0, |st| st.fault)
     }
 
     pub fn is_last(&self, st: &DriveState) -> bool {

@@ -13,7 +13,7 @@ use stepdrive_drive_protocol::{encode, Frame, MAX_FRAME};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Notify, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
-use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState};
+use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, ResetRequest};
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
@@ -118,6 +118,7 @@ pub struct BridgePorts {
     pub state_ready: Box<dyn Notify>,
     pub commands: Box<dyn Subscribe<DriveCommand>>,
     pub plans: Box<dyn Subscribe<DrivePlan>>,
+    pub resets: Box<dyn Subscribe<ResetRequest>>,
     pub presence: Box<dyn Presence>,
 }
 
@@ -141,6 +142,7 @@ impl BridgePorts {
             wire,
             commands: f.subscriber(LOOP_BUFFER)?,
             plans: f.subscriber(LOOP_BUFFER)?,
+            resets: f.subscriber(LOOP_BUFFER)?,
             state_ready: f.notifier()?,
             states: f.publisher()?,
             presence: f.presence()?,
@@ -351,6 +353,16 @@ impl Node for BridgeNode {
     }
 
     fn poll(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<Poll, RunError> {
+        while let Some(r) = ports.resets.receive()? {
+            tracing::warn!(
+                pid = r.pid,
+                drive_faults = self.core.last_fault() >> 16,
+                "reset requested: RESET and ENABLE sent to the drive"
+            );
+            for f in self.core.reset(cx.now()) {
+                Self::send(ports, &f);
+            }
+        }
         self.forward(ports, cx)?;
         // Taken before the socket is read: if it holds nothing, nothing arrived up to here.
         let looked_at = cx.now();

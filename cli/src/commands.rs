@@ -1,18 +1,22 @@
 //! The sub-commands that are not a process of the stack: launching and simulating runs,
 //! measuring latency, printing and checking configuration.
 
-use crate::options::{seconds, ScenarioOpt, StackArgs, Throttling};
+use crate::options::{parse_seconds, seconds, ScenarioOpt, StackArgs, Throttling};
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
+use stepdrive_monitor::attach::ResetResult;
 use stepdrive_monitor::latency::{run_latency, table as latency_table, LatencyOptions};
 use stepdrive_monitor::launcher::{run_stack, LaunchOptions};
 use stepdrive_monitor::metrics::RunReport;
-use stepdrive_monitor::report::{document, table};
+use stepdrive_monitor::outcome::Outcome;
+use stepdrive_monitor::report::{document, headline, overall, table};
 use stepdrive_monitor::simulate::{simulate as simulate_run, simulate_stalls};
+use stepdrive_monitor::throttling::ThrottlingLifted;
 use stepdrive_runtime::deploy::Deployment;
-use stepdrive_runtime::rt::{rt_runtime_us, RtThrottlingOff};
+use stepdrive_runtime::rt::rt_runtime_us;
 use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::services::DEFAULT_INSTANCE;
 use stepdrive_shared::{Method, Scenario};
 
 /// What a run or simulation computes and where its results go.
@@ -93,6 +97,35 @@ pub struct LatencyArgs {
 }
 
 #[derive(Args, Debug)]
+pub struct ResetArgs {
+    /// The stack's instance name.
+    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    instance: String,
+    /// How long to wait for the faults to clear, seconds.
+    #[arg(long, value_name = "S", default_value = "2", value_parser = parse_seconds)]
+    wait_s: std::time::Duration,
+}
+
+#[derive(Args, Debug)]
+pub struct MonitorArgs {
+    /// The stack's instance name.
+    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    instance: String,
+    /// The stack's scenario (its fingerprint must match the stack's).
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// The method the stack's current loop runs (a label for the report).
+    #[arg(long, value_enum, default_value_t = Method::Proposed)]
+    method: Method,
+    /// Also write the results as JSON to FILE.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    /// Silence of the plant after which the run is declared stuck, seconds.
+    #[arg(long, value_name = "S", default_value = "5", value_parser = parse_seconds)]
+    peer_timeout_s: std::time::Duration,
+}
+
+#[derive(Args, Debug)]
 pub struct CheckArgs {
     /// Validate this file instead of printing the defaults.
     #[arg(long, value_name = "FILE")]
@@ -109,28 +142,75 @@ pub struct DeployArgs {
     mode: Mode,
 }
 
-fn write_outputs(s: &Scenario, runs: &[RunReport], json: Option<&PathBuf>) -> Result<()> {
-    println!("scenario: {}", s.name);
-    print!("{}", table(s, runs));
-    if let Some(path) = json {
-        let text = serde_json::to_string_pretty(&document(s, runs))?;
-        std::fs::write(path, text + "\n")
-            .with_context(|| format!("cannot write {}", path.display()))?;
-        println!("results written to {}", path.display());
-    }
-    Ok(())
+/// The JSON results file, opened before anything runs so that a path that cannot be
+/// written fails at once, not after the run.
+pub struct JsonOut {
+    path: PathBuf,
+    file: std::fs::File,
 }
 
-/// Applies `--rt-throttling` for the life of the returned guard.
-fn throttling_guard(a: &StackArgs, d: &Deployment, mode: Mode) -> Result<Option<RtThrottlingOff>> {
-    if mode == Mode::Lockstep {
+impl JsonOut {
+    pub fn create(path: Option<&PathBuf>) -> Result<Option<Self>> {
+        let Some(path) = path else {
+            return Ok(None);
+        };
+        let file = std::fs::File::create(path)
+            .with_context(|| format!("cannot write the results file {}", path.display()))?;
+        Ok(Some(Self {
+            path: path.clone(),
+            file,
+        }))
+    }
+}
+
+/// Prints the table of `runs` and writes the JSON, complete or not, then says how the runs
+/// ended: a headline per run that did not go well, and an error carrying the exit code of
+/// the most severe.
+fn conclude(s: &Scenario, runs: &[RunReport], json: Option<JsonOut>) -> Result<()> {
+    use std::io::Write;
+    println!("scenario: {}", s.name);
+    print!("{}", table(s, runs));
+    if let Some(mut out) = json {
+        let text = serde_json::to_string_pretty(&document(s, runs))?;
+        out.file
+            .write_all((text + "\n").as_bytes())
+            .with_context(|| format!("cannot write {}", out.path.display()))?;
+        println!("results written to {}", out.path.display());
+    }
+    let headlines: Vec<String> = runs.iter().filter_map(|r| headline(s, r)).collect();
+    for h in &headlines {
+        println!("\n{h}");
+    }
+    let outcome = overall(runs);
+    if outcome == Outcome::Ok {
+        return Ok(());
+    }
+    Err(Exit {
+        code: outcome.exit_code(),
+        headline: headlines.join("\n"),
+    }
+    .into())
+}
+
+/// A run that did not go well: its headline is printed, the process exits with `code`.
+#[derive(Debug, thiserror::Error)]
+#[error("{headline}")]
+pub struct Exit {
+    pub code: u8,
+    pub headline: String,
+}
+
+/// Lifts RT throttling for the life of the returned guard (`--rt-throttling off`, the
+/// default), when the run has real-time priorities to protect.
+fn throttling_guard(a: &StackArgs, d: &Deployment, mode: Mode) -> Result<Option<ThrottlingLifted>> {
+    if mode == Mode::Lockstep || !d.has_priorities() {
         return Ok(None);
     }
     if a.rt_throttling == Throttling::Off {
-        match RtThrottlingOff::engage() {
+        match ThrottlingLifted::engage() {
             Ok(g) => return Ok(g),
-            Err(e) if d.require_rt => return Err(e.into()),
-            Err(e) => tracing::warn!("{}; continuing with RT throttling on", e.describe()),
+            Err(e) if d.require_rt => return Err(e),
+            Err(e) => tracing::warn!("{e:#}; continuing with RT throttling on"),
         }
     }
     // RT throttling takes a spinning SCHED_FIFO task off its CPU for up to 50 ms a second
@@ -150,6 +230,7 @@ pub fn run(a: RunArgs) -> Result<()> {
     let mut s = a.select.scenario.load()?;
     a.stack.apply_duration(&mut s)?;
     let deployment = a.stack.deployment(a.mode)?;
+    let json = JsonOut::create(a.select.json.as_ref())?;
     let _throttling = throttling_guard(&a.stack, &deployment, a.mode)?;
     let opts = LaunchOptions {
         instance: a.stack.instance.clone(),
@@ -163,21 +244,34 @@ pub fn run(a: RunArgs) -> Result<()> {
             a.mode.as_str(),
             s.duration_s()
         );
-        let report =
-            run_stack(&s, *method, &opts).with_context(|| format!("the {method} run failed"))?;
+        let report = match run_stack(&s, *method, &opts) {
+            Ok(report) => report,
+            Err(e) => {
+                // The stack could not start: keep what the earlier methods gathered.
+                if !runs.is_empty() {
+                    conclude(&s, &runs, json).ok();
+                }
+                return Err(e.context(format!("the {method} run could not start")));
+            }
+        };
+        let stop = report.outcome >= Outcome::ProcessDied;
         runs.push(report);
+        if stop {
+            break;
+        }
     }
-    write_outputs(&s, &runs, a.select.json.as_ref())
+    conclude(&s, &runs, json)
 }
 
 pub fn simulate(a: SimulateArgs) -> Result<()> {
     let s = a.select.scenario.load()?;
+    let json = JsonOut::create(a.select.json.as_ref())?;
     let mut runs = Vec::with_capacity(a.select.methods.len());
     if a.stalls.is_empty() {
         for m in &a.select.methods {
             runs.push(simulate_run(&s, *m).with_context(|| format!("the {m} simulation failed"))?);
         }
-        return write_outputs(&s, &runs, a.select.json.as_ref());
+        return conclude(&s, &runs, json);
     }
     let duration = s.duration_s();
     let mut stalls = Vec::with_capacity(a.stalls.len());
@@ -197,7 +291,7 @@ pub fn simulate(a: SimulateArgs) -> Result<()> {
         );
         runs.push(report);
     }
-    write_outputs(&s, &runs, a.select.json.as_ref())
+    conclude(&s, &runs, json)
 }
 
 pub fn latency(a: LatencyArgs) -> Result<()> {
@@ -223,14 +317,33 @@ pub fn latency(a: LatencyArgs) -> Result<()> {
         skip_baselines: a.skip_baselines,
     };
     let report = run_latency(&s, &opts)?;
-    write_outputs(&s, std::slice::from_ref(&report.run), None)?;
-    println!();
-    print!("{}", latency_table(&report));
+    println!("{}", latency_table(&report));
     println!(
         "written: {}/latency.json, latency.svg, *.hist",
         a.out.display()
     );
+    conclude(&s, std::slice::from_ref(&report.run), None)
+}
+
+pub fn reset(a: ResetArgs) -> Result<()> {
+    let result = stepdrive_monitor::attach::reset(&a.instance, a.wait_s)?;
+    let text = stepdrive_monitor::attach::describe(&result);
+    if let ResetResult::StillLatched(_) = result {
+        return Err(Exit {
+            code: Outcome::Fault.exit_code(),
+            headline: format!("FAULT (exit 3): reset of instance `{}`: {text}", a.instance),
+        }
+        .into());
+    }
+    println!("reset of instance `{}`: {text}", a.instance);
     Ok(())
+}
+
+pub fn monitor(a: MonitorArgs) -> Result<()> {
+    let s = a.scenario.load()?;
+    let json = JsonOut::create(a.json.as_ref())?;
+    let report = stepdrive_monitor::attach::watch(&a.instance, &s, a.method, a.peer_timeout_s)?;
+    conclude(&s, &[report], json)
 }
 
 pub fn scenario(a: CheckArgs) -> Result<()> {

@@ -43,6 +43,12 @@ enum Cmd {
     CurrentLoop(roles::CurrentLoopArgs),
     /// The position/torque-loop process: trajectory + torque modulation (12).
     PositionLoop(options::ProcessArgs),
+    /// Clear the latched faults of a running stack's plant (or bridge and drive), once their
+    /// cause is gone: e.g. after a dead current loop was restarted. Exit 0 when cleared.
+    Reset(commands::ResetArgs),
+    /// Attach to a running stack (one started by hand) and compute its run's figures from
+    /// its state stream, as `run` does: table, JSON, exit code.
+    Monitor(commands::MonitorArgs),
     /// Print the default scenario as TOML, or check a scenario file.
     Scenario(commands::CheckArgs),
     /// Print the default deployment (wait strategies, priorities, CPUs, timeouts, watchdog,
@@ -61,6 +67,9 @@ enum Cmd {
     /// like the current loop).
     #[command(hide = true)]
     Pingpong(roles::PingpongArgs),
+    /// Lifts RT throttling and restores it when its stdin closes (`run` starts one).
+    #[command(hide = true)]
+    RtThrottlingGuard,
 }
 
 fn init_logging() {
@@ -85,10 +94,13 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::CurrentLoop(a) => roles::current_loop(a),
         Cmd::PositionLoop(a) => roles::position_loop(a),
         Cmd::Scenario(a) => commands::scenario(a),
+        Cmd::Reset(a) => commands::reset(a),
+        Cmd::Monitor(a) => commands::monitor(a),
         Cmd::Deploy(a) => commands::deploy(a),
         Cmd::Latency(a) => commands::latency(a),
         Cmd::EmulateDrive(a) => roles::emulate_drive(a),
         Cmd::Pingpong(a) => roles::pingpong(a),
+        Cmd::RtThrottlingGuard => stepdrive_monitor::throttling::guard(),
     }
 }
 
@@ -101,6 +113,9 @@ fn main() -> ExitCode {
         Err(e) => {
             // One line, prefixed, so a launcher can pick it out of our stderr.
             eprintln!("error: {e:#}");
+            if let Some(exit) = e.downcast_ref::<commands::Exit>() {
+                return ExitCode::from(exit.code);
+            }
             let terminated = e.chain().any(|c| {
                 c.downcast_ref::<RunError>()
                     .is_some_and(RunError::is_terminated)

@@ -262,10 +262,11 @@ pub struct StackArgs {
     /// Realtime: wait strategy of the position loop (default sleep).
     #[arg(long, value_name = "STRATEGY")]
     pub position_wait: Option<WaitStrategy>,
-    /// Realtime: `off` sets sched_rt_runtime_us to -1 for the run and restores it after
-    /// (root). With throttling on, SCHED_FIFO tasks lose their CPU up to 50 ms a second
-    /// whenever ordinary tasks want it; see the README's latency section.
-    #[arg(long, value_enum, default_value_t = Throttling::On)]
+    /// Realtime: `off` (the default) sets sched_rt_runtime_us to -1 for a run with real-time
+    /// priorities and restores it on every exit path, a SIGKILL of this launcher included
+    /// (root; otherwise a warning). With throttling `on`, SCHED_FIFO tasks lose their CPU up
+    /// to 50 ms a second whenever ordinary tasks want it: five times the watchdog.
+    #[arg(long, value_enum, default_value_t = Throttling::Off)]
     pub rt_throttling: Throttling,
     /// Hardware mode: the drive's address, host:port on UDP (a name is resolved); without
     /// it (or --drive-port) an emulated drive is started on loopback.

@@ -2,6 +2,7 @@
 //! runtime's one runner (`run_process`). They find each other by instance name, in any
 //! order; `run` starts them with its scenario and deployment files.
 
+use crate::commands::Exit;
 use crate::options::{seconds, DeployOpt, PlacementArgs, ProcessArgs, ScenarioOpt};
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
@@ -11,13 +12,14 @@ use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
 use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
 use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
 use stepdrive_emulated_drive::{run_emulator, EmulatorOptions, FaultInjection};
+use stepdrive_monitor::outcome::{fault_names, Outcome, LATCHED};
 use stepdrive_monitor::pingpong::{PingPongOptions, Transport};
 use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
 use stepdrive_runtime::deploy::{Deployment, Process};
 use stepdrive_runtime::pacer::WaitStrategy;
 use stepdrive_runtime::process::{run_process, ProcessSpec};
 use stepdrive_shared::scenario::Mode;
-use stepdrive_shared::Method;
+use stepdrive_shared::{Method, Scenario};
 
 /// Realtime: the first deadline this long after the plant sees its peers, so that every
 /// process is in its loop by then.
@@ -93,6 +95,7 @@ fn spec<'a>(
     process: Process,
     node_name: &'a str,
     d: &'a Deployment,
+    scenario: &'a Scenario,
 ) -> ProcessSpec<'a> {
     ProcessSpec {
         instance: &a.instance,
@@ -100,6 +103,7 @@ fn spec<'a>(
         process,
         node_name,
         deployment: d,
+        scenario,
     }
 }
 
@@ -131,10 +135,10 @@ pub fn plant(a: PlantArgs) -> Result<()> {
             watchdog_periods: d.watchdog_periods,
             start_delay_ns: PLANT_START_DELAY_NS,
         };
-        run_process(&spec(&a.common, process, "plant", &d), |bus| {
+        let finished = run_process(&spec(&a.common, process, "plant", &d, &s), |bus| {
             Ok((PlantNode::new(&s, settings), PlantPorts::open(bus, mode)?))
         })?;
-        return Ok(());
+        return ended_safe("plant", finished.node.latched_fault());
     }
     let drive: DriveAddr = d
         .drive
@@ -161,12 +165,31 @@ pub fn plant(a: PlantArgs) -> Result<()> {
         },
         look_for_answers: wait == WaitStrategy::Sleep,
     };
-    run_process(&spec(&a.common, process, "plant", &d), |bus| {
+    let finished = run_process(&spec(&a.common, process, "plant", &d, &s), |bus| {
         let node = BridgeNode::new(&s, settings.clone())?;
         let ports = BridgePorts::open(bus, &settings.drive)?;
         Ok((node, ports))
     })?;
-    Ok(())
+    ended_safe("bridge", finished.node.core().last_fault())
+}
+
+/// A plant or bridge that ends its run with a latched fault has lost the motor: it says so
+/// and exits with the fault's code.
+fn ended_safe(who: &str, fault: u32) -> Result<()> {
+    if fault & LATCHED == 0 {
+        return Ok(());
+    }
+    Err(Exit {
+        code: Outcome::Fault.exit_code(),
+        headline: format!(
+            "FAULT (exit {}): the {who} ended its run with {} latched; the outputs are off. \
+             See the log above for when and why; `stepdrive reset --instance NAME` clears it \
+             once the cause is gone.",
+            Outcome::Fault.exit_code(),
+            fault_names(fault).join(" and ")
+        ),
+    }
+    .into())
 }
 
 #[derive(Args, Debug)]
@@ -190,10 +213,10 @@ pub fn current_loop(a: CurrentLoopArgs) -> Result<()> {
         );
     }
     run_process(
-        &spec(&a.common, Process::CurrentLoop, "current-loop", &d),
+        &spec(&a.common, Process::CurrentLoop, "current-loop", &d, &s),
         |bus| {
             Ok((
-                CurrentLoopNode::new(&s, a.method, mode),
+                CurrentLoopNode::new(&s, a.method, mode).watching_setpoints(d.peer_timeout()),
                 CurrentLoopPorts::open(bus, mode, event)?,
             ))
         },
@@ -207,7 +230,7 @@ pub fn position_loop(a: ProcessArgs) -> Result<()> {
     // Half a current period after the plant's samples: each tick finds its sample out.
     let phase_ns = s.sample_period_ns() / 2;
     run_process(
-        &spec(&a, Process::PositionLoop, "position-loop", &d),
+        &spec(&a, Process::PositionLoop, "position-loop", &d, &s),
         |bus| {
             Ok((
                 PositionLoopNode::new(&s, a.mode, phase_ns),

@@ -69,6 +69,9 @@ pub struct CurrentLoopNode {
     last_seq: Option<u64>,
     due_ns: Option<u64>,
     started: bool,
+    /// Realtime: when the last setpoint came, and how long it may be stale.
+    setpoint_seen_ns: Option<u64>,
+    setpoint_timeout: Option<std::time::Duration>,
 }
 
 impl CurrentLoopNode {
@@ -94,7 +97,15 @@ impl CurrentLoopNode {
             last_seq: None,
             due_ns: None,
             started: false,
+            setpoint_seen_ns: None,
+            setpoint_timeout: None,
         }
+    }
+
+    /// Realtime: stop (a silent peer) when no setpoint came for `timeout`.
+    pub fn watching_setpoints(mut self, timeout: std::time::Duration) -> Self {
+        self.setpoint_timeout = Some(timeout);
+        self
     }
 
     fn poll_lockstep(&mut self, ports: &mut CurrentLoopPorts) -> Result<Poll, RunError> {
@@ -104,31 +115,36 @@ impl CurrentLoopNode {
                 let Some(s) = ports.states.receive()? else {
                     return Ok(Poll::Pending);
                 };
-                let expected = self.last_seq.map_or(0, |q| q + 1);
-                if s.seq != expected {
-                    let e = SequenceError::State {
-                        expected,
-                        got: s.seq,
-                    };
-                    return Err(RunError::node(Role::CurrentLoop, e));
+                // The first state may be any: a loop that rejoins a running stack starts
+                // from the newest sample (the topic's history).
+                if let Some(expected) = self.last_seq.map(|q| q + 1) {
+                    if s.seq != expected {
+                        let e = SequenceError::State {
+                            expected,
+                            got: s.seq,
+                        };
+                        return Err(RunError::node(Role::CurrentLoop, e));
+                    }
                 }
                 self.state = Some(s);
                 s
             }
         };
-        if state.seq % self.ratio == 0 && self.setpoint_for != Some(state.seq) {
+        // This sample's tick: its setpoint is the one computed there.
+        let tick = state.seq - state.seq % self.ratio;
+        if self.setpoint_for != Some(tick) {
             let Some(sp) = ports.setpoints.receive()? else {
                 return Ok(Poll::Pending);
             };
-            if sp.from_state_seq != state.seq {
+            if sp.from_state_seq != tick {
                 let e = SequenceError::Setpoint {
-                    expected: state.seq,
+                    expected: tick,
                     got: sp.from_state_seq,
                 };
                 return Err(RunError::node(Role::CurrentLoop, e));
             }
             self.setpoint = sp;
-            self.setpoint_for = Some(state.seq);
+            self.setpoint_for = Some(tick);
         }
         Ok(Poll::READY)
     }
@@ -148,8 +164,21 @@ impl CurrentLoopNode {
             .last_seq
             .map_or(0, |prev| state.seq.saturating_sub(prev + 1));
         self.state = Some(state);
+        let now = cx.now();
         if let Some(sp) = ports.setpoints.newest()? {
             self.setpoint = sp;
+            self.setpoint_seen_ns = Some(now);
+        }
+        // A stale setpoint segment keeps extrapolating θ_d: a position loop that went quiet
+        // must stop this loop, not steer the motor on.
+        if let (Some(seen), Some(timeout)) = (self.setpoint_seen_ns, self.setpoint_timeout) {
+            if now.saturating_sub(seen) > timeout.as_nanos() as u64 {
+                return Err(RunError::PeerSilent {
+                    role: Role::CurrentLoop,
+                    awaiting: "control/setpoint from the position loop".to_string(),
+                    timeout,
+                });
+            }
         }
         Ok(Poll::Ready {
             fresh: true,

@@ -49,6 +49,7 @@ pub struct PositionLoopNode {
     latest: Option<DriveState>,
     fresh: bool,
     last_used: Option<u64>,
+    setpoint_subscribers: usize,
 }
 
 impl PositionLoopNode {
@@ -66,6 +67,7 @@ impl PositionLoopNode {
             latest: None,
             fresh: false,
             last_used: None,
+            setpoint_subscribers: 0,
         }
     }
 }
@@ -125,15 +127,24 @@ impl Node for PositionLoopNode {
     fn poll(&mut self, ports: &mut PositionLoopPorts, cx: &mut Cx) -> Result<Poll, RunError> {
         if self.lockstep {
             let Some(s) = ports.states.receive()? else {
+                // A current loop that rejoins gets the newest setpoint from the topic's
+                // history, delivered when the publisher updates its connections.
+                let subscribers = ports.presence.subscribers(Topic::Setpoint);
+                if subscribers != self.setpoint_subscribers {
+                    self.setpoint_subscribers = subscribers;
+                    ports.setpoints.connect()?;
+                }
                 return Ok(Poll::Pending);
             };
-            let expected = self.latest.map_or(0, |l| l.seq + 1);
-            if s.seq != expected {
-                let e = SkippedState {
-                    expected,
-                    got: s.seq,
-                };
-                return Err(RunError::node(Role::PositionLoop, e));
+            // The first may be any: a loop that rejoins starts from the newest sample.
+            if let Some(expected) = self.latest.map(|l| l.seq + 1) {
+                if s.seq != expected {
+                    let e = SkippedState {
+                        expected,
+                        got: s.seq,
+                    };
+                    return Err(RunError::node(Role::PositionLoop, e));
+                }
             }
             self.latest = Some(s);
             return Ok(Poll::READY);

@@ -130,7 +130,15 @@ impl DriveCore {
                 return None;
             }
         };
-        if !is_newer(frame.seq, self.last_rx_seq) {
+        // A HELLO starts a new session: a new host counts its frames from its own start,
+        // so sequence tracking restarts with it, and the outputs stay off until it enables
+        // them.
+        if frame.message == Message::Hello {
+            self.enabled = false;
+            self.pending = None;
+            self.plan = None;
+            self.since_command = 0;
+        } else if !is_newer(frame.seq, self.last_rx_seq) {
             self.counters.stale_frames += 1;
             return None;
         }
@@ -158,6 +166,9 @@ impl DriveCore {
             Message::Control(Action::Reset) => {
                 self.latched = 0;
                 self.since_command = 0;
+                // Alignment: with phase A energized the rotor settles at an electrical zero
+                // (N_r θ = 0 mod 2π), where the host's encoder zero then commutates right.
+                self.sim.align();
                 None
             }
             Message::Hello => Some(Reply::Config(self.config)),
@@ -590,5 +601,62 @@ mod tests {
             panic!()
         };
         assert_eq!(s.duty_a, 5000);
+    }
+
+    /// A second host (a new run) says HELLO with its own frame numbers, lower than the
+    /// first host's last: it gets its CONFIG and a new session, not a "stale frame".
+    #[test]
+    fn a_hello_starts_a_new_session() {
+        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+        assert!(matches!(
+            d.on_frame(&frame_bytes(1, Message::Hello)),
+            Some(Reply::Config(_))
+        ));
+        d.on_frame(&frame_bytes(2, Message::Control(Action::Enable)));
+        for seq in 3..500 {
+            d.on_frame(&frame_bytes(seq, cmd(seq, 100)));
+        }
+        assert!(d.outputs_on());
+        // The next host.
+        assert!(matches!(
+            d.on_frame(&frame_bytes(1, Message::Hello)),
+            Some(Reply::Config(_))
+        ));
+        assert!(!d.outputs_on(), "off until the new host enables them");
+        d.on_frame(&frame_bytes(2, Message::Control(Action::Reset)));
+        d.on_frame(&frame_bytes(3, Message::Control(Action::Enable)));
+        assert!(d.outputs_on());
+        assert_eq!(d.counters.stale_frames, 0);
+    }
+
+    /// RESET aligns the rotor: it rests at an electrical zero, whatever a previous session
+    /// left it at.
+    #[test]
+    fn reset_leaves_the_rotor_at_an_electrical_zero() {
+        let mut d = DriveCore::new(&Scenario::default(), 2000, 8);
+        d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
+        for k in 0..400u32 {
+            d.on_frame(&frame_bytes(2 + k, cmd(k.wrapping_sub(1), 12_000)));
+            d.run_period(k);
+        }
+        let theta = |d: &mut DriveCore| {
+            let Message::Sample(s) = d.sample_frame(0).message else {
+                panic!()
+            };
+            f64::from(s.encoder_counts) / f64::from(1u32 << 20) * std::f64::consts::TAU
+        };
+        let pitch = std::f64::consts::TAU / 50.0;
+        let before = theta(&mut d);
+        assert!(
+            (before / pitch - (before / pitch).round()).abs() > 1e-3,
+            "moved off a zero"
+        );
+        d.on_frame(&frame_bytes(500, Message::Control(Action::Reset)));
+        let after = theta(&mut d);
+        assert!(
+            (after / pitch - (after / pitch).round()).abs() < 1e-4,
+            "{after}"
+        );
+        assert!((after - before).abs() <= pitch / 2.0 + 1e-6);
     }
 }

@@ -6,8 +6,9 @@
 //! dead nodes' shared memory is removed.
 
 use crate::metrics::{Metrics, RunReport};
+use crate::outcome::Outcome;
 use crate::timing::TimingReport;
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use std::io::{BufRead, BufReader};
 use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
@@ -15,10 +16,9 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::deploy::{Deployment, Process};
-use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, IpcSubscriber};
+use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, IpcSubscriber, Stamp};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::Subscribe;
-use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{state_flags, DriveState};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::MONITOR_BUFFER;
@@ -171,15 +171,21 @@ impl Drop for Supervised {
     }
 }
 
-/// The scenario and deployment as the children read them: a private directory, removed
-/// when dropped.
+/// The scenario and deployment as the children read them: a private directory, removed as
+/// soon as every child has read it (when the first sample arrives) and when dropped. A
+/// launcher killed before then leaves it; the next launch removes such leftovers.
 struct RunFiles {
     dir: PathBuf,
 }
 
+/// The prefix of a run's directory: `stepdrive-<launcher pid>-<instance>`.
+const RUN_DIR_PREFIX: &str = "stepdrive-";
+
 impl RunFiles {
     fn write(s: &Scenario, d: &Deployment, instance: &str) -> Result<Self> {
-        let dir = std::env::temp_dir().join(format!("stepdrive-{}-{instance}", std::process::id()));
+        Self::remove_leftovers();
+        let dir =
+            std::env::temp_dir().join(format!("{RUN_DIR_PREFIX}{}-{instance}", std::process::id()));
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create {}", dir.display()))?;
         let files = Self { dir };
@@ -198,6 +204,31 @@ impl RunFiles {
     fn deployment(&self) -> PathBuf {
         self.dir.join("deploy.toml")
     }
+
+    /// Every child has read its files: they can go.
+    fn remove(&self) {
+        let _ = std::fs::remove_dir_all(&self.dir);
+    }
+
+    /// Removes the directories of launchers that no longer run.
+    fn remove_leftovers() {
+        let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
+            return;
+        };
+        for entry in entries.flatten() {
+            let name = entry.file_name();
+            let pid = name
+                .to_str()
+                .and_then(|n| n.strip_prefix(RUN_DIR_PREFIX))
+                .and_then(|rest| rest.split('-').next())
+                .and_then(|pid| pid.parse::<u32>().ok());
+            let Some(pid) = pid else { continue };
+            let alive = Path::new(&format!("/proc/{pid}")).exists();
+            if !alive && entry.path().join("deploy.toml").exists() {
+                let _ = std::fs::remove_dir_all(entry.path());
+            }
+        }
+    }
 }
 
 impl Drop for RunFiles {
@@ -210,7 +241,22 @@ fn path_arg(p: &Path) -> String {
     p.display().to_string()
 }
 
-/// Runs one method of one scenario on three processes and returns its report.
+/// Child exit codes that are the child's own verdict on the run (a latched fault, a
+/// step-out), not a failure of the process: the monitor judges the run from the state
+/// stream itself.
+const VERDICT_EXIT_CODES: [i32; 2] = [3, 4];
+
+/// How the supervision of a run ended.
+enum Ending {
+    /// The last sample arrived.
+    Last,
+    /// The run stopped early.
+    Stopped(Outcome, String),
+}
+
+/// Runs one method of one scenario on three processes and returns its report: complete, or
+/// with what ran before it stopped (a child died, the stack hung, Ctrl-C), its outcome
+/// saying which. An error only when the stack could not be started at all.
 pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<RunReport> {
     let mode = opts.mode;
     let realtime = mode != Mode::Lockstep;
@@ -230,7 +276,6 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         d.drive.address = Some(free_loopback_port()?.to_string());
     }
     let files = RunFiles::write(s, &d.resolved(mode), &opts.instance)?;
-
     let common = [
         "--mode".to_string(),
         mode.as_str().to_string(),
@@ -243,7 +288,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     ];
 
     // The monitor subscribes before the plant may start: the plant waits for 3 subscribers.
-    let bus = IpcBus::open(&opts.instance, "monitor", mode)
+    let bus = IpcBus::open(&opts.instance, "monitor", &Stamp::new(mode, s))
         .context("cannot attach the monitor to the stack's services")?;
     let mut states = bus.subscriber_of::<DriveState>(MONITOR_BUFFER)?;
     let mut stats_sub = bus.subscriber_of::<StatsReport>(4)?;
@@ -278,91 +323,231 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         "current-loop",
         &with(&["--method", method.as_str()]),
     )?);
-    let mut finals: [Option<StatsReport>; 3] = [None, None, None];
-    let mut latest: [Option<StatsReport>; 3] = [None, None, None];
-    let mut monitor_lost = 0u64;
-    let mut last_seq: Option<u64> = None;
+    let mut stats = Finals::default();
+    let mut watch = Watch {
+        metrics: Metrics::new(s),
+        last_seq: None,
+        monitor_lost: 0,
+        first_ns: None,
+        last_ns: 0,
+    };
+    let ending = supervise(
+        s,
+        method,
+        &d,
+        realtime,
+        &mut states,
+        &mut stats_sub,
+        &mut stats,
+        &mut children,
+        &mut watch,
+        &files,
+    )?;
 
-    let mut metrics = Metrics::new(s);
+    let mut failures = Vec::new();
+    if let Ending::Last = ending {
+        if emulated {
+            // The emulated drive runs until told to stop; the bridge has disabled it.
+            children[0].signal(libc::SIGTERM);
+        }
+        for child in children.iter_mut() {
+            let status = child.finish(Duration::from_secs(10));
+            stats.drain(&mut stats_sub)?;
+            let verdict = status
+                .code()
+                .is_some_and(|c| VERDICT_EXIT_CODES.contains(&c));
+            if !status.success() && !verdict {
+                failures.push(child.describe_failure(status));
+            }
+        }
+    }
+    stats.drain(&mut stats_sub)?;
+    drop(stats_sub);
+    drop(children);
+    drop(states);
+    drop(bus);
+    cleanup_dead_nodes();
+    let wall = watch
+        .first_ns
+        .map(|f| watch.last_ns.saturating_sub(f) as f64 * 1e-9)
+        .unwrap_or(0.0);
+    let metrics = &watch.metrics;
+    let mut report = match ending {
+        Ending::Last if failures.is_empty() => metrics.finish(method, mode.as_str(), wall),
+        Ending::Last => {
+            let mut r = metrics.finish(method, mode.as_str(), wall);
+            r.outcome = r.outcome.max(Outcome::ProcessDied);
+            r.stopped_because = Some(failures.join("; "));
+            r
+        }
+        Ending::Stopped(outcome, because) => {
+            metrics.finish_early(method, mode.as_str(), wall, outcome, because)
+        }
+    };
+    if realtime {
+        report.timing = Some(stats.timing(s, watch.monitor_lost, mode));
+    }
+    Ok(report)
+}
+
+/// What the monitor gathers from the state stream.
+struct Watch {
+    metrics: Metrics,
+    last_seq: Option<u64>,
+    /// Realtime: samples the monitor (the one loop allowed to fall behind) did not see.
+    monitor_lost: u64,
+    first_ns: Option<u64>,
+    last_ns: u64,
+}
+
+/// Every process's latest and final statistics.
+#[derive(Default)]
+struct Finals {
+    latest: [Option<StatsReport>; 3],
+    finals: [Option<StatsReport>; 3],
+}
+
+impl Finals {
+    fn drain(&mut self, sub: &mut IpcSubscriber<StatsReport>) -> Result<()> {
+        while let Some(r) = sub.receive()? {
+            let i = r.role as usize;
+            if i < 3 {
+                if r.is_final != 0 {
+                    self.finals[i] = Some(r);
+                }
+                self.latest[i] = Some(r);
+            }
+        }
+        Ok(())
+    }
+
+    fn timing(&self, s: &Scenario, monitor_lost: u64, mode: Mode) -> TimingReport {
+        let missing: Vec<&str> = ["plant", "current-loop", "position-loop"]
+            .iter()
+            .zip(self.finals.iter())
+            .filter(|(_, f)| f.is_none())
+            .map(|(n, _)| *n)
+            .collect();
+        if !missing.is_empty() {
+            tracing::warn!(
+                ?missing,
+                "no final statistics from some processes; using their last report"
+            );
+        }
+        let pick = |i: usize| self.finals[i].or(self.latest[i]).map(Box::new);
+        TimingReport::new(
+            s,
+            pick(0),
+            pick(1),
+            pick(2),
+            monitor_lost,
+            // In hardware mode the loop sleeps on the bridge's event, whose length it
+            // does not choose, so it cannot tell a hold from a wait.
+            mode == Mode::Realtime,
+        )
+    }
+}
+
+/// Takes the state stream into the metrics until the last sample, watching the children,
+/// the termination flag and the stream's liveness; says how it ended.
+#[allow(clippy::too_many_arguments)]
+fn supervise(
+    s: &Scenario,
+    method: Method,
+    d: &Deployment,
+    realtime: bool,
+    states: &mut IpcSubscriber<DriveState>,
+    stats_sub: &mut IpcSubscriber<StatsReport>,
+    stats: &mut Finals,
+    children: &mut [Supervised],
+    w: &mut Watch,
+    files: &RunFiles,
+) -> Result<Ending> {
     let total = s.sample_count();
     let duration = s.duration_s();
-    let mut first_ns: Option<u64> = None;
-    let mut last_ns = 0;
-    let mut done = false;
     let started = Instant::now();
     let mut last_sample_at = Instant::now();
     let mut next_progress = Instant::now() + Duration::from_secs(1);
-
-    while !done {
+    let mut files_removed = false;
+    loop {
         let mut got = false;
-        drain_stats(&mut stats_sub, &mut latest, &mut finals)?;
+        stats.drain(stats_sub)?;
         while let Some(state) = states.receive()? {
             got = true;
-            let expected = last_seq.map_or(0, |q| q + 1);
-            last_seq = Some(state.seq);
+            let expected = w.last_seq.map_or(0, |q| q + 1);
+            w.last_seq = Some(state.seq);
             if state.seq < expected {
                 // A sample repeated or published after a newer one: whatever the mode, the
                 // plant (or bridge) broke its contract.
-                bail!(
-                    "the plant published sample {} after sample {}",
-                    state.seq,
-                    expected - 1
-                );
+                return Ok(Ending::Stopped(
+                    Outcome::ProcessDied,
+                    format!(
+                        "the plant published sample {} after sample {}",
+                        state.seq,
+                        expected - 1
+                    ),
+                ));
             }
             if state.seq != expected {
                 if !realtime {
-                    bail!(
-                        "monitor expected sample {expected}, got {}: samples were lost",
-                        state.seq
-                    );
+                    return Ok(Ending::Stopped(
+                        Outcome::ProcessDied,
+                        format!(
+                            "monitor expected sample {expected}, got {}: samples were lost",
+                            state.seq
+                        ),
+                    ));
                 }
-                // Realtime: the monitor is the one loop allowed to fall behind.
-                monitor_lost += state.seq - expected;
+                w.monitor_lost += state.seq - expected;
             }
-            first_ns.get_or_insert(state.publish_time_ns);
-            last_ns = state.publish_time_ns;
-            metrics.push(&state);
+            w.first_ns.get_or_insert(state.publish_time_ns);
+            w.last_ns = state.publish_time_ns;
+            w.metrics.push(&state);
             if state.flags & state_flags::LAST != 0 {
-                done = true;
-                break;
+                return Ok(Ending::Last);
             }
         }
         if got {
+            if !files_removed {
+                // A sample means every child is up, with its files read.
+                files.remove();
+                files_removed = true;
+            }
             last_sample_at = Instant::now();
-        }
-        if done {
-            break;
         }
         for child in children.iter_mut() {
             if let Some(status) = child.poll_exit()? {
-                let msg = child.describe_failure(status);
-                drop(children);
-                cleanup_dead_nodes();
-                bail!("{msg}");
+                return Ok(Ending::Stopped(
+                    Outcome::ProcessDied,
+                    child.describe_failure(status),
+                ));
             }
         }
         if termination_requested() {
-            drop(children);
-            cleanup_dead_nodes();
-            return Err(anyhow::Error::new(RunError::Terminated)
-                .context("interrupted; all stack processes were stopped"));
+            return Ok(Ending::Stopped(
+                Outcome::Interrupted,
+                "interrupted (SIGINT/SIGTERM); all stack processes were stopped".to_string(),
+            ));
         }
-        let limit = if metrics.samples() == 0 {
+        let limit = if w.metrics.samples() == 0 {
             d.startup_timeout()
         } else {
             d.peer_timeout()
         } + Duration::from_secs(1);
         if last_sample_at.elapsed() > limit {
-            bail!(
-                "no state sample for {:.1} s (after {} of {total}); the stack is stuck",
-                last_sample_at.elapsed().as_secs_f64(),
-                metrics.samples()
-            );
+            return Ok(Ending::Stopped(
+                Outcome::ProcessDied,
+                format!(
+                    "no state sample for {:.1} s (after {} of {total}); the stack is stuck",
+                    last_sample_at.elapsed().as_secs_f64(),
+                    w.metrics.samples()
+                ),
+            ));
         }
         if Instant::now() >= next_progress {
-            let k = last_seq.map_or(0, |q| q + 1);
+            let k = w.last_seq.map_or(0, |q| q + 1);
             let done_s = k as f64 / s.rates.current_loop_hz;
-            let misses = latest[roles::PLANT as usize].map_or(0, |p| p.misses);
+            let misses = stats.latest[roles::PLANT as usize].map_or(0, |p| p.misses);
             tracing::info!(
                 "{method}: {done_s:.2} of {duration:.2} s ({:.0} %), {:.1} s elapsed{}",
                 100.0 * k as f64 / total as f64,
@@ -377,79 +562,10 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         }
         std::thread::sleep(Duration::from_micros(if realtime { 1000 } else { 500 }));
     }
-
-    let mut failures = Vec::new();
-    if emulated {
-        // The emulated drive runs until told to stop; the bridge has disabled it.
-        children[0].signal(libc::SIGTERM);
-    }
-    for child in children.iter_mut() {
-        let status = child.finish(Duration::from_secs(10));
-        drain_stats(&mut stats_sub, &mut latest, &mut finals)?;
-        if !status.success() {
-            failures.push(child.describe_failure(status));
-        }
-    }
-    drain_stats(&mut stats_sub, &mut latest, &mut finals)?;
-    drop(stats_sub);
-    drop(children);
-    drop(states);
-    drop(bus);
-    cleanup_dead_nodes();
-    if !failures.is_empty() {
-        bail!("{}", failures.join("; "));
-    }
-    let wall = first_ns
-        .map(|f| last_ns.saturating_sub(f) as f64 * 1e-9)
-        .unwrap_or(0.0);
-    let mut report = metrics.finish(method, mode.as_str(), wall);
-    if realtime {
-        let missing: Vec<&str> = ["plant", "current-loop", "position-loop"]
-            .iter()
-            .zip(finals.iter())
-            .filter(|(_, f)| f.is_none())
-            .map(|(n, _)| *n)
-            .collect();
-        if !missing.is_empty() {
-            tracing::warn!(
-                ?missing,
-                "no final statistics from some processes; using their last report"
-            );
-        }
-        let pick = |i: usize| finals[i].or(latest[i]).map(Box::new);
-        report.timing = Some(TimingReport::new(
-            s,
-            pick(0),
-            pick(1),
-            pick(2),
-            monitor_lost,
-            // In hardware mode the loop sleeps on the bridge's event, whose length it
-            // does not choose, so it cannot tell a hold from a wait.
-            mode == Mode::Realtime,
-        ));
-    }
-    Ok(report)
 }
 
 /// A loopback UDP address no one is using right now, for the emulated drive.
 fn free_loopback_port() -> Result<std::net::SocketAddr> {
     let probe = std::net::UdpSocket::bind("127.0.0.1:0").context("cannot find a free UDP port")?;
     Ok(probe.local_addr()?)
-}
-
-fn drain_stats(
-    sub: &mut IpcSubscriber<StatsReport>,
-    latest: &mut [Option<StatsReport>; 3],
-    finals: &mut [Option<StatsReport>; 3],
-) -> Result<()> {
-    while let Some(r) = sub.receive()? {
-        let i = r.role as usize;
-        if i < 3 {
-            if r.is_final != 0 {
-                finals[i] = Some(r);
-            }
-            latest[i] = Some(r);
-        }
-    }
-    Ok(())
 }

@@ -1,6 +1,7 @@
 //! The run's figures of merit, computed from the plant's state stream alone (the truth), with
 //! θ_d taken from the scenario's trajectory, so a controller cannot grade itself.
 
+use crate::outcome::{fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED};
 use serde::Serialize;
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::{state_flags, DriveState};
@@ -12,7 +13,17 @@ use stepdrive_shared::{Method, Scenario};
 pub struct RunReport {
     pub method: String,
     pub mode: String,
-    /// max |θ_d − θ| over the cruise window, rad.
+    /// How the run ended (see [`crate::outcome`]).
+    pub outcome: Outcome,
+    /// False when the run stopped before its last sample: the figures cover what ran.
+    pub complete: bool,
+    /// Why it stopped early.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stopped_because: Option<String>,
+    /// The first latched fault.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fault: Option<FaultEvent>,
+    /// max |θ_d − θ| over the cruise window, rad (null when the run never reached it).
     pub cruise_max_abs_error_rad: f64,
     /// max |θ_d − θ| over the whole run, rad (catches an excursion outside cruise).
     pub max_abs_error_rad: f64,
@@ -66,6 +77,8 @@ pub struct Metrics {
     samples: u64,
     limited: u64,
     faults: u64,
+    first_latched: Option<FaultEvent>,
+    step_out_rad: f64,
     previous_i: Option<[f64; 2]>,
     last_time: f64,
 }
@@ -75,7 +88,7 @@ impl Metrics {
         Self {
             trajectory: Trapezoid::new(&s.trajectory),
             cruise: (s.metrics.cruise_start_s, s.metrics.cruise_end_s),
-            final_from: s.duration_s() - s.metrics.final_window_s,
+            final_from: s.final_window_start_s(),
             r: s.motor.resistance_ohm,
             k_m: s.motor.torque_constant_nm_per_a,
             n_r: s.motor.n_r(),
@@ -94,6 +107,8 @@ impl Metrics {
             samples: 0,
             limited: 0,
             faults: 0,
+            first_latched: None,
+            step_out_rad: step_out_threshold_rad(s),
             previous_i: None,
             last_time: 0.0,
         }
@@ -143,6 +158,18 @@ impl Metrics {
         }
         if s.fault != 0 {
             self.faults += 1;
+            if s.fault & LATCHED != 0 && self.first_latched.is_none() {
+                let seen_unix_s = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0.0, |d| d.as_secs_f64());
+                self.first_latched = Some(FaultEvent {
+                    sample: s.seq,
+                    sim_time_s: t,
+                    seen_unix_s,
+                    bits: s.fault,
+                    faults: fault_names(s.fault),
+                });
+            }
         }
         self.last_time = t;
     }
@@ -151,13 +178,57 @@ impl Metrics {
         self.samples
     }
 
+    /// How a run that reached its end went: a latched fault, then a step-out, decide.
+    pub fn outcome(&self) -> Outcome {
+        if self.first_latched.is_some() {
+            Outcome::Fault
+        } else if self.max_abs_error.is_nan() || self.max_abs_error > self.step_out_rad {
+            Outcome::SteppedOut
+        } else {
+            Outcome::Ok
+        }
+    }
+
+    /// The report of a run that reached its last sample.
     pub fn finish(&self, method: Method, mode: &str, wall_time_s: f64) -> RunReport {
+        self.report(method, mode, wall_time_s, self.outcome(), None)
+    }
+
+    /// The report of a run that stopped early, with what it gathered.
+    pub fn finish_early(
+        &self,
+        method: Method,
+        mode: &str,
+        wall_time_s: f64,
+        outcome: Outcome,
+        because: String,
+    ) -> RunReport {
+        let outcome = outcome.max(self.outcome());
+        self.report(method, mode, wall_time_s, outcome, Some(because))
+    }
+
+    fn report(
+        &self,
+        method: Method,
+        mode: &str,
+        wall_time_s: f64,
+        outcome: Outcome,
+        stopped_because: Option<String>,
+    ) -> RunReport {
         let mean = |sum: f64, n: u64| if n == 0 { f64::NAN } else { sum / n as f64 };
         let cruise_mean_iq = mean(self.cruise_sum_iq, self.cruise_n);
         RunReport {
             method: method.as_str().to_string(),
             mode: mode.to_string(),
-            cruise_max_abs_error_rad: self.cruise_max_abs_error,
+            outcome,
+            complete: stopped_because.is_none(),
+            stopped_because,
+            fault: self.first_latched.clone(),
+            cruise_max_abs_error_rad: if self.cruise_n == 0 {
+                f64::NAN
+            } else {
+                self.cruise_max_abs_error
+            },
             max_abs_error_rad: self.max_abs_error,
             final_error_rad: mean(self.final_sum_error, self.final_n),
             cruise_mean_id_a: mean(self.cruise_sum_id, self.cruise_n),

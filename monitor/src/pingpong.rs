@@ -11,7 +11,7 @@ use std::os::unix::net::UnixDatagram;
 use std::path::PathBuf;
 use std::time::Duration;
 use stepdrive_runtime::deploy::Deployment;
-use stepdrive_runtime::ipc::{IpcBus, IpcPublisher, IpcSubscriber};
+use stepdrive_runtime::ipc::{IpcBus, IpcPublisher, IpcSubscriber, Stamp};
 use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::pacer::WaitStrategy;
 use stepdrive_runtime::port::{PortFactory, Presence, Publish, Subscribe};
@@ -96,8 +96,13 @@ impl Link {
         match transport {
             Transport::Iceoryx2 => {
                 let role = if ping { "ping" } else { "pong" };
-                let mut forward = IpcBus::open(endpoint, role, Mode::Realtime)?;
-                let backward = IpcBus::open(&format!("{endpoint}.back"), role, Mode::Realtime)?;
+                // A private instance: the stack's realtime settings, no scenario.
+                let stamp = Stamp {
+                    mode: Mode::Realtime,
+                    scenario: "ping-pong".to_string(),
+                };
+                let mut forward = IpcBus::open(endpoint, role, &stamp)?;
+                let backward = IpcBus::open(&format!("{endpoint}.back"), role, &stamp)?;
                 let (tx, rx) = if ping {
                     (
                         forward.publisher_of()?,
@@ -363,7 +368,7 @@ pub fn run(o: &PingPongOptions) -> Result<()> {
         message: None,
         due_ns: None,
     };
-    let stats = Runner::new(pong, link, settings, None).run()?;
+    let stats = Runner::new(pong, link, settings, None).run()?.stats;
     if let Some(path) = &o.out {
         let text = serde_json::to_string(&SparseHistogram::from(&stats.hop))?;
         std::fs::write(path, text).with_context(|| format!("cannot write {}", path.display()))?;

@@ -1,6 +1,7 @@
 //! The side-by-side table and the JSON document of a set of runs.
 
 use crate::metrics::RunReport;
+use crate::outcome::{step_out_threshold_rad, utc_time_of_day, Outcome};
 use serde::Serialize;
 use std::fmt::Write as _;
 use stepdrive_shared::Scenario;
@@ -8,6 +9,11 @@ use stepdrive_shared::Scenario;
 #[derive(Debug, Serialize)]
 pub struct Document<'a> {
     pub stepdrive_version: &'static str,
+    /// The most severe outcome of the runs, and the exit code it gave.
+    pub outcome: Outcome,
+    pub exit_code: u8,
+    /// False when a run stopped early (its figures cover what ran).
+    pub complete: bool,
     pub scenario: &'a Scenario,
     /// Expected steady error of microstepping at cruise, eq. (7) plus the load term, rad.
     pub microstepping_expected_cruise_error_rad: f64,
@@ -16,9 +22,18 @@ pub struct Document<'a> {
     pub runs: &'a [RunReport],
 }
 
+/// The most severe outcome of a set of runs.
+pub fn overall(runs: &[RunReport]) -> Outcome {
+    runs.iter().map(|r| r.outcome).max().unwrap_or(Outcome::Ok)
+}
+
 pub fn document<'a>(s: &'a Scenario, runs: &'a [RunReport]) -> Document<'a> {
+    let outcome = overall(runs);
     Document {
         stepdrive_version: env!("CARGO_PKG_VERSION"),
+        outcome,
+        exit_code: outcome.exit_code(),
+        complete: runs.iter().all(|r| r.complete),
         scenario: s,
         microstepping_expected_cruise_error_rad: expected_microstepping_cruise_error(s),
         microstepping_expected_final_error_rad: s.load_offset_rad(),
@@ -37,19 +52,30 @@ pub fn expected_microstepping_cruise_error(s: &Scenario) -> f64 {
     (needed / available).clamp(-1.0, 1.0).asin() / m.n_r()
 }
 
+/// `{:.3e}`, or `n/a` for a figure the run never reached.
+fn sci(v: f64) -> String {
+    if v.is_nan() {
+        "n/a".to_string()
+    } else {
+        format!("{v:.3e}")
+    }
+}
+
 pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
     type Row = (&'static str, fn(&RunReport) -> String);
-    let rows: [Row; 15] = [
+    let rows: [Row; 16] = [
         ("mode", |r| r.mode.clone()),
-        ("cruise max |e| [rad]", |r| {
-            format!("{:.3e}", r.cruise_max_abs_error_rad)
+        ("outcome", |r| {
+            let title = r.outcome.title().to_lowercase();
+            if r.complete {
+                title
+            } else {
+                format!("{title}, incomplete")
+            }
         }),
-        ("max |e|, whole run [rad]", |r| {
-            format!("{:.3e}", r.max_abs_error_rad)
-        }),
-        ("final error [rad]", |r| {
-            format!("{:.3e}", r.final_error_rad)
-        }),
+        ("cruise max |e| [rad]", |r| sci(r.cruise_max_abs_error_rad)),
+        ("max |e|, whole run [rad]", |r| sci(r.max_abs_error_rad)),
+        ("final error [rad]", |r| sci(r.final_error_rad)),
         ("cruise mean i_d [A]", |r| {
             format!("{:.4}", r.cruise_mean_id_a)
         }),
@@ -66,9 +92,7 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             format!("{:.4}", r.mean_input_power_w)
         }),
         ("max |v| [V]", |r| format!("{:.2}", r.max_abs_voltage_v)),
-        ("eq. (7) bound [rad]", |r| {
-            format!("{:.3e}", r.eq7_bound_rad)
-        }),
+        ("eq. (7) bound [rad]", |r| sci(r.eq7_bound_rad)),
         ("sim time [s]", |r| format!("{:.3}", r.sim_time_s)),
         ("wall time [s]", |r| format!("{:.3}", r.wall_time_s)),
         ("samples", |r| r.samples.to_string()),
@@ -170,4 +194,45 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         s.load_offset_rad()
     );
     out
+}
+
+/// What a user must read first when a run did not go well: what happened, when, where, and
+/// what to do. `None` for a run that went well.
+pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
+    let code = r.outcome.exit_code();
+    let title = r.outcome.title();
+    let method = &r.method;
+    let what = match r.outcome {
+        Outcome::Ok => return None,
+        Outcome::Fault => {
+            let f = r.fault.as_ref()?;
+            format!(
+                "{} latched {} at t = {:.4} s (sample {}, seen {}); its outputs were off from then \
+                 on ({} faulted samples). What to do: {}.",
+                f.latched_by(&r.mode),
+                f.faults.join(" and "),
+                f.sim_time_s,
+                f.sample,
+                utc_time_of_day(f.seen_unix_s),
+                r.fault_samples,
+                f.advice()
+            )
+        }
+        Outcome::SteppedOut => format!(
+            "|θ_d − θ| reached {} rad, more than one electrical period ({:.3e} rad): the \
+             rotor slipped. What to do: check the scenario's speed, load and V_max against \
+             the method (open-loop microstepping cannot follow once the back-EMF K_m ω \
+             exceeds V_max).",
+            sci(r.max_abs_error_rad),
+            step_out_threshold_rad(s)
+        ),
+        Outcome::ProcessDied | Outcome::Interrupted => format!(
+            "{} after {:.3} s of {:.3} s simulated. The figures above cover what ran (marked \
+             incomplete).",
+            r.stopped_because.as_deref().unwrap_or("stopped"),
+            r.sim_time_s,
+            s.duration_s()
+        ),
+    };
+    Some(format!("{title} (exit {code}) in the {method} run: {what}"))
 }

@@ -5,12 +5,18 @@
 //! (t_k, t_{k+1}] is the one answering sample k − d; one not there when the period starts
 //! is a deadline miss, covered by the freshest plan ([`CommandSlot`]); and when the host
 //! holds the process past a period, its simulated time pauses ([`Late::Pause`]).
+//!
+//! A latched fault stays until a reset request (`stepdrive reset`) arrives while its cause
+//! is gone. A current loop that dies and is restarted rejoins: in realtime its commands are
+//! simply taken again; in lockstep the plant waits for a new one (within the start-up
+//! timeout), which starts from the newest state, and the periods whose commands died with
+//! the old one get no voltage.
 
 use crate::sim::{CommandSlot, PlantSim};
 use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
-use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState};
+use stepdrive_shared::messages::{fault_bits, DriveCommand, DrivePlan, DriveState, ResetRequest};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 use stepdrive_shared::stats::StatsReport;
@@ -18,6 +24,9 @@ use stepdrive_shared::Scenario;
 
 /// Lockstep: commands may arrive ahead of the one the delay line needs; a few are kept.
 const PENDING: usize = 8;
+/// Lockstep: after this long without the awaited command, and then at most this often, the
+/// plant looks for dead peers.
+const LOOK_FOR_THE_DEAD_NS: u64 = 200_000_000;
 
 /// What the plant reads and writes.
 pub struct PlantPorts {
@@ -25,6 +34,7 @@ pub struct PlantPorts {
     pub commands: Box<dyn Subscribe<DriveCommand>>,
     /// Realtime: the current loop's voltage plans.
     pub plans: Option<Box<dyn Subscribe<DrivePlan>>>,
+    pub resets: Box<dyn Subscribe<ResetRequest>>,
     pub presence: Box<dyn Presence>,
 }
 
@@ -36,6 +46,7 @@ impl PlantPorts {
                 Mode::Lockstep => None,
                 _ => Some(f.subscriber(LOOP_BUFFER)?),
             },
+            resets: f.subscriber(LOOP_BUFFER)?,
             states: f.publisher()?,
             presence: f.presence()?,
         })
@@ -81,6 +92,17 @@ pub struct PlantNode {
     next: Option<DriveCommand>,
     /// Realtime: the command rules.
     slot: CommandSlot,
+    /// A reset request waiting for the next period (the requester's pid).
+    reset_requested: Option<u32>,
+    /// Lockstep: the current loop left (its publisher is gone), and, once another has
+    /// attached, the stream is resynchronised on its first command.
+    current_loop_gone: bool,
+    resync: bool,
+    /// Lockstep: since when the awaited command has been awaited, and when dead peers were
+    /// last looked for.
+    waiting_since_ns: Option<u64>,
+    dead_checked_ns: u64,
+    state_subscribers: usize,
 }
 
 /// A lockstep command that cannot be the one awaited: the current loop broke the protocol.
@@ -107,12 +129,23 @@ impl PlantNode {
             pending: [None; PENDING],
             next: None,
             slot: CommandSlot::new(delay),
+            reset_requested: None,
+            current_loop_gone: false,
+            resync: false,
+            waiting_since_ns: None,
+            dead_checked_ns: 0,
+            state_subscribers: 0,
         }
     }
 
     /// The realtime command rules' counters (misses, plan coverage, runs).
     pub fn slot(&self) -> &CommandSlot {
         &self.slot
+    }
+
+    /// The faults latched at the end of the run (zero: healthy).
+    pub fn latched_fault(&self) -> u32 {
+        self.sim.fault()
     }
 
     fn publish_state(
@@ -140,28 +173,105 @@ impl PlantNode {
         }
     }
 
+    /// Takes the reset requests that arrived; one is acted on at the next period.
+    fn take_resets(&mut self, ports: &mut PlantPorts) -> Result<(), RunError> {
+        while let Some(r) = ports.resets.receive()? {
+            self.reset_requested = Some(r.pid);
+        }
+        Ok(())
+    }
+
+    /// Clears the latched faults if a reset was requested and their cause is gone: a
+    /// command timeout is cleared only once commands arrive again (the silence is shorter
+    /// than the watchdog's).
+    fn apply_reset(&mut self) {
+        let Some(pid) = self.reset_requested.take() else {
+            return;
+        };
+        let fault = self.sim.fault();
+        if fault == 0 {
+            tracing::info!(pid, "reset requested: no fault latched");
+            return;
+        }
+        let silent = self.slot.runs.current;
+        if fault & fault_bits::COMMAND_TIMEOUT != 0
+            && self.settings.mode != Mode::Lockstep
+            && silent >= self.settings.watchdog_periods
+        {
+            tracing::warn!(
+                pid,
+                periods = silent,
+                "reset refused: the current loop still sends no command"
+            );
+            return;
+        }
+        self.sim.clear_faults();
+        tracing::warn!(
+            pid,
+            faults = fault,
+            "reset: latched faults cleared, outputs follow the commands again"
+        );
+    }
+
+    /// Lockstep: watches the current loop leave and another attach. Its history brings the
+    /// newcomer the newest state at once. A loop killed outright still counts until its
+    /// ports are removed, so after a while without its command the plant looks for dead
+    /// peers.
+    fn watch_current_loop(&mut self, ports: &mut PlantPorts, now: u64) -> Result<(), RunError> {
+        let since = *self.waiting_since_ns.get_or_insert(now);
+        if now.saturating_sub(since) > LOOK_FOR_THE_DEAD_NS
+            && now.saturating_sub(self.dead_checked_ns) > LOOK_FOR_THE_DEAD_NS
+        {
+            self.dead_checked_ns = now;
+            ports.presence.forget_dead();
+        }
+        let subscribers = ports.presence.subscribers(Topic::State);
+        if subscribers != self.state_subscribers {
+            // A newcomer gets the newest state from the topic's history.
+            self.state_subscribers = subscribers;
+            ports.states.connect()?;
+        }
+        let present = ports.presence.publishers(Topic::Command) > 0;
+        if !present && !self.current_loop_gone {
+            self.current_loop_gone = true;
+            tracing::error!(
+                "the current loop is gone; waiting for another to attach (start-up timeout)"
+            );
+        } else if present && self.current_loop_gone {
+            self.current_loop_gone = false;
+            self.resync = true;
+            tracing::warn!("a current loop attached; resuming from the newest sample");
+        }
+        Ok(())
+    }
+
     fn poll_lockstep(&mut self, ports: &mut PlantPorts, cx: &mut Cx) -> Result<Poll, RunError> {
         let k = self.sim.sample_index();
         if !self.emitted {
             self.publish_state(ports, cx, k + 1 == self.samples)?;
             self.emitted = true;
         }
+        self.take_resets(ports)?;
         let Some((seq, drain)) = self.awaited() else {
             return Ok(Poll::READY);
         };
         let slot = (seq % PENDING as u64) as usize;
         if let Some(c) = self.pending[slot].filter(|c| c.answers_seq == seq) {
             self.pending[slot] = None;
-            self.next = Some(c);
-            return Ok(Poll::READY);
+            return Ok(self.take(Some(c)));
         }
         while let Some(c) = ports.commands.receive()? {
             if c.answers_seq == seq {
-                self.next = Some(c);
-                return Ok(Poll::READY);
+                return Ok(self.take(Some(c)));
             }
             if drain && c.answers_seq < seq {
                 continue;
+            }
+            if self.resync && c.answers_seq > seq && c.answers_seq < seq + PENDING as u64 {
+                // The command awaited died with the old current loop; the new one starts
+                // after it: this period gets no voltage, the next takes the new command.
+                self.pending[(c.answers_seq % PENDING as u64) as usize] = Some(c);
+                return Ok(self.take(None));
             }
             if c.answers_seq < seq || c.answers_seq >= seq + PENDING as u64 {
                 return Err(RunError::node(
@@ -174,7 +284,16 @@ impl PlantNode {
             }
             self.pending[(c.answers_seq % PENDING as u64) as usize] = Some(c);
         }
+        self.watch_current_loop(ports, cx.now())?;
         Ok(Poll::Pending)
+    }
+
+    /// Lockstep: the command for the coming period is decided (`None`: none will come).
+    fn take(&mut self, command: Option<DriveCommand>) -> Poll {
+        self.resync &= command.is_none();
+        self.next = command;
+        self.waiting_since_ns = None;
+        Poll::READY
     }
 
     fn poll_realtime(&mut self, ports: &mut PlantPorts, cx: &mut Cx) -> Result<Poll, RunError> {
@@ -184,6 +303,7 @@ impl PlantNode {
         if last {
             return Ok(Poll::Finished);
         }
+        self.take_resets(ports)?;
         // Everything that arrived since the last period.
         let next_needed = k.saturating_sub(self.delay);
         while let Some(c) = ports.commands.receive()? {
@@ -280,6 +400,7 @@ impl Node for PlantNode {
     }
 
     fn step(&mut self, _ports: &mut PlantPorts, _cx: &mut Cx) -> Result<Flow, RunError> {
+        self.apply_reset();
         if self.settings.mode == Mode::Lockstep {
             if self.sim.sample_index() + 1 == self.samples {
                 return Ok(Flow::Last);
@@ -292,10 +413,16 @@ impl Node for PlantNode {
         {
             tracing::error!(
                 periods = self.slot.runs.current,
-                "no command for the watchdog's periods: outputs off, fault latched"
+                at_s = self.sim.sample_index() as f64 / self.rate_hz,
+                "the current loop is silent: no command for the watchdog's periods; outputs \
+                 off, fault latched until `stepdrive reset` (once commands come again)"
             );
         }
         Ok(Flow::Continue)
+    }
+
+    fn awaiting_rejoin(&self) -> bool {
+        self.current_loop_gone
     }
 
     fn report(&self, stats: &mut StatsReport) {

@@ -55,6 +55,27 @@ impl PlantSim {
         self.x
     }
 
+    /// The rotor brought to rest at its nearest electrical zero (N_r θ a multiple of 2π),
+    /// currents zero: where an alignment with phase A energized leaves it.
+    pub fn align(&mut self) {
+        let pitch = std::f64::consts::TAU / self.motor.n_r;
+        self.x[THETA] = (self.x[THETA] / pitch).round() * pitch;
+        self.x[OMEGA] = 0.0;
+        self.x[I_A] = 0.0;
+        self.x[I_B] = 0.0;
+    }
+
+    /// Clears the latched faults: the outputs follow the commands again from the next
+    /// period.
+    pub fn clear_faults(&mut self) {
+        self.fault = 0;
+    }
+
+    /// The latched fault bits; zero when healthy.
+    pub fn fault(&self) -> u32 {
+        self.fault
+    }
+
     /// The command whose voltage belongs to the next interval (t_k, t_{k+1}], or `None`
     /// while the delay line is still filling (outputs off).
     pub fn needed_command(&self) -> Option<u64> {

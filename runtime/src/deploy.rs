@@ -265,6 +265,19 @@ impl Deployment {
         }
     }
 
+    /// Whether any process runs at a SCHED_FIFO priority.
+    pub fn has_priorities(&self) -> bool {
+        [
+            &self.plant,
+            &self.current_loop,
+            &self.position_loop,
+            &self.bridge,
+            &self.emulated_drive,
+        ]
+        .iter()
+        .any(|p| p.priority.is_some_and(|v| v > 0))
+    }
+
     pub fn startup_timeout(&self) -> Duration {
         Duration::from_secs_f64(self.startup_timeout_s)
     }

@@ -1,6 +1,8 @@
 //! Ports on iceoryx2 shared memory: the transport between the stack's processes. Every
 //! service is opened with the settings the contract gives its topic
-//! (`stepdrive_shared::services::Topic::qos`), so every opener agrees.
+//! (`stepdrive_shared::services::Topic::qos`), so every opener agrees, and carries the
+//! stack's [`Stamp`] as service attributes: a process of another mode or scenario is refused
+//! at once, with both named, instead of exchanging messages that mean something else.
 
 use crate::port::{
     BoxedError, Listen, Notify, PortError, PortFactory, Presence, Publish, Subscribe,
@@ -8,12 +10,18 @@ use crate::port::{
 use iceoryx2::port::listener::ListenerWaitError;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
+use iceoryx2::service::attribute::{AttributeKey, AttributeValue, AttributeVerifier};
+use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
+use iceoryx2::service::builder::publish_subscribe::{
+    PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
+};
 use iceoryx2::service::port_factory::PortFactory as _;
 use std::time::{Duration, Instant};
+use stepdrive_shared::messages::ResetRequest;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Message, ServiceNames, Topic};
 use stepdrive_shared::stats::StatsReport;
-use stepdrive_shared::{DriveCommand, DriveState, TorqueSetpoint};
+use stepdrive_shared::{DriveCommand, DriveState, Scenario, TorqueSetpoint};
 
 type Ipc = ipc::Service;
 type TopicFactory<M> = iceoryx2::service::port_factory::publish_subscribe::PortFactory<Ipc, M, ()>;
@@ -29,17 +37,68 @@ pub fn iceoryx_config() -> Config {
     Config::default()
 }
 
+/// What every process of one stack must agree on: the timing mode (it sets the services'
+/// settings) and the scenario (it sets what every message means).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Stamp {
+    pub mode: Mode,
+    /// The scenario's name and fingerprint.
+    pub scenario: String,
+}
+
+impl Stamp {
+    pub fn new(mode: Mode, scenario: &Scenario) -> Self {
+        // An attribute value holds 256 bytes: a long name is cut, the fingerprint kept.
+        let name: String = scenario.name.chars().take(200).collect();
+        Self {
+            mode,
+            scenario: format!("{name} ({})", scenario.fingerprint()),
+        }
+    }
+
+    fn describe(mode: &str, scenario: &str) -> String {
+        format!("mode {mode}, scenario {scenario}")
+    }
+}
+
+const MODE_KEY: &str = "stepdrive.mode";
+const SCENARIO_KEY: &str = "stepdrive.scenario";
+
+/// An open that failed for good (other attributes), not because of a race.
+trait OpenError: std::error::Error + Send + Sync + 'static {
+    fn incompatible_attributes(&self) -> bool;
+}
+
+impl OpenError for PublishSubscribeOpenOrCreateError {
+    fn incompatible_attributes(&self) -> bool {
+        matches!(
+            self,
+            Self::PublishSubscribeOpenError(PublishSubscribeOpenError::IncompatibleAttributes)
+        )
+    }
+}
+
+impl OpenError for EventOpenOrCreateError {
+    fn incompatible_attributes(&self) -> bool {
+        matches!(
+            self,
+            Self::EventOpenError(EventOpenError::IncompatibleAttributes)
+        )
+    }
+}
+
 /// One process's iceoryx2 node on one stack instance: opens the stack's ports.
 pub struct IpcBus {
     node: Node<Ipc>,
     names: ServiceNames,
-    mode: Mode,
+    stamp: Stamp,
+    verifier: AttributeVerifier,
 }
 
 impl IpcBus {
     /// Creates this process's node (named `role`) on `instance`; every port it opens uses the
-    /// settings of `mode` (all processes of a stack must run the same mode).
-    pub fn open(instance: &str, role: &str, mode: Mode) -> Result<Self, PortError> {
+    /// settings of the stamp's mode and requires the same stamp of every other process.
+    pub fn open(instance: &str, role: &str, stamp: &Stamp) -> Result<Self, PortError> {
         let names = ServiceNames::new(instance)?;
         let node_name = names.node(role);
         let node_error = |source| PortError::Node {
@@ -57,19 +116,99 @@ impl IpcBus {
             .signal_handling_mode(SignalHandlingMode::Disabled)
             .create::<Ipc>()
             .map_err(|e| node_error(boxed(e)))?;
-        Ok(Self { node, names, mode })
+        let attribute_error = |source: BoxedError| PortError::Node {
+            node: node_name.clone(),
+            source,
+        };
+        let mode_key = AttributeKey::try_from(MODE_KEY).map_err(|e| attribute_error(boxed(e)))?;
+        let mode =
+            AttributeValue::try_from(stamp.mode.as_str()).map_err(|e| attribute_error(boxed(e)))?;
+        let scenario_key =
+            AttributeKey::try_from(SCENARIO_KEY).map_err(|e| attribute_error(boxed(e)))?;
+        let scenario = AttributeValue::try_from(stamp.scenario.as_str())
+            .map_err(|e| attribute_error(boxed(e)))?;
+        let verifier = AttributeVerifier::new()
+            .require(&mode_key, &mode)
+            .and_then(|v| v.require(&scenario_key, &scenario))
+            .map_err(|e| attribute_error(boxed(e)))?;
+        Ok(Self {
+            node,
+            names,
+            stamp: stamp.clone(),
+            verifier,
+        })
+    }
+
+    /// Attaches a tool (a reset, a monitor) to the stack running on `instance`, waiting up
+    /// to `wait` for it to appear: its stamp is read from the stack's own services, so the
+    /// tool need not be told mode and scenario.
+    pub fn attach(instance: &str, role: &str, wait: Duration) -> Result<Self, PortError> {
+        let names = ServiceNames::new(instance)?;
+        let state = names.topic(Topic::State);
+        let no_stack = || PortError::NoStack {
+            instance: instance.to_string(),
+        };
+        let service_name: ServiceName = state.as_str().try_into().map_err(|_| no_stack())?;
+        let deadline = Instant::now() + wait;
+        let details = loop {
+            let details = ipc::Service::details(
+                &service_name,
+                &iceoryx_config(),
+                MessagingPattern::PublishSubscribe,
+            );
+            match details {
+                Ok(Some(d)) => break d,
+                _ if Instant::now() < deadline && !crate::poll::termination_requested() => {
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+                _ => return Err(no_stack()),
+            }
+        };
+        let attributes = details.static_details.attributes();
+        let get = |k: &str| {
+            AttributeKey::try_from(k)
+                .ok()
+                .and_then(|k| attributes.key_value(&k, 0).map(|v| v.to_string()))
+        };
+        let mode = get(MODE_KEY)
+            .and_then(|m| m.parse::<Mode>().ok())
+            .ok_or_else(no_stack)?;
+        let scenario = get(SCENARIO_KEY).ok_or_else(no_stack)?;
+        Self::open(instance, role, &Stamp { mode, scenario })
     }
 
     pub fn mode(&self) -> Mode {
-        self.mode
+        self.stamp.mode
+    }
+
+    pub fn stamp(&self) -> &Stamp {
+        &self.stamp
+    }
+
+    /// The stamp the service `name` was created with, as a sentence.
+    fn stamp_of(&self, name: &ServiceName, pattern: MessagingPattern) -> String {
+        let details = ipc::Service::details(name, &iceoryx_config(), pattern);
+        let Ok(Some(details)) = details else {
+            return "an unknown stamp".to_string();
+        };
+        let attributes = details.static_details.attributes();
+        let get = |k: &str| {
+            AttributeKey::try_from(k)
+                .ok()
+                .and_then(|k| attributes.key_value(&k, 0).map(|v| v.to_string()))
+                .unwrap_or_else(|| "none".to_string())
+        };
+        Stamp::describe(&get(MODE_KEY), &get(SCENARIO_KEY))
     }
 
     /// Opens or creates a service with `open`. Two processes starting together may race to
-    /// create a service; the loser sees a transient error and retries.
-    fn service<F, E: std::error::Error + Send + Sync + 'static>(
+    /// create a service; the loser sees a transient error and retries. One of another stack
+    /// (other attributes) is refused at once.
+    fn service<F, E: OpenError>(
         &self,
         name: &str,
-        open: impl Fn(iceoryx2::service::builder::Builder<Ipc>) -> Result<F, E>,
+        pattern: MessagingPattern,
+        open: impl Fn(iceoryx2::service::builder::Builder<Ipc>, &AttributeVerifier) -> Result<F, E>,
     ) -> Result<F, PortError> {
         let error = |source| PortError::Open {
             service: name.to_string(),
@@ -78,8 +217,15 @@ impl IpcBus {
         let service_name: ServiceName = name.try_into().map_err(|e| error(boxed(e)))?;
         let deadline = Instant::now() + Duration::from_secs(5);
         loop {
-            match open(self.node.service_builder(&service_name)) {
+            match open(self.node.service_builder(&service_name), &self.verifier) {
                 Ok(t) => return Ok(t),
+                Err(e) if e.incompatible_attributes() => {
+                    return Err(PortError::Mismatch {
+                        service: name.to_string(),
+                        theirs: self.stamp_of(&service_name, pattern),
+                        ours: Stamp::describe(self.stamp.mode.as_str(), &self.stamp.scenario),
+                    });
+                }
                 Err(e) if Instant::now() < deadline => {
                     tracing::debug!(service = name, error = ?e, "service not ready yet, retrying");
                     std::thread::sleep(Duration::from_millis(5));
@@ -91,29 +237,33 @@ impl IpcBus {
 
     fn topic<M: Message>(&self) -> Result<(String, TopicFactory<M>), PortError> {
         let name = self.names.topic(M::TOPIC);
-        let qos = M::TOPIC.qos(self.mode);
-        let factory = self.service(&name, |builder| {
-            builder
-                .publish_subscribe::<M>()
-                .max_publishers(qos.max_publishers)
-                .max_subscribers(qos.max_subscribers)
-                .subscriber_max_buffer_size(qos.max_buffer)
-                .history_size(0)
-                .enable_safe_overflow(qos.safe_overflow)
-                .open_or_create()
-        })?;
+        let qos = M::TOPIC.qos(self.stamp.mode);
+        let factory = self.service(
+            &name,
+            MessagingPattern::PublishSubscribe,
+            |builder, stamp| {
+                builder
+                    .publish_subscribe::<M>()
+                    .max_publishers(qos.max_publishers)
+                    .max_subscribers(qos.max_subscribers)
+                    .subscriber_max_buffer_size(qos.max_buffer)
+                    .history_size(qos.history)
+                    .enable_safe_overflow(qos.safe_overflow)
+                    .open_or_create_with_attributes(stamp)
+            },
+        )?;
         Ok((name, factory))
     }
 
     fn state_ready(&self) -> Result<(String, EventFactory), PortError> {
         let name = self.names.state_ready();
-        let factory = self.service(&name, |builder| {
+        let factory = self.service(&name, MessagingPattern::Event, |builder, stamp| {
             builder
                 .event()
                 .max_notifiers(1)
                 .max_listeners(2)
                 .event_id_max_value(0)
-                .open_or_create()
+                .open_or_create_with_attributes(stamp)
         })?;
         Ok((name, factory))
     }
@@ -210,6 +360,7 @@ impl PortFactory for IpcBus {
             command: self.topic::<DriveCommand>()?.1,
             setpoint: self.topic::<TorqueSetpoint>()?.1,
             stats: self.topic::<StatsReport>()?.1,
+            reset: self.topic::<ResetRequest>()?.1,
         }))
     }
 }
@@ -325,6 +476,7 @@ struct IpcPresence {
     command: TopicFactory<DriveCommand>,
     setpoint: TopicFactory<TorqueSetpoint>,
     stats: TopicFactory<StatsReport>,
+    reset: TopicFactory<ResetRequest>,
 }
 
 impl IpcPresence {
@@ -338,6 +490,7 @@ impl IpcPresence {
             Topic::Command => of(&self.command),
             Topic::Setpoint => of(&self.setpoint),
             Topic::Stats => of(&self.stats),
+            Topic::Reset => of(&self.reset),
             // Nobody waits for the plan's peers.
             Topic::Plan => (0, 0),
         }
@@ -350,6 +503,9 @@ impl Presence for IpcPresence {
     }
     fn subscribers(&self, topic: Topic) -> usize {
         self.counts(topic).1
+    }
+    fn forget_dead(&self) {
+        cleanup_dead_nodes();
     }
 }
 

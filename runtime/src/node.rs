@@ -214,6 +214,12 @@ pub trait Node {
         Ok(false)
     }
 
+    /// True while it waits for a peer that left to be replaced (a restarted process): the
+    /// runner then allows the start-up timeout instead of the peer timeout.
+    fn awaiting_rejoin(&self) -> bool {
+        false
+    }
+
     /// Copies its counters into the statistics before they are published.
     fn report(&self, _stats: &mut StatsReport) {}
 

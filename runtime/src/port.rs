@@ -17,6 +17,14 @@ pub enum PortError {
         #[source]
         source: BoxedError,
     },
+    #[error("service `{service}` belongs to a stack with {theirs}; this process has {ours}: every process of an instance must run the same mode and scenario")]
+    Mismatch {
+        service: String,
+        theirs: String,
+        ours: String,
+    },
+    #[error("no stack runs on instance `{instance}` (no `{instance}/drive/state` service)")]
+    NoStack { instance: String },
     #[error("cannot open service `{service}`")]
     Open {
         service: String,
@@ -88,6 +96,9 @@ pub trait Listen {
 pub trait Presence {
     fn publishers(&self, topic: Topic) -> usize;
     fn subscribers(&self, topic: Topic) -> usize;
+    /// Removes the ports of peers that died without leaving (a SIGKILL), so that the counts
+    /// above stop counting them. Not cheap: call it rarely.
+    fn forget_dead(&self) {}
 }
 
 /// Opens ports: one implementation per transport, so a role's ports are built the same way

@@ -4,13 +4,13 @@
 
 use crate::deploy::{Deployment, Process};
 use crate::error::RunError;
-use crate::ipc::IpcBus;
+use crate::ipc::{IpcBus, Stamp};
 use crate::node::Node;
 use crate::port::PortFactory;
-use crate::runner::{Runner, Settings};
+use crate::runner::{Finished, Runner, Settings};
 use std::time::Duration;
 use stepdrive_shared::scenario::Mode;
-use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::Scenario;
 
 /// Which process of which stack this is.
 #[derive(Debug, Clone)]
@@ -21,6 +21,8 @@ pub struct ProcessSpec<'a> {
     /// The iceoryx2 node name under the instance ("plant", "current-loop", ...).
     pub node_name: &'a str,
     pub deployment: &'a Deployment,
+    /// Every process of the stack must run this one (see [`Stamp`]).
+    pub scenario: &'a Scenario,
 }
 
 /// How long the final statistics stay published before the ports go away, so that the
@@ -28,16 +30,18 @@ pub struct ProcessSpec<'a> {
 const STATS_LINGER: Duration = Duration::from_millis(200);
 
 /// Applies the real-time settings, opens the ports, builds the node with `build`, and runs
-/// it. Statistics are published in realtime and hardware modes. Returns the final ones.
+/// it. Statistics are published in realtime and hardware modes. Returns the node and its
+/// final statistics.
 pub fn run_process<N: Node>(
     spec: &ProcessSpec,
     build: impl FnOnce(&mut IpcBus) -> Result<(N, N::Ports), RunError>,
-) -> Result<Box<StatsReport>, RunError> {
+) -> Result<Finished<N>, RunError> {
     let d = spec.deployment;
     // Before any port exists: mlockall then locks every segment as it is mapped, and a
     // peer that waits for this process's publishers sees them only once it is set up.
     d.rt(spec.process, spec.mode).apply()?;
-    let mut bus = IpcBus::open(spec.instance, spec.node_name, spec.mode)?;
+    let stamp = Stamp::new(spec.mode, spec.scenario);
+    let mut bus = IpcBus::open(spec.instance, spec.node_name, &stamp)?;
     let (node, ports) = build(&mut bus)?;
     let realtime = spec.mode != Mode::Lockstep;
     let stats_port = if realtime {

@@ -145,12 +145,12 @@ impl RtOptions {
 
 /// `/proc/sys/kernel/sched_rt_runtime_us`: −1 means no RT throttling.
 pub fn rt_runtime_us() -> Option<i64> {
-    std::fs::read_to_string("/proc/sys/kernel/sched_rt_runtime_us")
+    std::fs::read_to_string(RT_RUNTIME)
         .ok()
         .and_then(|s| s.trim().parse().ok())
 }
 
-const RT_RUNTIME: &str = "/proc/sys/kernel/sched_rt_runtime_us";
+pub const RT_RUNTIME: &str = "/proc/sys/kernel/sched_rt_runtime_us";
 
 /// Turns RT throttling off (`sched_rt_runtime_us = -1`) until dropped, then restores the
 /// previous value. Needs root; the caller decides whether a refusal is fatal.
@@ -173,6 +173,11 @@ impl RtThrottlingOff {
         std::fs::write(RT_RUNTIME, "-1").map_err(RtError::WriteThrottling)?;
         tracing::info!("RT throttling off for this run (was {previous} µs); restored at exit");
         Ok(Some(Self { previous }))
+    }
+
+    /// The value restored when dropped.
+    pub fn previous(&self) -> i64 {
+        self.previous
     }
 }
 

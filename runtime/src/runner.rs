@@ -73,6 +73,12 @@ const BLOCK_NS: u64 = 1_000_000;
 /// `sleep` strategy: the nap between polls of an input-paced node with nothing to block on.
 const NAP_NS: u64 = 10_000;
 
+/// A node that ran to the end of its run, and its final statistics.
+pub struct Finished<N> {
+    pub node: N,
+    pub stats: Box<StatsReport>,
+}
+
 /// One node, its ports and everything the runner keeps about it.
 pub struct Runner<N: Node> {
     node: N,
@@ -311,7 +317,7 @@ impl<N: Node> Runner<N> {
     /// Fails once the peer has been silent for longer than the start-up timeout (before it
     /// was first heard) or the peer timeout.
     pub fn check_alive(&self, now: u64) -> Result<(), RunError> {
-        let timeout = if self.heard_once {
+        let timeout = if self.heard_once && !self.node.awaiting_rejoin() {
             self.settings.peer_timeout
         } else {
             self.settings.startup_timeout
@@ -392,14 +398,17 @@ impl<N: Node> Runner<N> {
     }
 
     /// Runs the node to the end of the run on the wall clock: waits for each cycle with the
-    /// settings' strategy, stops on SIGINT/SIGTERM or a silent peer, and returns the final
-    /// statistics. The node's `stop` runs on every exit path.
-    pub fn run(mut self) -> Result<Box<StatsReport>, RunError> {
+    /// settings' strategy, stops on SIGINT/SIGTERM or a silent peer, and returns the node
+    /// and its final statistics. The node's `stop` runs on every exit path.
+    pub fn run(mut self) -> Result<Finished<N>, RunError> {
         let clock = Monotonic;
         let outcome = self.drive(&clock);
         let finished = self.finish(&clock, outcome.is_ok());
         outcome.and(finished)?;
-        Ok(self.stats)
+        Ok(Finished {
+            node: self.node,
+            stats: self.stats,
+        })
     }
 
     fn drive(&mut self, clock: &Monotonic) -> Result<(), RunError> {

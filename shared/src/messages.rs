@@ -162,6 +162,20 @@ impl DrivePlan {
     }
 }
 
+/// Anyone → the plant (or bridge): clear the latched faults once their cause is gone
+/// (`stepdrive reset`). The plant refuses while the cause remains (no commands coming).
+#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[repr(C)]
+#[type_name("stepdrive.ResetRequest.v1")]
+pub struct ResetRequest {
+    pub seq: u64,
+    /// CLOCK_MONOTONIC at publication, nanoseconds.
+    pub publish_time_ns: u64,
+    /// The requesting process, for the log.
+    pub pid: u32,
+    pub _reserved: u32,
+}
+
 /// Position/torque loop → current loop: torque demand and the trajectory segment that
 /// holds until the next tick.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]

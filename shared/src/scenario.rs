@@ -237,42 +237,37 @@ impl Default for Scenario {
     }
 }
 
-fn positive(field: &'static str, v: f64) -> Result<(), ScenarioError> {
-    if v.is_finite() && v > 0.0 {
-        Ok(())
+/// A number as a person writes it: `1e-300`, not three hundred zeros.
+pub fn num(v: f64) -> String {
+    if v != 0.0 && v.is_finite() && (v.abs() < 1e-3 || v.abs() >= 1e6) {
+        format!("{v:e}")
     } else {
-        Err(ScenarioError::Invalid {
-            field,
-            message: format!("must be a positive finite number (got {v})"),
-        })
+        format!("{v}")
     }
 }
 
-fn non_negative(field: &'static str, v: f64) -> Result<(), ScenarioError> {
-    if v.is_finite() && v >= 0.0 {
-        Ok(())
-    } else {
-        Err(ScenarioError::Invalid {
-            field,
-            message: format!("must be a finite number ≥ 0 (got {v})"),
-        })
+/// `v` must be finite and within [lo, hi] (`unit` for the message).
+fn within(field: &'static str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(), ScenarioError> {
+    if v.is_finite() && v >= lo && v <= hi {
+        return Ok(());
     }
-}
-
-fn finite(field: &'static str, v: f64) -> Result<(), ScenarioError> {
-    if v.is_finite() {
-        Ok(())
-    } else {
-        Err(ScenarioError::Invalid {
-            field,
-            message: format!("must be finite (got {v})"),
-        })
-    }
+    Err(invalid(
+        field,
+        format!(
+            "must be between {} and {} {unit} (got {})",
+            num(lo),
+            num(hi),
+            num(v)
+        ),
+    ))
 }
 
 fn invalid(field: &'static str, message: String) -> ScenarioError {
     ScenarioError::Invalid { field, message }
 }
+
+/// Most samples a run may have (a 20 kHz run of 13.9 hours).
+pub const MAX_SAMPLES: u64 = 1_000_000_000;
 
 impl Scenario {
     /// Reads and validates a TOML scenario. Absent fields take their defaults; unknown
@@ -304,21 +299,42 @@ impl Scenario {
         toml::to_string(self).map_err(|e| ScenarioError::Serialise(e.to_string()))
     }
 
+    /// Checks every field against what a real stepper stack can mean: finite, and within a
+    /// plausible range (wide enough for any stepper, narrow enough to catch a typo or an
+    /// exponent gone wrong), and against each other.
     pub fn validate(&self) -> Result<(), ScenarioError> {
         let m = &self.motor;
-        positive("motor.inductance_h", m.inductance_h)?;
-        positive("motor.resistance_ohm", m.resistance_ohm)?;
-        positive("motor.inertia_kg_m2", m.inertia_kg_m2)?;
-        positive("motor.torque_constant_nm_per_a", m.torque_constant_nm_per_a)?;
-        if m.rotor_teeth == 0 {
-            return Err(invalid("motor.rotor_teeth", "must be at least 1".into()));
+        within("motor.inductance_h", m.inductance_h, 1e-6, 10.0, "H")?;
+        within("motor.resistance_ohm", m.resistance_ohm, 1e-4, 1e4, "Ω")?;
+        within("motor.inertia_kg_m2", m.inertia_kg_m2, 1e-9, 10.0, "kg·m²")?;
+        within(
+            "motor.torque_constant_nm_per_a",
+            m.torque_constant_nm_per_a,
+            1e-4,
+            100.0,
+            "N·m/A",
+        )?;
+        if !(1..=1000).contains(&m.rotor_teeth) {
+            return Err(invalid(
+                "motor.rotor_teeth",
+                format!("must be 1..=1000 (got {})", m.rotor_teeth),
+            ));
         }
-        non_negative(
+        within(
             "motor.viscous_friction_nm_s_per_rad",
             m.viscous_friction_nm_s_per_rad,
+            0.0,
+            100.0,
+            "N·m·s/rad",
         )?;
-        finite("load.torque_nm", self.load.torque_nm)?;
-        positive("drive.bus_voltage_v", self.drive.bus_voltage_v)?;
+        within("load.torque_nm", self.load.torque_nm, -1e3, 1e3, "N·m")?;
+        within(
+            "drive.bus_voltage_v",
+            self.drive.bus_voltage_v,
+            0.1,
+            1e4,
+            "V",
+        )?;
         if self.drive.command_plan_periods as usize > MAX_PLAN {
             return Err(invalid(
                 "drive.command_plan_periods",
@@ -330,30 +346,32 @@ impl Scenario {
         }
 
         let g = &self.gains;
-        positive("gains.k1", g.k1)?;
-        positive("gains.k2", g.k2)?;
-        positive("gains.k3_per_s", g.k3_per_s)?;
-        positive("gains.v_max_v", g.v_max_v)?;
-        positive("gains.rho_per_s", g.rho_per_s)?;
+        within("gains.k1", g.k1, 1e-9, 1e6, "1/s")?;
+        within("gains.k2", g.k2, 1e-9, 1e6, "N·m·s/rad")?;
+        within("gains.k3_per_s", g.k3_per_s, 1e-3, 1e9, "1/s")?;
+        within("gains.v_max_v", g.v_max_v, 1e-3, 1e4, "V")?;
+        within("gains.rho_per_s", g.rho_per_s, 1e-3, 1e9, "1/s")?;
         if g.v_max_v > self.drive.bus_voltage_v {
             return Err(invalid(
                 "gains.v_max_v",
                 format!(
                     "({} V) exceeds drive.bus_voltage_v ({} V): the drive cannot apply it",
-                    g.v_max_v, self.drive.bus_voltage_v
+                    num(g.v_max_v),
+                    num(self.drive.bus_voltage_v)
                 ),
             ));
         }
 
         let r = &self.rates;
-        positive("rates.current_loop_hz", r.current_loop_hz)?;
-        positive("rates.position_loop_hz", r.position_loop_hz)?;
+        within("rates.current_loop_hz", r.current_loop_hz, 10.0, 1e6, "Hz")?;
+        within("rates.position_loop_hz", r.position_loop_hz, 1.0, 1e6, "Hz")?;
         if r.position_loop_hz > r.current_loop_hz {
             return Err(invalid(
                 "rates.position_loop_hz",
                 format!(
                     "({} Hz) must not exceed rates.current_loop_hz ({} Hz)",
-                    r.position_loop_hz, r.current_loop_hz
+                    num(r.position_loop_hz),
+                    num(r.current_loop_hz)
                 ),
             ));
         }
@@ -363,7 +381,8 @@ impl Scenario {
                 "rates.position_loop_hz",
                 format!(
                     "must divide rates.current_loop_hz exactly (ratio {} / {} = {ratio} is not an integer)",
-                    r.current_loop_hz, r.position_loop_hz
+                    num(r.current_loop_hz),
+                    num(r.position_loop_hz)
                 ),
             ));
         }
@@ -384,60 +403,108 @@ impl Scenario {
         }
 
         let t = &self.trajectory;
-        finite("trajectory.cruise_velocity_rad_s", t.cruise_velocity_rad_s)?;
-        non_negative("trajectory.accel_s", t.accel_s)?;
-        non_negative("trajectory.cruise_s", t.cruise_s)?;
-        non_negative("trajectory.decel_s", t.decel_s)?;
-        non_negative("trajectory.hold_s", t.hold_s)?;
+        // The sampled commutation needs the electrical angle to move less than an eighth of
+        // a turn per current-loop period.
+        let max_speed = std::f64::consts::FRAC_PI_4 * r.current_loop_hz / m.n_r();
+        within(
+            "trajectory.cruise_velocity_rad_s",
+            t.cruise_velocity_rad_s,
+            -max_speed,
+            max_speed,
+            "rad/s (the electrical angle may turn at most π/4 per current-loop period)",
+        )?;
+        for (field, v) in [
+            ("trajectory.accel_s", t.accel_s),
+            ("trajectory.cruise_s", t.cruise_s),
+            ("trajectory.decel_s", t.decel_s),
+            ("trajectory.hold_s", t.hold_s),
+        ] {
+            within(field, v, 0.0, 1e6, "s")?;
+        }
         if self.profile_s() <= 0.0 {
             return Err(invalid(
                 "trajectory",
                 "phases must add up to a positive duration".into(),
             ));
         }
-        if let Some(d) = self.run.duration_s {
-            positive("run.duration_s", d)?;
-        }
-        let duration = self.duration_s();
-        if self.sample_count() > 1_000_000_000 {
-            return Err(invalid(
-                "rates.current_loop_hz",
-                format!("gives more than 1e9 samples over {duration} s"),
-            ));
+        let too_long = |field: &'static str, seconds: f64| {
+            invalid(
+                field,
+                format!(
+                    "({} s) gives more than {} samples at rates.current_loop_hz = {} Hz",
+                    num(seconds),
+                    num(MAX_SAMPLES as f64),
+                    num(r.current_loop_hz)
+                ),
+            )
+        };
+        match self.run.duration_s {
+            Some(d) => {
+                within("run.duration_s", d, 1e-6, 1e9, "s")?;
+                if self.sample_count() > MAX_SAMPLES {
+                    return Err(too_long("run.duration_s", d));
+                }
+            }
+            None if self.sample_count() > MAX_SAMPLES => {
+                return Err(too_long("trajectory", self.profile_s()))
+            }
+            None => {}
         }
 
+        // Windows are within one pass of the trajectory (they apply to every pass of a longer
+        // run); a shorter run reports what it reached, `n/a` for the rest.
         let w = &self.metrics;
-        non_negative("metrics.cruise_start_s", w.cruise_start_s)?;
-        non_negative("metrics.cruise_end_s", w.cruise_end_s)?;
+        let pass = self.profile_s();
+        within(
+            "metrics.cruise_start_s",
+            w.cruise_start_s,
+            0.0,
+            pass,
+            "s (one pass of the trajectory)",
+        )?;
+        within(
+            "metrics.cruise_end_s",
+            w.cruise_end_s,
+            0.0,
+            pass,
+            "s (one pass of the trajectory)",
+        )?;
         if w.cruise_end_s <= w.cruise_start_s {
             return Err(invalid(
                 "metrics.cruise_end_s",
                 format!(
                     "({}) must be after metrics.cruise_start_s ({})",
-                    w.cruise_end_s, w.cruise_start_s
+                    num(w.cruise_end_s),
+                    num(w.cruise_start_s)
                 ),
             ));
         }
-        if w.cruise_end_s > duration {
-            return Err(invalid(
-                "metrics.cruise_end_s",
-                format!(
-                    "({}) is past the end of the run ({duration} s)",
-                    w.cruise_end_s
-                ),
-            ));
-        }
-        positive("metrics.final_window_s", w.final_window_s)?;
-        if w.final_window_s > duration {
-            return Err(invalid(
-                "metrics.final_window_s",
-                format!(
-                    "({}) is longer than the run ({duration} s)",
-                    w.final_window_s
-                ),
-            ));
-        }
+        within(
+            "metrics.final_window_s",
+            w.final_window_s,
+            1e-9,
+            pass,
+            "s (one pass of the trajectory)",
+        )?;
         Ok(())
+    }
+
+    /// The final window within this run: its last `final_window_s`, or the whole of a
+    /// shorter run.
+    pub fn final_window_start_s(&self) -> f64 {
+        (self.duration_s() - self.metrics.final_window_s).max(0.0)
+    }
+
+    /// A fingerprint of everything in the scenario (FNV-1a of its canonical TOML): two
+    /// processes with the same fingerprint run the same scenario.
+    pub fn fingerprint(&self) -> String {
+        let text = self.to_toml_string().unwrap_or_default();
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        for b in text.bytes() {
+            h ^= u64::from(b);
+            h = h.wrapping_mul(0x0100_0000_01b3);
+        }
+        format!("{h:016x}")
     }
 
     /// One pass of the trajectory: its phases added up, s.

@@ -2,7 +2,7 @@
 //! opener's settings as minimum requirements, so they are part of the contract: they live
 //! here, once, and the port implementations (`stepdrive-runtime`) only read them.
 
-use crate::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
+use crate::messages::{DriveCommand, DrivePlan, DriveState, ResetRequest, TorqueSetpoint};
 use crate::scenario::Mode;
 use crate::stats::StatsReport;
 use iceoryx2::prelude::ZeroCopySend;
@@ -32,6 +32,8 @@ pub enum Topic {
     Setpoint,
     /// Every loop → monitor: timing statistics, ~1 Hz and at exit.
     Stats,
+    /// Anyone → plant or bridge: clear latched faults (`stepdrive reset`).
+    Reset,
 }
 
 impl Topic {
@@ -43,6 +45,7 @@ impl Topic {
             Topic::Plan => "drive/plan",
             Topic::Setpoint => "control/setpoint",
             Topic::Stats => "monitor/stats",
+            Topic::Reset => "control/reset",
         }
     }
 
@@ -52,12 +55,13 @@ impl Topic {
         // Realtime: the oldest queued sample is overwritten and nobody blocks the plant.
         let safe_overflow = mode != Mode::Lockstep;
         match self {
-            // One writer per control topic; room for the loops, a monitor and a tool. Every
+            // One writer per control topic; room for the loops, a monitor and two tools. Every
             // subscriber slot costs the publisher MONITOR_BUFFER samples of shared memory.
             Topic::State | Topic::Command | Topic::Setpoint => Qos {
                 max_publishers: 1,
-                max_subscribers: 4,
+                max_subscribers: 5,
                 max_buffer: MONITOR_BUFFER,
+                history: usize::from(self != Topic::Command),
                 safe_overflow,
             },
             // Only the plant reads plans, and only the newest matters: a short queue keeps
@@ -66,6 +70,7 @@ impl Topic {
                 max_publishers: 1,
                 max_subscribers: 2,
                 max_buffer: LOOP_BUFFER,
+                history: 0,
                 safe_overflow: true,
             },
             // A report is ~90 KB: keep the queues short.
@@ -73,6 +78,15 @@ impl Topic {
                 max_publishers: 4,
                 max_subscribers: 2,
                 max_buffer: 4,
+                history: 0,
+                safe_overflow: true,
+            },
+            // Rare, small, from any tool; the plant takes them at its pace.
+            Topic::Reset => Qos {
+                max_publishers: 4,
+                max_subscribers: 2,
+                max_buffer: LOOP_BUFFER,
+                history: 0,
                 safe_overflow: true,
             },
         }
@@ -85,6 +99,9 @@ pub struct Qos {
     pub max_publishers: usize,
     pub max_subscribers: usize,
     pub max_buffer: usize,
+    /// Messages a subscriber that attaches late receives at once: the newest state and
+    /// setpoint let a restarted loop rejoin a running stack.
+    pub history: usize,
     /// False: a full queue makes the publisher wait. True: the oldest entry is overwritten.
     pub safe_overflow: bool,
 }
@@ -114,6 +131,9 @@ impl Message for TorqueSetpoint {
 }
 impl Message for StatsReport {
     const TOPIC: Topic = Topic::Stats;
+}
+impl Message for ResetRequest {
+    const TOPIC: Topic = Topic::Reset;
 }
 
 /// Service names of one stack. Two stacks with different instance names never see each

@@ -9,6 +9,7 @@ mod roles;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
+use stepdrive_monitor::outcome::Outcome;
 use stepdrive_runtime::poll::install_termination_handler;
 use stepdrive_runtime::RunError;
 
@@ -116,14 +117,14 @@ fn main() -> ExitCode {
             if let Some(exit) = e.downcast_ref::<commands::Exit>() {
                 return ExitCode::from(exit.code);
             }
-            let terminated = e.chain().any(|c| {
-                c.downcast_ref::<RunError>()
-                    .is_some_and(RunError::is_terminated)
-            });
-            if terminated {
-                ExitCode::from(130)
-            } else {
-                ExitCode::FAILURE
+            let run_error = e.chain().find_map(|c| c.downcast_ref::<RunError>());
+            match run_error {
+                Some(RunError::Terminated) => ExitCode::from(Outcome::Interrupted.exit_code()),
+                // A peer died or went silent: this process stopped with it.
+                Some(RunError::PeerSilent { .. }) => {
+                    ExitCode::from(Outcome::ProcessDied.exit_code())
+                }
+                _ => ExitCode::FAILURE,
             }
         }
     }

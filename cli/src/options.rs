@@ -293,6 +293,16 @@ impl StackArgs {
             d.set_priorities(plant, current);
         }
         if let Some(Cpus(cpus)) = self.cpus {
+            if let Some((a, b)) = cpus {
+                // SAFETY: sysconf only reads a system constant.
+                let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_CONF) }.max(1) as usize;
+                if let Some(bad) = [a, b].into_iter().find(|&c| c >= n) {
+                    anyhow::bail!(
+                        "--cpus: CPU {bad} does not exist (this machine has CPUs 0-{})",
+                        n - 1
+                    );
+                }
+            }
             d.set_cpus(cpus);
         }
         self.rt.apply(&mut d);

@@ -45,8 +45,4 @@ impl RunError {
             source: Box::new(source),
         }
     }
-
-    pub fn is_terminated(&self) -> bool {
-        matches!(self, RunError::Terminated)
-    }
 }

@@ -1,0 +1,331 @@
+//! What the end-to-end tests share: running the real `stepdrive` binary, temporary files,
+//! instance names, finding processes, reading results. Each test uses its own instance name,
+//! so tests running in parallel never see each other's services.
+#![allow(dead_code)]
+
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+pub const EXE: &str = env!("CARGO_BIN_EXE_stepdrive");
+
+/// Tests that start a whole stack take turns: several stacks at once on two cores turn
+/// scheduling noise into watchdog trips and lost samples, which is not what they test.
+pub static STACK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+pub fn one_stack_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    STACK
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// A short version of the paper's scenario: 0.7 s, cruise window after the transients.
+pub const SHORT: &str = r#"
+name = "short"
+[trajectory]
+accel_s = 0.1
+cruise_s = 0.35
+decel_s = 0.1
+hold_s = 0.15
+[metrics]
+cruise_start_s = 0.3
+cruise_end_s = 0.45
+final_window_s = 0.05
+"#;
+
+pub struct TempDir(pub PathBuf);
+
+impl TempDir {
+    pub fn new(test: &str) -> Self {
+        let dir = std::env::temp_dir().join(format!("stepdrive-e2e-{}-{test}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("create temp dir");
+        Self(dir)
+    }
+    pub fn file(&self, name: &str, text: &str) -> PathBuf {
+        let p = self.0.join(name);
+        std::fs::write(&p, text).expect("write temp file");
+        p
+    }
+    pub fn path(&self, name: &str) -> PathBuf {
+        self.0.join(name)
+    }
+}
+
+impl Drop for TempDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+pub fn instance(test: &str) -> String {
+    format!("e2e-{}-{test}", std::process::id())
+}
+
+pub fn stepdrive(args: &[&str]) -> Output {
+    Command::new(EXE)
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .output()
+        .expect("run stepdrive")
+}
+
+pub fn read_json(path: &Path) -> Value {
+    let text = std::fs::read_to_string(path).expect("read JSON output");
+    serde_json::from_str(&text).expect("valid JSON")
+}
+
+pub fn run_of<'a>(doc: &'a Value, method: &str) -> &'a Value {
+    doc["runs"]
+        .as_array()
+        .expect("runs array")
+        .iter()
+        .find(|r| r["method"] == method)
+        .unwrap_or_else(|| panic!("no {method} run in {doc}"))
+}
+
+pub fn num(run: &Value, key: &str) -> f64 {
+    run[key]
+        .as_f64()
+        .unwrap_or_else(|| panic!("{key} missing in {run}"))
+}
+
+/// PIDs of live processes whose command line contains `needle`.
+pub fn processes_with(needle: &str) -> Vec<u32> {
+    let mut found = Vec::new();
+    let me = std::process::id();
+    for entry in std::fs::read_dir("/proc").expect("read /proc").flatten() {
+        let Ok(pid) = entry.file_name().to_string_lossy().parse::<u32>() else {
+            continue;
+        };
+        if pid == me {
+            continue;
+        }
+        let Ok(cmdline) = std::fs::read(entry.path().join("cmdline")) else {
+            continue;
+        };
+        let cmdline = String::from_utf8_lossy(&cmdline).replace('\0', " ");
+        // Zombies have an empty cmdline; only live processes count.
+        if cmdline.contains(needle) {
+            found.push(pid);
+        }
+    }
+    found
+}
+
+pub fn wait_with_timeout(child: &mut Child, timeout: Duration) -> std::process::ExitStatus {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            return status;
+        }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            panic!("process did not exit within {timeout:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+pub fn wait_until(timeout: Duration, mut cond: impl FnMut() -> bool) -> bool {
+    let deadline = Instant::now() + timeout;
+    while Instant::now() < deadline {
+        if cond() {
+            return true;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    cond()
+}
+
+/// A long run the supervision tests can interrupt.
+pub const LONG: &str = "[trajectory]\nhold_s = 300.0\n";
+
+pub fn start_long_run(dir: &TempDir, inst: &str) -> Child {
+    let scenario = dir.file("long.toml", LONG);
+    let child = Command::new(EXE)
+        .args([
+            "run",
+            "--method",
+            "proposed",
+            "--instance",
+            inst,
+            "--scenario",
+        ])
+        .arg(&scenario)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn run");
+    // Wait until all three stack processes are up.
+    let role_up = |role: &str| {
+        processes_with(inst).iter().any(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .map(|c| String::from_utf8_lossy(&c).contains(role))
+                .unwrap_or(false)
+        })
+    };
+    assert!(
+        wait_until(Duration::from_secs(30), || {
+            role_up("\0plant\0") && role_up("\0current-loop\0") && role_up("\0position-loop\0")
+        }),
+        "stack did not come up"
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    child
+}
+
+pub fn stderr_of(child: &mut Child) -> String {
+    let mut s = String::new();
+    use std::io::Read;
+    if let Some(mut e) = child.stderr.take() {
+        let _ = e.read_to_string(&mut s);
+    }
+    s
+}
+
+/// A process started by hand without real-time settings: the deployment's defaults
+/// (SCHED_FIFO, pinned) are for a machine the run has to itself, not for tests that share
+/// the CI machine's two cores.
+pub const ORDINARY_SCHEDULING: [&str; 4] = ["--priority", "0", "--cpu", "none"];
+
+/// A realtime stack of `duration` seconds on the short scenario, with ordinary scheduling
+/// and no pinning: tests run in parallel on two cores.
+pub fn realtime_test_args<'a>(
+    scenario: &'a Path,
+    inst: &'a str,
+    duration: &'a str,
+) -> Vec<&'a str> {
+    vec![
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--duration",
+        duration,
+        "--instance",
+        inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+    ]
+}
+
+/// Runs `stepdrive` with `args` (a run with `--json`), freezes its current-loop process
+/// with SIGSTOP for `freeze` once `after` has passed since it came up, and returns the
+/// run's JSON document.
+pub fn run_with_frozen_current_loop(
+    args: &[&str],
+    inst: &str,
+    json: &Path,
+    after: Duration,
+    freeze: Duration,
+) -> Value {
+    let mut child = Command::new(EXE)
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn run");
+    let current_loop = || {
+        processes_with(inst).into_iter().find(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline"))
+                .map(|c| String::from_utf8_lossy(&c).contains("\0current-loop\0"))
+                .unwrap_or(false)
+        })
+    };
+    assert!(
+        wait_until(Duration::from_secs(30), || current_loop().is_some()),
+        "current loop did not come up"
+    );
+    let pid = current_loop().expect("current loop") as libc::pid_t;
+    std::thread::sleep(after);
+    // SAFETY: plain kill(2) on a process of ours.
+    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    std::thread::sleep(freeze);
+    unsafe { libc::kill(pid, libc::SIGCONT) };
+    let status = wait_with_timeout(&mut child, Duration::from_secs(60));
+    assert!(status.success(), "run failed: {}", stderr_of(&mut child));
+    assert!(processes_with(inst).is_empty());
+    read_json(json)
+}
+
+/// Hardware-mode tests run the short scenario at 2 kHz / 200 Hz: they run without
+/// real-time priorities (tests share the CI machine's two cores), and there five processes
+/// plus loopback UDP at 20 kHz would measure the machine's scheduler, not the stack.
+pub fn slow_scenario() -> String {
+    format!("{SHORT}\n[rates]\ncurrent_loop_hz = 2000.0\nposition_loop_hz = 200.0\n")
+}
+
+pub fn free_udp_port() -> u16 {
+    std::net::UdpSocket::bind("127.0.0.1:0")
+        .and_then(|s| s.local_addr())
+        .expect("free port")
+        .port()
+}
+
+pub fn spawn_logged(args: &[&str]) -> Child {
+    Command::new(EXE)
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn")
+}
+
+/// A hardware-mode run of the proposed method, without real-time settings.
+pub fn hardware_args<'a>(scenario: &'a Path, inst: &'a str, json: &'a Path) -> Vec<&'a str> {
+    vec![
+        "run",
+        "--mode",
+        "hardware",
+        "--method",
+        "proposed",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--instance",
+        inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+        "--json",
+        json.to_str().unwrap(),
+    ]
+}
+
+pub fn hardware_run(scenario: &Path, inst: &str, json: &Path, extra: &[&str]) -> Output {
+    let mut args = hardware_args(scenario, inst, json);
+    args.extend(extra);
+    stepdrive(&args)
+}
+
+/// A hardware run against an emulated drive started with `injection` (fault-injection
+/// options) on a free loopback port; returns the run's output and the drive's log. Fails
+/// the test if the run failed.
+pub fn hardware_run_against(
+    scenario: &Path,
+    inst: &str,
+    json: &Path,
+    injection: &[&str],
+) -> (Output, String) {
+    let listen = format!("127.0.0.1:{}", free_udp_port());
+    let mut args = vec!["emulate-drive", "--listen", &listen];
+    args.extend(ORDINARY_SCHEDULING);
+    args.push("--scenario");
+    args.push(scenario.to_str().unwrap());
+    args.extend(injection);
+    let mut drive = spawn_logged(&args);
+    let out = hardware_run(scenario, inst, json, &["--drive", &listen]);
+    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
+    let drive_log = stderr_of(&mut drive);
+    assert!(
+        out.status.success(),
+        "{}\ndrive: {drive_log}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (out, drive_log)
+}

@@ -106,6 +106,8 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
 }
 
 fn main() -> ExitCode {
+    // Before any thread exists, so that every thread inherits it (see the function).
+    stepdrive_runtime::steal::notice_stops();
     let cli = Cli::parse();
     init_logging();
     install_termination_handler();

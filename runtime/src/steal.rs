@@ -26,8 +26,12 @@ pub struct ThreadTimes {
     /// Time it was runnable but waited for the CPU in the guest (`/proc` schedstat).
     pub run_delay_ns: u64,
     /// Times it gave up the CPU itself: sleeps, but also blocking in a system call, a page
-    /// fault or a stop signal.
+    /// fault or a stop signal. Read last.
     pub voluntary_switches: u64,
+    /// The same count read first, before the wall clock: a stop that lands inside a
+    /// reading is then counted by both windows that reading separates, whichever of them
+    /// its time falls in.
+    pub voluntary_switches_first: u64,
 }
 
 /// Reads [`ThreadTimes`] of the calling thread without allocating (`clock_gettime`,
@@ -46,14 +50,18 @@ impl ThreadClock {
     }
 
     pub fn read(&self) -> Option<ThreadTimes> {
+        let voluntary_switches_first = voluntary_switches()?;
+        let wall_ns = monotonic_ns();
+        let cpu_ns = thread_cpu_ns()?;
         let mut buf = [0u8; 96];
         let n = self.schedstat.read_at(&mut buf, 0).ok()?;
         let (_, run_delay_ns) = parse_schedstat(&buf[..n])?;
         Some(ThreadTimes {
-            wall_ns: monotonic_ns(),
-            cpu_ns: thread_cpu_ns()?,
+            wall_ns,
+            cpu_ns,
             run_delay_ns,
             voluntary_switches: voluntary_switches()?,
+            voluntary_switches_first,
         })
     }
 }
@@ -64,6 +72,43 @@ fn voluntary_switches() -> Option<u64> {
     // SAFETY: `ru` is a valid, writable rusage.
     let rc = unsafe { libc::getrusage(libc::RUSAGE_THREAD, &mut ru) };
     (rc == 0).then_some(ru.ru_nvcsw as u64)
+}
+
+/// Makes a stop of this process visible to [`StealMeter`]: blocks SIGCONT in the calling
+/// thread and every thread it starts afterwards, so that a stop and continue (SIGSTOP,
+/// Ctrl-Z, a debugger) leave a SIGCONT pending for the meter to take. A blocked SIGCONT
+/// still continues the process; it only stays queued. Call it first in `main`, before any
+/// thread exists: a thread that does not block it would take the signal and drop it.
+pub fn notice_stops() -> bool {
+    // SAFETY: the set is initialised by sigemptyset before use; a null old set is allowed.
+    unsafe {
+        let mut set: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut set);
+        libc::sigaddset(&mut set, libc::SIGCONT);
+        libc::pthread_sigmask(libc::SIG_BLOCK, &set, std::ptr::null_mut()) == 0
+    }
+}
+
+/// Takes a pending SIGCONT (see [`notice_stops`]): true when the process was stopped and
+/// continued since the last one was taken. Two system calls, made only for a cycle that
+/// lost time or blocked.
+fn take_continue() -> bool {
+    // SAFETY: both sets are initialised (sigpending fills one, sigemptyset the other); a
+    // zero timeout makes sigtimedwait a non-blocking take of an already pending signal.
+    unsafe {
+        let mut pending: libc::sigset_t = std::mem::zeroed();
+        if libc::sigpending(&mut pending) != 0 || libc::sigismember(&pending, libc::SIGCONT) != 1 {
+            return false;
+        }
+        let mut only: libc::sigset_t = std::mem::zeroed();
+        libc::sigemptyset(&mut only);
+        libc::sigaddset(&mut only, libc::SIGCONT);
+        let now = libc::timespec {
+            tv_sec: 0,
+            tv_nsec: 0,
+        };
+        libc::sigtimedwait(&only, std::ptr::null_mut(), &now) == libc::SIGCONT
+    }
 }
 
 /// The first two fields of a schedstat line: time on the CPU and time waiting for it, ns.
@@ -100,19 +145,29 @@ pub struct CycleLoss {
     pub held_ns: u64,
     /// Runnable, waiting behind another task of the guest.
     pub queued_ns: u64,
-    /// The thread gave up its CPU more often than it slept: it blocked (a system call, a
-    /// page fault, a stop signal), so its unaccounted time is its own, not the host's.
+    /// The thread gave up its CPU more often than it slept (it blocked in a system call or
+    /// a page fault) or was stopped (a SIGCONT was pending), so its unaccounted time is its
+    /// own, not the host's.
     pub blocked: bool,
 }
 
 impl CycleLoss {
+    /// The thread was stopped (a signal, a debugger): its unaccounted time is the guest's.
+    pub fn stopped(self) -> Self {
+        Self {
+            held_ns: 0,
+            blocked: true,
+            ..self
+        }
+    }
+
     pub fn between(before: &ThreadTimes, after: &ThreadTimes, slept: Slept) -> Self {
         let wall = after.wall_ns.saturating_sub(before.wall_ns);
         let ran = after.cpu_ns.saturating_sub(before.cpu_ns);
         let queued_ns = after.run_delay_ns.saturating_sub(before.run_delay_ns);
         let switches = after
             .voluntary_switches
-            .saturating_sub(before.voluntary_switches);
+            .saturating_sub(before.voluntary_switches_first);
         let blocked = switches > slept.calls;
         let unaccounted = wall.saturating_sub(ran + queued_ns + slept.ns);
         Self {
@@ -232,7 +287,13 @@ impl StealMeter {
                     },
                     _ => slept,
                 };
-                let loss = CycleLoss::between(&before, &after, self.sleeps + slept);
+                let mut loss = CycleLoss::between(&before, &after, self.sleeps + slept);
+                // A stop's switch can pass for the sleep's own when the sleep expired at
+                // once; its SIGCONT cannot. A blocked cycle takes it too, so that it does
+                // not excuse a later hold.
+                if (loss.blocked || loss.held_ns >= HOST_HOLD_MIN_NS) && take_continue() {
+                    loss = loss.stopped();
+                }
                 let (by_host, by_queue) =
                     self.attribution.explain(self.unseen, &loss, self.period_ns);
                 Some(Window {
@@ -261,6 +322,8 @@ impl StealMeter {
     /// A wait without a wake-up reading (start-up, a wait on another process's event):
     /// the next window starts afresh.
     pub fn restart(&mut self) {
+        // A stop before the window opens is not this window's.
+        take_continue();
         self.last = None;
         self.sleeps = Slept::default();
         self.switches_before_sleep = None;
@@ -278,6 +341,7 @@ mod tests {
             cpu_ns: cpu,
             run_delay_ns: queued,
             voluntary_switches: switches,
+            voluntary_switches_first: switches,
         }
     }
 
@@ -379,6 +443,42 @@ mod tests {
             None,
             "a restart opens no window"
         );
+    }
+
+    /// A stop whose switch the meter cannot see (here: a sleep declared as the one switch it
+    /// made, the way a stop at the entry of a sleep that expired at once looks) is still
+    /// not the host's: its SIGCONT is pending, and the window is the guest's.
+    #[test]
+    fn a_continue_signal_takes_a_lost_window_from_the_host() {
+        let mut m = StealMeter::new(50_000);
+        if !m.available() {
+            eprintln!("no /proc/thread-self/schedstat on this kernel: nothing to check");
+            return;
+        }
+        // Only this test's thread blocks SIGCONT, and the signal goes to this thread only.
+        assert!(notice_stops());
+        let one_sleep = slept(0, 1);
+        let lost_window = |m: &mut StealMeter, continued: bool| {
+            m.restart();
+            assert_eq!(m.at_wake(Slept::default()), None);
+            crate::pacer::sleep_until(monotonic_ns() + 2_000_000);
+            if continued {
+                // SAFETY: signals this thread, which blocks SIGCONT: it only becomes pending.
+                unsafe { libc::pthread_kill(libc::pthread_self(), libc::SIGCONT) };
+            }
+            m.at_wake(one_sleep).expect("a window")
+        };
+        let held = lost_window(&mut m, false);
+        assert!(
+            held.loss.held_ns >= 1_500_000 && !held.loss.blocked,
+            "{held:?}"
+        );
+        let stopped = lost_window(&mut m, true);
+        assert_eq!(stopped.loss.held_ns, 0, "{stopped:?}");
+        assert!(stopped.loss.blocked, "{stopped:?}");
+        // Taken once: the next loss is the host's again.
+        let held = lost_window(&mut m, false);
+        assert!(held.loss.held_ns >= 1_500_000, "{held:?}");
     }
 
     fn spin_for(ns: u64) {

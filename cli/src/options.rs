@@ -277,7 +277,7 @@ pub struct StackArgs {
     #[arg(long, value_name = "PATH", conflicts_with = "drive")]
     pub drive_port: Option<PathBuf>,
     /// Realtime: periods without a command before the plant (or drive) turns its outputs off
-    /// and latches a fault (default 200 = 10 ms at 20 kHz).
+    /// and latches a fault (default 1000 = 50 ms at 20 kHz).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub watchdog_periods: Option<u32>,
 }

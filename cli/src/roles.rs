@@ -30,7 +30,7 @@ pub struct PlantArgs {
     #[command(flatten)]
     pub common: ProcessArgs,
     /// Realtime: after this many periods in a row without a command the outputs go off
-    /// (zero volts) and a fault is latched (default 200 = 10 ms at 20 kHz).
+    /// (zero volts) and a fault is latched (default 1000 = 50 ms at 20 kHz).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub watchdog_periods: Option<u32>,
     /// drive/state subscribers to wait for before the first sample: 2 = current and
@@ -254,7 +254,7 @@ pub struct EmulateArgs {
     #[command(flatten)]
     pub deploy: DeployOpt,
     /// Periods without a valid command before outputs go off and a fault latches
-    /// (default: the deployment's watchdog, 200).
+    /// (default: the deployment's watchdog, 1000).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(1..))]
     pub watchdog_periods: Option<u16>,
     /// PLAN entries the drive keeps (announced in CONFIG): when a COMMAND is late it applies

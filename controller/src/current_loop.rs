@@ -108,18 +108,29 @@ impl CurrentLoop {
         for (p, slot) in (k..k + d).zip(out.iter_mut()) {
             *slot = if p <= m + d {
                 self.decided[(p - m - 1) as usize]
-            } else if self.plan.answers_seq == m {
-                // Past the end of the plan the drive holds its last voltage.
-                let last = (self.plan.len as u64).saturating_sub(1);
-                let j = (p - m - d - 1).min(last);
-                self.plan
-                    .voltage_for(m + d + 1 + j, d)
-                    .unwrap_or(self.decided[self.delay - 1])
             } else {
-                self.decided[self.delay - 1]
+                self.planned(p, m)
             };
         }
         out
+    }
+
+    /// What the drive applies in period `p`, after the periods of the last command (which
+    /// answered sample `m`): the entry for `p` of the last plan this loop made (the plant's
+    /// freshest; it may continue an earlier command than the last); past that plan's end,
+    /// the voltage held from the period before: the plan's last entry, or, for a plan that
+    /// ends before the last command's periods do, that command's voltage.
+    fn planned(&self, p: u64, m: u64) -> [f64; 2] {
+        let d = self.delay as u64;
+        let held = self.decided[self.delay - 1];
+        if self.plan.len == 0 || self.plan.answers_seq > m {
+            return held;
+        }
+        let last = self.plan.answers_seq + d + u64::from(self.plan.len);
+        if last <= m + d {
+            return held;
+        }
+        self.plan.voltage_for(p.min(last), d).unwrap_or(held)
     }
 
     /// One cycle: the command answering `state`, given the position loop's latest setpoint.
@@ -294,17 +305,33 @@ mod tests {
         applied: Vec<[f64; 2]>,
         /// |i − (17)| at each sample, A (the proposed method's tracking error).
         current_error: Vec<f64>,
+        /// At each first sample after a gap: how far the loop's idea of the voltage the
+        /// drive applied in that period was from the voltage applied, V.
+        resume_mismatch: Vec<f64>,
     }
 
     /// Runs the loop (compute delay 1) against the motor at constant speed (J → ∞, the
     /// plan's own assumption), skipping the samples in `skipped` as a stalled loop does,
-    /// with the drive applying the freshest command's entry for each period.
+    /// with the drive applying the freshest plan's entry for each period without its
+    /// command, or past the plan the voltage it applied last. A plan goes out with every
+    /// command, or with every `plan_every`-th and the first after a gap (as the node does).
     fn run(
         method: Method,
         sp: &TorqueSetpoint,
         skipped: std::ops::Range<u64>,
         k0: u64,
         n: u64,
+    ) -> Trace {
+        run_planning_every(method, sp, skipped, k0, n, 1)
+    }
+
+    fn run_planning_every(
+        method: Method,
+        sp: &TorqueSetpoint,
+        skipped: std::ops::Range<u64>,
+        k0: u64,
+        n: u64,
+        plan_every: u64,
     ) -> Trace {
         let s = Scenario::default();
         let m = Motor {
@@ -314,10 +341,13 @@ mod tests {
         let mut cl = CurrentLoop::new(&s, method).with_plan_periods(120);
         let mut x = MotorState::new(0.2, 13.13, 0.0, 0.0);
         let mut last: Option<(DriveCommand, DrivePlan)> = None;
+        let mut sent = DrivePlan::default();
+        let mut applied = [0.0; 2];
         let mut trace = Trace {
             plan: Vec::new(),
             applied: Vec::new(),
             current_error: Vec::new(),
+            resume_mismatch: Vec::new(),
         };
         for k in 0..n {
             let i_ref = commutate(sp.torque_nm, x[THETA], m.k_m, m.n_r);
@@ -327,10 +357,18 @@ mod tests {
             // Period k belongs to the answer to k − 1, or else to the freshest plan.
             let v = match &last {
                 Some((c, _)) if c.answers_seq + 1 == k => [c.v_a_v, c.v_b_v],
-                Some((_, plan)) => plan.voltage_for(k, 1).expect("the plan covers the gap"),
+                Some((_, plan)) => plan.voltage_for(k, 1).unwrap_or(applied),
                 None => [0.0; 2],
             };
+            applied = v;
             trace.applied.push(v);
+            let resumed = k > 0 && skipped.contains(&(k - 1)) && !skipped.contains(&k);
+            if resumed {
+                let believed = cl.decided_before(k)[0];
+                trace
+                    .resume_mismatch
+                    .push((believed[0] - v[0]).abs().max((believed[1] - v[1]).abs()));
+            }
             if !skipped.contains(&k) {
                 let state = DriveState {
                     seq: k,
@@ -342,11 +380,13 @@ mod tests {
                     ..Default::default()
                 };
                 let c = cl.on_sample(&state, sp);
-                let plan = *cl.plan();
-                if k == k0 {
-                    trace.plan = plan.entries().to_vec();
+                if resumed || k % plan_every == 0 {
+                    sent = *cl.plan();
                 }
-                last = Some((c, plan));
+                if k == k0 {
+                    trace.plan = sent.entries().to_vec();
+                }
+                last = Some((c, sent));
             }
             x = m.integrate(&x, v, 0.0, T, 8);
         }
@@ -423,5 +463,28 @@ mod tests {
             .fold(0.0, |a: f64, &b| a.max(b));
         assert!(settled < 1e-6, "settled error {settled} A");
         assert!(after < 1e-6, "error through and after the gap {after} A");
+        assert_eq!(t.resume_mismatch, [0.0]);
+    }
+
+    /// The same with a plan every tenth command, as the node sends them: the drive's
+    /// freshest plan may continue a command up to nine periods older than the last, and the
+    /// loop predicts with that one. Through a gap the plan covers, tracking is unchanged;
+    /// through one that outlasts it (the drive holding the plan's last entry), the loop
+    /// still knows exactly what was applied.
+    #[test]
+    fn with_a_plan_every_tenth_command_the_loop_predicts_with_the_plan_the_drive_has() {
+        let t = run_planning_every(Method::Proposed, &CRUISE_TORQUE, 103..163, 0, 260, 10);
+        let after = t.current_error[100..]
+            .iter()
+            .fold(0.0, |a: f64, &b| a.max(b));
+        assert!(after < 1e-6, "error through and after the gap {after} A");
+        assert_eq!(t.resume_mismatch, [0.0]);
+        // A 200-period gap past the 120-period plan of the command answering 100: its
+        // entries are for periods 102..=221, the last command's (answering 102) for 103.
+        let t = run_planning_every(Method::Proposed, &CRUISE_TORQUE, 103..303, 0, 400, 10);
+        assert_eq!(t.resume_mismatch, [0.0]);
+        let held = &t.applied[221..=303];
+        assert!(held.iter().all(|v| v == &held[0]), "held past the plan");
+        assert_ne!(t.applied[220], t.applied[221], "planned up to its end");
     }
 }

@@ -249,6 +249,17 @@ pub enum DecodeError {
     BadPlanCount { count: u16, len: usize },
     #[error("bad COBS encoding")]
     BadCobs,
+    #[error("kind {0} frame with non-zero reserved bytes")]
+    Reserved(u8),
+}
+
+/// Reserved bytes must be zero: a frame is read one way only, and re-encodes to itself.
+fn zero(kind: u8, reserved: &[u8]) -> Result<(), DecodeError> {
+    if reserved.iter().all(|&b| b == 0) {
+        Ok(())
+    } else {
+        Err(DecodeError::Reserved(kind))
+    }
 }
 
 const CRC_TABLE: [u32; 256] = {
@@ -433,7 +444,8 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
             duty_b: r.i16(),
         }),
         3 => {
-            let [a, ..] = r.take::<4>();
+            let [a, reserved @ ..] = r.take::<4>();
+            zero(kind, &reserved)?;
             Message::Control(match a {
                 1 => Action::Enable,
                 2 => Action::Disable,
@@ -443,27 +455,31 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
         }
         4 => {
             let fault_bits = r.u16();
-            r.at += 2;
+            zero(kind, &r.take::<2>())?;
             Message::FaultReport(FaultReport {
                 fault_bits,
                 at_sample: r.u32(),
             })
         }
-        5 => Message::Config(Config {
-            sample_rate_hz: r.u32(),
-            counts_per_rev: r.u32(),
-            current_ua_per_count: r.u32(),
-            current_zero_count: r.u16(),
-            bus_uv_per_count: r.u32(),
-            watchdog_periods: r.u16(),
-            encoder_direction: i8::from_le_bytes(r.take()),
-            plan_capacity: r.u16(),
-            reserved: r.take(),
-        }),
+        5 => {
+            let config = Config {
+                sample_rate_hz: r.u32(),
+                counts_per_rev: r.u32(),
+                current_ua_per_count: r.u32(),
+                current_zero_count: r.u16(),
+                bus_uv_per_count: r.u32(),
+                watchdog_periods: r.u16(),
+                encoder_direction: i8::from_le_bytes(r.take()),
+                plan_capacity: r.u16(),
+                reserved: r.take(),
+            };
+            zero(kind, &config.reserved)?;
+            Message::Config(config)
+        }
         7 => {
             let answers_sample = r.u32();
             let count = r.u16();
-            r.at += 2;
+            zero(kind, &r.take::<2>())?;
             let entries = (payload - PLAN_HEADER) / 4;
             if usize::from(count) != entries {
                 return Err(DecodeError::BadPlanCount {
@@ -481,7 +497,15 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
                 duties,
             })
         }
-        _ => Message::Hello,
+        6 => {
+            let [version, reserved @ ..] = r.take::<4>();
+            zero(kind, &reserved)?;
+            if version != VERSION {
+                return Err(DecodeError::BadVersion(version));
+            }
+            Message::Hello
+        }
+        other => return Err(DecodeError::BadKind(other)),
     };
     Ok(Frame {
         seq,
@@ -759,6 +783,75 @@ mod tests {
         }
     }
 
+    /// A frame with a correct CRC whose bytes were changed anyway: a consistent liar.
+    fn relabel_crc(bytes: &mut [u8]) {
+        if bytes.len() >= HEADER_LEN + CRC_LEN {
+            let end = bytes.len() - CRC_LEN;
+            let crc = crc32(&bytes[..end]);
+            bytes[end..].copy_from_slice(&crc.to_le_bytes());
+        }
+    }
+
+    proptest! {
+        /// Arbitrary bytes: no panic, and whatever is accepted re-encodes to exactly the
+        /// bytes it came from (there is one way to write every frame).
+        #[test]
+        fn arbitrary_bytes_never_panic_and_accepted_frames_re_encode_identically(
+            bytes in proptest::collection::vec(any::<u8>(), 0..MAX_FRAME + 16),
+            lie in any::<bool>(),
+        ) {
+            let mut bytes = bytes;
+            if lie {
+                relabel_crc(&mut bytes);
+            }
+            if let Ok(frame) = decode(&bytes) {
+                let mut buf = [0u8; MAX_FRAME];
+                let n = encode(&frame, &mut buf);
+                prop_assert_eq!(&buf[..n], &bytes[..]);
+            }
+        }
+
+        /// Valid frames with bytes changed and the CRC made to match: the structural checks
+        /// alone must hold the line (no panic, no over-read; accepted frames re-encode).
+        #[test]
+        fn consistent_liars_are_refused_or_exact(
+            seq in any::<u32>(),
+            message in arb_message(),
+            edits in proptest::collection::vec((any::<usize>(), any::<u8>()), 1..6),
+            cut in proptest::option::of(any::<usize>()),
+        ) {
+            let frame = Frame { seq, timestamp_ns: 7, message };
+            let mut buf = [0u8; MAX_FRAME];
+            let n = encode(&frame, &mut buf);
+            let mut bytes = buf[..n].to_vec();
+            for (at, value) in edits {
+                let at = at % bytes.len();
+                bytes[at] = value;
+            }
+            if let Some(cut) = cut {
+                bytes.truncate(cut % (bytes.len() + 1));
+            }
+            relabel_crc(&mut bytes);
+            if let Ok(f) = decode(&bytes) {
+                let mut again = [0u8; MAX_FRAME];
+                let m = encode(&f, &mut again);
+                prop_assert_eq!(&again[..m], &bytes[..]);
+            }
+        }
+
+        /// COBS decoding of arbitrary bytes: no panic, never past the output.
+        #[test]
+        fn arbitrary_cobs_never_panics(
+            data in proptest::collection::vec(any::<u8>(), 0..600),
+            room in 0usize..600,
+        ) {
+            let mut out = vec![0u8; room];
+            if let Ok(n) = cobs_decode(&data, &mut out) {
+                prop_assert!(n <= room);
+            }
+        }
+    }
+
     /// A PLAN must carry exactly `count` entries, 1 ..= MAX_PLAN_ENTRIES.
     #[test]
     fn plan_lengths_are_checked() {
@@ -796,6 +889,29 @@ mod tests {
             decode(&empty[..m + CRC_LEN]),
             Err(DecodeError::BadLength { kind: 7, .. })
         ));
+    }
+
+    /// Reserved bytes must be zero: a frame with any set is refused, not read past.
+    #[test]
+    fn reserved_bytes_must_be_zero() {
+        let cases = [
+            (Message::Control(Action::Enable), HEADER_LEN + 1),
+            (
+                Message::FaultReport(FaultReport {
+                    fault_bits: 1,
+                    at_sample: 2,
+                }),
+                HEADER_LEN + 2,
+            ),
+            (Message::Hello, HEADER_LEN + 3),
+        ];
+        for (message, reserved_at) in cases {
+            let mut bytes = frame_bytes(1, message);
+            assert!(decode(&bytes).is_ok());
+            bytes[reserved_at] = 1;
+            relabel_crc(&mut bytes);
+            assert_eq!(decode(&bytes), Err(DecodeError::Reserved(message.kind())));
+        }
     }
 
     #[test]

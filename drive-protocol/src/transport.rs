@@ -24,12 +24,57 @@ pub enum WireError {
     Io(#[source] io::Error),
 }
 
+/// COBS frames out of a byte stream: bytes in as they come, whole frames out, decoded. The
+/// buffer is sized once; bytes without a delimiter cannot grow it without bound.
+pub struct Deframer {
+    rx: Vec<u8>,
+    /// Frames dropped because their COBS encoding was broken, and runs of bytes dropped for
+    /// want of a delimiter.
+    pub framing_errors: u64,
+}
+
+/// The most a [`Deframer`] holds before it gives up on finding a delimiter.
+const DEFRAMER_LIMIT: usize = 16 * MAX_FRAME;
+
+impl Default for Deframer {
+    fn default() -> Self {
+        Self {
+            // The most it holds before the guard below clears it: never regrown.
+            rx: Vec::with_capacity(DEFRAMER_LIMIT + READ_CHUNK),
+            framing_errors: 0,
+        }
+    }
+}
+
+impl Deframer {
+    /// Bytes read from the line.
+    pub fn push(&mut self, bytes: &[u8]) {
+        self.rx.extend_from_slice(bytes);
+        if self.rx.len() > DEFRAMER_LIMIT && !self.rx.contains(&0) {
+            self.rx.clear();
+            self.framing_errors += 1;
+        }
+    }
+
+    /// The next complete frame, decoded into `out`; its length.
+    pub fn next_frame(&mut self, out: &mut [u8]) -> Option<usize> {
+        while let Some(end) = self.rx.iter().position(|&b| b == 0) {
+            // Decoded in place, then dropped from the buffer: no allocation per frame.
+            let decoded = cobs_decode(&self.rx[..end], out);
+            self.rx.drain(..=end);
+            match decoded {
+                Ok(n) if n > 0 => return Some(n),
+                _ => self.framing_errors += 1,
+            }
+        }
+        None
+    }
+}
+
 /// A raw serial line (a UART or a pseudo-terminal), non-blocking, with COBS framing.
 pub struct SerialPort {
     fd: OwnedFd,
-    rx: Vec<u8>,
-    /// Frames dropped because their COBS encoding was broken.
-    pub framing_errors: u64,
+    deframer: Deframer,
 }
 
 impl SerialPort {
@@ -56,9 +101,7 @@ impl SerialPort {
         }
         Ok(Self {
             fd,
-            // The most it holds before the garbage guard below clears it: never regrown.
-            rx: Vec::with_capacity(16 * MAX_FRAME + READ_CHUNK),
-            framing_errors: 0,
+            deframer: Deframer::default(),
         })
     }
 
@@ -86,17 +129,8 @@ impl SerialPort {
     /// Next complete frame (decoded) into `out`, waiting up to `wait_ms` for bytes.
     pub fn recv(&mut self, out: &mut [u8], wait_ms: i32) -> Result<Option<usize>, WireError> {
         loop {
-            if let Some(end) = self.rx.iter().position(|&b| b == 0) {
-                // Decoded in place, then dropped from the buffer: no allocation per frame.
-                let decoded = cobs_decode(&self.rx[..end], out);
-                self.rx.drain(..=end);
-                match decoded {
-                    Ok(n) if n > 0 => return Ok(Some(n)),
-                    _ => {
-                        self.framing_errors += 1;
-                        continue;
-                    }
-                }
+            if let Some(n) = self.deframer.next_frame(out) {
+                return Ok(Some(n));
             }
             let mut pfd = libc::pollfd {
                 fd: self.fd.as_raw_fd(),
@@ -124,12 +158,7 @@ impl SerialPort {
                     _ => Err(WireError::Io(e)),
                 };
             }
-            self.rx.extend_from_slice(&buf[..r as usize]);
-            // Garbage without a delimiter must not grow without bound.
-            if self.rx.len() > 16 * MAX_FRAME {
-                self.rx.clear();
-                self.framing_errors += 1;
-            }
+            self.deframer.push(&buf[..r as usize]);
         }
     }
 }
@@ -293,5 +322,83 @@ fn sockaddr_to_std(a: &libc::sockaddr_storage) -> Option<SocketAddr> {
             Some(SocketAddr::new(ip.into(), u16::from_be(v6.sin6_port)))
         }
         _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{encode, frame_bytes, Frame, Message};
+    use proptest::prelude::*;
+
+    proptest! {
+        /// Frames COBS-encoded back to back, cut into arbitrary chunks: every frame comes
+        /// out, whole and in order.
+        #[test]
+        fn frames_survive_any_chunking(
+            seqs in proptest::collection::vec(any::<u32>(), 1..20),
+            cuts in proptest::collection::vec(1usize..200, 1..40),
+        ) {
+            let mut stream = Vec::new();
+            for &seq in &seqs {
+                let raw = frame_bytes(seq, Message::Hello);
+                let mut enc = [0u8; 2 * MAX_FRAME + 2];
+                let n = cobs_encode(&raw, &mut enc);
+                stream.extend_from_slice(&enc[..n]);
+            }
+            let mut d = Deframer::default();
+            let mut got = Vec::new();
+            let mut out = [0u8; MAX_FRAME];
+            let mut at = 0;
+            for cut in cuts.iter().cycle() {
+                if at >= stream.len() {
+                    break;
+                }
+                let end = (at + cut).min(stream.len());
+                d.push(&stream[at..end]);
+                at = end;
+                while let Some(n) = d.next_frame(&mut out) {
+                    got.push(crate::decode(&out[..n]).map(|f| f.seq));
+                }
+            }
+            let want: Vec<Result<u32, crate::DecodeError>> = seqs.iter().map(|&s| Ok(s)).collect();
+            prop_assert_eq!(got, want);
+            prop_assert_eq!(d.framing_errors, 0);
+        }
+
+        /// Arbitrary bytes on the line: no panic; garbage never grows the buffer past its
+        /// limit.
+        #[test]
+        fn garbage_on_the_line_never_panics(
+            chunks in proptest::collection::vec(proptest::collection::vec(any::<u8>(), 0..2000), 1..30),
+        ) {
+            let mut d = Deframer::default();
+            let mut out = [0u8; MAX_FRAME];
+            for c in &chunks {
+                d.push(c);
+                while d.next_frame(&mut out).is_some() {}
+                prop_assert!(d.rx.len() <= DEFRAMER_LIMIT + 2000);
+            }
+        }
+    }
+
+    #[test]
+    fn a_frame_split_across_reads_is_whole() {
+        let f = Frame {
+            seq: 3,
+            timestamp_ns: 9,
+            message: Message::Hello,
+        };
+        let mut raw = [0u8; MAX_FRAME];
+        let n = encode(&f, &mut raw);
+        let mut enc = [0u8; 2 * MAX_FRAME + 2];
+        let m = cobs_encode(&raw[..n], &mut enc);
+        let mut d = Deframer::default();
+        let mut out = [0u8; MAX_FRAME];
+        d.push(&enc[..5]);
+        assert_eq!(d.next_frame(&mut out), None);
+        d.push(&enc[5..m]);
+        assert_eq!(d.next_frame(&mut out), Some(n));
+        assert_eq!(&out[..n], &raw[..n]);
     }
 }

@@ -659,4 +659,34 @@ mod tests {
         );
         assert!((after - before).abs() <= pitch / 2.0 + 1e-6);
     }
+
+    /// Arbitrary frames, valid and corrupted with a matching CRC, at a drive between its
+    /// periods: it never panics, and its outputs stay within the bus.
+    #[test]
+    fn arbitrary_frames_never_break_the_drive() {
+        use proptest::prelude::*;
+        let frame = (
+            any::<u32>(),
+            any::<u8>(),
+            proptest::collection::vec(any::<u8>(), 0..64),
+        );
+        proptest!(|(frames in proptest::collection::vec(frame, 1..100))| {
+            let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+            for (k, (seq, kind, payload)) in frames.into_iter().enumerate() {
+                let mut bytes = vec![0x44, 0x53, stepdrive_drive_protocol::VERSION, kind % 9];
+                bytes.extend_from_slice(&seq.to_le_bytes());
+                bytes.extend_from_slice(&0u64.to_le_bytes());
+                bytes.extend_from_slice(&(payload.len() as u16).to_le_bytes());
+                bytes.extend_from_slice(&payload);
+                let crc = stepdrive_drive_protocol::crc32(&bytes);
+                bytes.extend_from_slice(&crc.to_le_bytes());
+                d.on_frame(&bytes);
+                d.run_period(k as u32);
+                let Message::Sample(s) = d.sample_frame(0).message else {
+                    panic!("a sample frame")
+                };
+                prop_assert!(s.duty_a != i16::MIN && s.duty_b != i16::MIN);
+            }
+        });
+    }
 }

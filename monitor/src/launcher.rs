@@ -7,7 +7,7 @@
 
 use crate::metrics::{Metrics, RunReport};
 use crate::outcome::Outcome;
-use crate::timing::TimingReport;
+use crate::timing::{rss_kib, Resources, Rss, TimingReport};
 use anyhow::{Context, Result};
 use std::io::{BufRead, BufReader};
 use std::os::unix::process::CommandExt;
@@ -100,6 +100,14 @@ impl Supervised {
                 .with_context(|| format!("cannot query the {role} process", role = self.role))?;
         }
         Ok(self.status)
+    }
+
+    pub(crate) fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    pub(crate) fn role(&self) -> &'static str {
+        self.role
     }
 
     pub(crate) fn signal(&self, sig: libc::c_int) {
@@ -326,6 +334,9 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
     let mut stats = Finals::default();
     let mut watch = Watch {
         metrics: Metrics::new(s),
+        rss_start: Vec::new(),
+        rss_end: Vec::new(),
+        misses_per_minute: Vec::new(),
         last_seq: None,
         monitor_lost: 0,
         first_ns: None,
@@ -344,6 +355,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         &files,
     )?;
 
+    watch.read_rss_end();
     let mut failures = Vec::new();
     if let Ending::Last = ending {
         if emulated {
@@ -385,19 +397,49 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         }
     };
     if realtime {
-        report.timing = Some(stats.timing(s, watch.monitor_lost, mode));
+        let mut timing = stats.timing(s, watch.monitor_lost, mode);
+        timing.resources = Resources {
+            rss: watch
+                .rss_start
+                .iter()
+                .zip(&watch.rss_end)
+                .map(|(&(process, _, start_kib), &end_kib)| Rss {
+                    process: process.to_string(),
+                    start_kib,
+                    end_kib,
+                })
+                .collect(),
+            misses_per_minute: watch.misses_per_minute.clone(),
+        };
+        report.timing = Some(timing);
     }
     Ok(report)
 }
 
-/// What the monitor gathers from the state stream.
+/// What the monitor gathers from the state stream, and the processes' resources.
 struct Watch {
     metrics: Metrics,
+    /// (process, pid, RSS at the first sample in KiB) of every child and the monitor.
+    rss_start: Vec<(&'static str, u32, u64)>,
+    /// RSS at the last reading each process answered.
+    rss_end: Vec<u64>,
+    misses_per_minute: Vec<u64>,
     last_seq: Option<u64>,
     /// Realtime: samples the monitor (the one loop allowed to fall behind) did not see.
     monitor_lost: u64,
     first_ns: Option<u64>,
     last_ns: u64,
+}
+
+impl Watch {
+    fn read_rss_end(&mut self) {
+        self.rss_end.resize(self.rss_start.len(), 0);
+        for (end, &(_, pid, _)) in self.rss_end.iter_mut().zip(&self.rss_start) {
+            if let Some(kib) = rss_kib(pid) {
+                *end = kib;
+            }
+        }
+    }
 }
 
 /// Every process's latest and final statistics.
@@ -469,6 +511,8 @@ fn supervise(
     let mut last_sample_at = Instant::now();
     let mut next_progress = Instant::now() + Duration::from_secs(1);
     let mut files_removed = false;
+    let mut next_minute = Instant::now() + Duration::from_secs(60);
+    let mut misses_at_minute = 0;
     loop {
         let mut got = false;
         stats.drain(stats_sub)?;
@@ -512,6 +556,13 @@ fn supervise(
                 // A sample means every child is up, with its files read.
                 files.remove();
                 files_removed = true;
+                let me = std::process::id();
+                w.rss_start = children
+                    .iter()
+                    .map(|c| (c.role(), c.pid()))
+                    .chain([("monitor", me)])
+                    .map(|(role, pid)| (role, pid, rss_kib(pid).unwrap_or(0)))
+                    .collect();
             }
             last_sample_at = Instant::now();
         }
@@ -544,6 +595,13 @@ fn supervise(
                 ),
             ));
         }
+        if realtime && Instant::now() >= next_minute {
+            let misses = stats.latest[roles::PLANT as usize].map_or(0, |p| p.misses);
+            w.misses_per_minute
+                .push(misses.saturating_sub(misses_at_minute));
+            misses_at_minute = misses;
+            next_minute += Duration::from_secs(60);
+        }
         if Instant::now() >= next_progress {
             let k = w.last_seq.map_or(0, |q| q + 1);
             let done_s = k as f64 / s.rates.current_loop_hz;
@@ -559,6 +617,8 @@ fn supervise(
                 }
             );
             next_progress += Duration::from_secs(if realtime { 5 } else { 1 });
+            // The last reading while every child lives: one that has exited has none.
+            w.read_rss_end();
         }
         std::thread::sleep(Duration::from_micros(if realtime { 1000 } else { 500 }));
     }

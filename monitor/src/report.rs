@@ -138,6 +138,9 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         if let Some(h) = &t.host_holds {
             let _ = writeln!(out, "  {}", h.describe());
         }
+        if !t.resources.rss.is_empty() {
+            let _ = writeln!(out, "  {}", t.resources.describe());
+        }
         let line = |name: &str, p: Option<&crate::timing::Percentiles>| match p {
             Some(p) if p.count > 0 => format!(
                 "  {name:<34} p50 {:>7.1} µs  p99 {:>7.1} µs  p99.9 {:>8.1} µs  max {:>9.1} µs\n",

@@ -164,8 +164,59 @@ pub struct TimingReport {
     pub round_trip: Option<Percentiles>,
     /// Realtime mode: the current loop's account of its vCPU held by the host.
     pub host_holds: Option<HostHolds>,
+    /// What the processes used: their memory at the start and end of the run, and the
+    /// deadline misses of each minute (a long run's health at a glance).
+    pub resources: Resources,
     #[serde(skip)]
     pub raw: [Option<Box<StatsReport>>; 3],
+}
+
+/// A process's resident memory at the start and the end of a run, KiB.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct Rss {
+    pub process: String,
+    pub start_kib: u64,
+    pub end_kib: u64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
+pub struct Resources {
+    pub rss: Vec<Rss>,
+    /// The plant's deadline misses in each whole minute of the run.
+    pub misses_per_minute: Vec<u64>,
+}
+
+impl Resources {
+    /// One line for the tables.
+    pub fn describe(&self) -> String {
+        let rss: Vec<String> = self
+            .rss
+            .iter()
+            .map(|r| {
+                format!(
+                    "{} {:.1}→{:.1}",
+                    r.process,
+                    r.start_kib as f64 / 1024.0,
+                    r.end_kib as f64 / 1024.0
+                )
+            })
+            .collect();
+        let mut line = format!("RSS at start→end [MiB]: {}", rss.join(", "));
+        if !self.misses_per_minute.is_empty() {
+            line += &format!("; deadline misses per minute: {:?}", self.misses_per_minute);
+        }
+        line
+    }
+}
+
+/// Resident memory of process `pid`, KiB (`VmRSS` in `/proc/<pid>/status`).
+pub fn rss_kib(pid: u32) -> Option<u64> {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
 }
 
 impl TimingReport {
@@ -209,6 +260,7 @@ impl TimingReport {
                 (Some(c), Some(p)) if host_holds_measured => Some(HostHolds::of(c, p)),
                 _ => None,
             },
+            resources: Resources::default(),
             raw: [plant, current, position],
         }
     }

@@ -90,7 +90,9 @@ pub struct Deployment {
     /// Longest silence of a peer, once heard, before a process stops, s.
     pub peer_timeout_s: f64,
     /// Realtime: periods in a row without a command after which the plant (or the drive)
-    /// turns its outputs off and latches a fault (200 = 10 ms at 20 kHz).
+    /// turns its outputs off and latches a fault (1000 = 50 ms at 20 kHz: this VM's
+    /// hypervisor has held a vCPU for 20 ms, and a 10 ms watchdog lost the motor 11 minutes
+    /// into a 30-minute run).
     pub watchdog_periods: u32,
     /// mlockall and prefault the stack in every realtime process.
     pub lock_memory: bool,
@@ -120,7 +122,7 @@ impl Default for Deployment {
         let mut d = Self {
             startup_timeout_s: 30.0,
             peer_timeout_s: 5.0,
-            watchdog_periods: 200,
+            watchdog_periods: 1000,
             lock_memory: true,
             timer_slack_ns: 1000,
             require_rt: false,

@@ -90,13 +90,15 @@ pub struct DriveCommand {
     pub i_b_ref_a: f64,
 }
 
-/// Longest [`DrivePlan`]: 256 periods, 12.8 ms at 20 kHz, longer than the default watchdog
-/// (200 periods), so with the defaults a plan never outlives the watchdog.
-pub const MAX_PLAN: usize = 256;
+/// Longest [`DrivePlan`]: 1024 periods, 51.2 ms at 20 kHz. The default plan (1000 periods)
+/// is as long as the default watchdog, so a plan covers every period the watchdog waits
+/// through and never outlives it.
+pub const MAX_PLAN: usize = 1024;
 
-/// Current loop → plant (realtime), right after each command: the voltages the loop expects
-/// to send for the periods after that command's, predicted with the same model and law
-/// (constant speed, the setpoint segment unchanged). A plant whose next command is late
+/// Current loop → plant (realtime), after every few commands (`PLAN_EVERY` in the current
+/// loop's node): the voltages the loop expects to send for the periods after that
+/// command's, predicted with the same model and law (constant speed, the setpoint segment
+/// unchanged). A plant whose next command is late
 /// applies the freshest plan's entry for that period instead of freezing the last voltage:
 /// at cruise the electrical angle turns ~0.03 rad per period, so a frozen voltage vector
 /// loses torque within a millisecond while the plan keeps commutating. A miss is still a
@@ -104,7 +106,7 @@ pub const MAX_PLAN: usize = 256;
 /// never delays it.
 #[derive(Clone, Copy, PartialEq, ZeroCopySend)]
 #[repr(C)]
-#[type_name("stepdrive.DrivePlan.v1")]
+#[type_name("stepdrive.DrivePlan.v2")]
 pub struct DrivePlan {
     /// The [`DriveCommand::seq`] this plan continues.
     pub command_seq: u64,

@@ -84,10 +84,11 @@ impl Default for LoadParams {
 pub struct DriveParams {
     /// Supply voltage; each phase voltage is limited to ±V_bus.
     pub bus_voltage_v: f64,
-    /// Realtime: periods of voltage plan the current loop sends with each command
-    /// (0..=256). A drive whose next command is late applies the plan's entry for that
-    /// period instead of freezing the last voltage; 0 = freeze it. The default, 200 periods
-    /// (10 ms at 20 kHz), matches the default watchdog.
+    /// Realtime: periods of voltage plan the current loop sends after its commands
+    /// (0..=1024). A drive whose next command is late applies the plan's entry for that
+    /// period instead of freezing the last voltage; 0 = freeze it. The default, 1000
+    /// periods (50 ms at 20 kHz), matches the default watchdog: a host that holds the
+    /// current loop's CPU for less than that costs no commutation.
     pub command_plan_periods: u32,
 }
 
@@ -95,7 +96,7 @@ impl Default for DriveParams {
     fn default() -> Self {
         Self {
             bus_voltage_v: 24.0,
-            command_plan_periods: 200,
+            command_plan_periods: 1000,
         }
     }
 }
@@ -684,7 +685,7 @@ mod tests {
         assert!(err_of("[rates]\nposition_loop_hz = 3000.0").contains("rates.position_loop_hz"));
         assert!(err_of("[rates]\ncompute_delay_periods = 9").contains("compute_delay_periods"));
         assert!(err_of("[load]\ntorque_nm = nan").contains("load.torque_nm"));
-        assert!(err_of("[drive]\ncommand_plan_periods = 257").contains("command_plan_periods"));
+        assert!(err_of("[drive]\ncommand_plan_periods = 1025").contains("command_plan_periods"));
         assert!(err_of("[metrics]\ncruise_end_s = 9.0").contains("metrics.cruise_end_s"));
         // A typo is an error naming the unknown key, not a silent default.
         assert!(err_of("[motor]\nresistanse_ohm = 1.0").contains("resistanse_ohm"));
@@ -698,5 +699,58 @@ mod tests {
             assert_eq!(m.as_str().parse::<Method>(), Ok(m));
         }
         assert!("pid".parse::<Method>().is_err());
+    }
+
+    /// Scenario files made of known keys with arbitrary values, extremes included: loading
+    /// never panics, and what is accepted can be run (finite, bounded in samples).
+    #[test]
+    fn arbitrary_scenario_files_never_panic_and_accepted_ones_can_run() {
+        use proptest::prelude::*;
+        const KEYS: [(&str, &str); 12] = [
+            ("motor", "inductance_h"),
+            ("motor", "resistance_ohm"),
+            ("motor", "rotor_teeth"),
+            ("load", "torque_nm"),
+            ("drive", "bus_voltage_v"),
+            ("gains", "v_max_v"),
+            ("rates", "current_loop_hz"),
+            ("rates", "position_loop_hz"),
+            ("trajectory", "cruise_velocity_rad_s"),
+            ("trajectory", "hold_s"),
+            ("metrics", "cruise_end_s"),
+            ("run", "duration_s"),
+        ];
+        let value = prop_oneof![
+            any::<f64>().prop_map(|v| format!("{v:?}")),
+            any::<i64>().prop_map(|v| v.to_string()),
+            Just("nan".to_string()),
+            Just("-inf".to_string()),
+            Just("1e308".to_string()),
+            Just("\"x\"".to_string()),
+            Just("true".to_string()),
+        ];
+        let line = (0..KEYS.len(), value);
+        proptest!(|(lines in proptest::collection::vec(line, 0..8))| {
+            // Each table once, each key once: valid TOML, so the values are what is tested.
+            let mut tables: std::collections::BTreeMap<&str, std::collections::BTreeMap<&str, String>> =
+                Default::default();
+            for (key, value) in lines {
+                let (table, field) = KEYS[key];
+                tables.entry(table).or_default().insert(field, value);
+            }
+            let mut text = String::new();
+            for (table, fields) in tables {
+                text.push_str(&format!("[{table}]\n"));
+                for (field, value) in fields {
+                    text.push_str(&format!("{field} = {value}\n"));
+                }
+            }
+            if let Ok(s) = Scenario::from_toml_str(&text) {
+                prop_assert!(s.sample_count() <= MAX_SAMPLES);
+                prop_assert!(s.duration_s().is_finite() && s.duration_s() > 0.0);
+                prop_assert!(s.sample_period_ns() > 0);
+                prop_assert!(s.eq7_bound_rad().is_finite());
+            }
+        });
     }
 }

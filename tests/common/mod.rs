@@ -8,7 +8,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-pub const EXE: &str = env!("CARGO_BIN_EXE_stepdrive");
+/// The binary under test: this build's, or the one `STEPDRIVE_EXE` names (the same tests
+/// against another build, e.g. one from before a fix).
+pub fn exe() -> String {
+    std::env::var("STEPDRIVE_EXE").unwrap_or_else(|_| env!("CARGO_BIN_EXE_stepdrive").into())
+}
 
 /// Tests that start a whole stack take turns: several stacks at once on two cores turn
 /// scheduling noise into watchdog trips and lost samples, which is not what they test.
@@ -63,7 +67,7 @@ pub fn instance(test: &str) -> String {
 }
 
 pub fn stepdrive(args: &[&str]) -> Output {
-    Command::new(EXE)
+    Command::new(exe())
         .args(args)
         .env("RUST_LOG", "warn")
         .output()
@@ -143,7 +147,7 @@ pub const LONG: &str = "[trajectory]\nhold_s = 300.0\n";
 
 pub fn start_long_run(dir: &TempDir, inst: &str) -> Child {
     let scenario = dir.file("long.toml", LONG);
-    let child = Command::new(EXE)
+    let child = Command::new(exe())
         .args([
             "run",
             "--method",
@@ -221,7 +225,7 @@ pub fn run_with_frozen_current_loop(
     after: Duration,
     freeze: Duration,
 ) -> Value {
-    let mut child = Command::new(EXE)
+    let mut child = Command::new(exe())
         .args(args)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
@@ -266,7 +270,7 @@ pub fn free_udp_port() -> u16 {
 }
 
 pub fn spawn_logged(args: &[&str]) -> Child {
-    Command::new(EXE)
+    Command::new(exe())
         .args(args)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())

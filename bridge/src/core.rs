@@ -16,7 +16,7 @@
 //!   ([`ArrivalClock`]).
 
 use crate::link::{DriveLink, EncoderCalibration, Event};
-use stepdrive_drive_protocol::{Action, Config, Frame};
+use stepdrive_drive_protocol::{Action, Config, ConfigError, Frame};
 use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
 use stepdrive_shared::stats::StatsReport;
 
@@ -72,6 +72,8 @@ pub enum Received {
     /// A SAMPLE, kept as the newest until it is taken.
     Sample,
     Config(Config),
+    /// A CONFIG the protocol does not allow (named field): the drive cannot be used.
+    BadConfig(ConfigError),
     /// A latched fault the drive reports (also in its samples' fault bits).
     Fault {
         bits: u16,
@@ -152,16 +154,22 @@ impl BridgeCore {
         self.link.hello_frame(now)
     }
 
-    /// The stream starts: samples read so far are stale (the stack was coming up), the next
-    /// one is k = 0. Returns the RESET and ENABLE to send.
-    pub fn begin(&mut self, now: u64) -> [Frame; 2] {
+    /// Before the stream: the RESET that clears what a previous session latched, and the
+    /// ALIGN that brings the rotor to an electrical zero (§7).
+    pub fn prepare(&mut self, now: u64) -> [Frame; 2] {
+        [
+            self.link.control_frame(Action::Reset, now),
+            self.link.control_frame(Action::Align, now),
+        ]
+    }
+
+    /// The stream starts: samples read so far are stale (the stack was coming up, the rotor
+    /// aligning), the next one is k = 0 and its position θ = 0. Returns the ENABLE to send.
+    pub fn begin(&mut self, now: u64) -> Frame {
         self.link.restart();
         self.newest = None;
         self.last_rx_ns = now;
-        [
-            self.link.control_frame(Action::Reset, now),
-            self.link.control_frame(Action::Enable, now),
-        ]
+        self.link.control_frame(Action::Enable, now)
     }
 
     /// The RESET and ENABLE to send when a reset is requested: the drive clears its
@@ -193,6 +201,7 @@ impl BridgeCore {
                 Received::Sample
             }
             Event::Config(c) => Received::Config(c),
+            Event::BadConfig(e) => Received::BadConfig(e),
             Event::Fault(f) => {
                 tracing::error!(
                     faults = f.fault_bits,

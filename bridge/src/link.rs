@@ -5,8 +5,8 @@
 use crate::observer::VelocityObserver;
 use stepdrive_drive_protocol::units::{duty_for, volts_for, Scaling};
 use stepdrive_drive_protocol::{
-    decode, is_newer, status, Action, Command, Config, DecodeError, FaultReport, Frame, Message,
-    Plan, MAX_PLAN_ENTRIES,
+    decode, is_newer, status, Action, Command, Config, ConfigError, DecodeError, FaultReport,
+    Frame, Message, Plan, MAX_PLAN_ENTRIES,
 };
 use stepdrive_runtime::cycle::MissRuns;
 use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
@@ -17,9 +17,53 @@ use stepdrive_shared::stats::StatsReport;
 pub enum Event {
     State(DriveState),
     Config(Config),
+    /// A CONFIG with a field the protocol does not allow: the drive cannot be used.
+    BadConfig(ConfigError),
     Fault(FaultReport),
-    /// Dropped: bad CRC, malformed, duplicate or out of order, or unexpected.
+    /// Dropped: bad CRC, malformed, duplicate or out of order, stale, or unexpected.
     Dropped,
+}
+
+/// Which of the last 64 SAMPLE sequence numbers arrived: a late one is told apart from a
+/// duplicate, so that a reordered sample is counted once (out of order), not also as lost.
+#[derive(Debug, Clone, Copy, Default)]
+struct SeqWindow {
+    last: Option<u32>,
+    /// Bit i: sample `last − i` arrived.
+    seen: u64,
+}
+
+enum Arrival {
+    /// Newer than every sample so far, `gap` periods after the last (1: none lost).
+    Next { gap: u32 },
+    /// Older, never seen: it was counted lost when its successor came.
+    Late,
+    /// Seen before, or too old to tell.
+    Duplicate,
+}
+
+impl SeqWindow {
+    fn arrive(&mut self, seq: u32) -> Arrival {
+        let Some(last) = self.last else {
+            self.last = Some(seq);
+            self.seen = 1;
+            return Arrival::Next { gap: 1 };
+        };
+        if is_newer(seq, Some(last)) {
+            let gap = seq.wrapping_sub(last);
+            self.seen = if gap >= 64 { 0 } else { self.seen << gap };
+            self.seen |= 1;
+            self.last = Some(seq);
+            return Arrival::Next { gap };
+        }
+        let age = last.wrapping_sub(seq);
+        if age < 64 && self.seen & (1 << age) == 0 {
+            self.seen |= 1 << age;
+            Arrival::Late
+        } else {
+            Arrival::Duplicate
+        }
+    }
 }
 
 /// Host-side encoder calibration, over what the drive's CONFIG says.
@@ -42,7 +86,7 @@ pub struct DriveLink {
     observer: VelocityObserver,
     observer_hz: f64,
     sample_hz: f64,
-    last_seq: Option<u32>,
+    window: SeqWindow,
     first_seq: Option<u32>,
     counts: i64,
     last_raw: Option<i32>,
@@ -56,8 +100,14 @@ pub struct DriveLink {
     pub held_periods: u64,
     pub planned_periods: u64,
     pub held_runs: MissRuns,
-    /// Samples that never arrived: gaps in the drive's frame sequence.
+    /// Samples that never arrived: gaps in the drive's sample sequence.
     pub lost_on_wire: u64,
+    /// FAULT_REPORT and CONFIG frames older than the newest sample (§3): dropped.
+    pub stale_reports: u64,
+    /// Frames of another protocol version, and the last such version.
+    pub other_version: (u64, u8),
+    /// The status bits of the newest sample.
+    pub last_status: u16,
     /// The drive's timestamp of the last accepted sample, ns on the drive's clock.
     pub sample_timestamp_ns: u64,
 }
@@ -71,7 +121,7 @@ impl DriveLink {
             observer: VelocityObserver::new(observer_hz, 1.0 / sample_hz),
             observer_hz,
             sample_hz,
-            last_seq: None,
+            window: SeqWindow::default(),
             first_seq: None,
             counts: 0,
             last_raw: None,
@@ -84,8 +134,21 @@ impl DriveLink {
             planned_periods: 0,
             held_runs: MissRuns::default(),
             lost_on_wire: 0,
+            stale_reports: 0,
+            other_version: (0, 0),
+            last_status: 0,
             sample_timestamp_ns: 0,
         }
+    }
+
+    /// A FAULT_REPORT or CONFIG sent before the newest sample is stale (§3).
+    fn stale(&mut self, seq: u32) -> bool {
+        let stale = self
+            .window
+            .last
+            .is_some_and(|last| is_newer(last, Some(seq)));
+        self.stale_reports += u64::from(stale);
+        stale
     }
 
     pub fn configured(&self) -> bool {
@@ -99,6 +162,7 @@ impl DriveLink {
         *self = Self {
             scaling,
             plan_capacity,
+            other_version: self.other_version,
             tx_seq: self.tx_seq,
             ..Self::new(self.sample_hz, self.observer_hz, self.calibration)
         };
@@ -116,6 +180,11 @@ impl DriveLink {
                 self.crc_errors += 1;
                 return Event::Dropped;
             }
+            Err(DecodeError::BadVersion(v)) => {
+                self.bad_frames += 1;
+                self.other_version = (self.other_version.0 + 1, v);
+                return Event::Dropped;
+            }
             Err(_) => {
                 self.bad_frames += 1;
                 return Event::Dropped;
@@ -123,6 +192,12 @@ impl DriveLink {
         };
         match frame.message {
             Message::Config(c) => {
+                if self.stale(frame.seq) {
+                    return Event::Dropped;
+                }
+                if let Err(e) = c.check() {
+                    return Event::BadConfig(e);
+                }
                 let mut c = c;
                 if self.calibration.reverse {
                     c.encoder_direction = if c.encoder_direction < 0 { 1 } else { -1 };
@@ -131,20 +206,32 @@ impl DriveLink {
                 self.plan_capacity = c.plan_capacity.min(MAX_PLAN_ENTRIES as u16);
                 Event::Config(c)
             }
-            Message::FaultReport(f) => Event::Fault(f),
+            Message::FaultReport(f) => {
+                if self.stale(frame.seq) {
+                    return Event::Dropped;
+                }
+                Event::Fault(f)
+            }
             Message::Sample(s) => {
                 let Some(scaling) = self.scaling else {
                     self.bad_frames += 1;
                     return Event::Dropped;
                 };
-                if !is_newer(frame.seq, self.last_seq) {
-                    self.bad_frames += 1;
-                    return Event::Dropped;
-                }
-                if let Some(last) = self.last_seq {
-                    self.lost_on_wire += u64::from(frame.seq.wrapping_sub(last) - 1);
-                }
-                self.last_seq = Some(frame.seq);
+                let gap = match self.window.arrive(frame.seq) {
+                    Arrival::Next { gap } => gap,
+                    Arrival::Late => {
+                        // Counted lost when its successor came; it did arrive, too late.
+                        self.lost_on_wire = self.lost_on_wire.saturating_sub(1);
+                        self.bad_frames += 1;
+                        return Event::Dropped;
+                    }
+                    Arrival::Duplicate => {
+                        self.bad_frames += 1;
+                        return Event::Dropped;
+                    }
+                };
+                self.lost_on_wire += u64::from(gap - 1);
+                self.last_status = s.status;
                 self.sample_timestamp_ns = frame.timestamp_ns;
                 self.first_seq.get_or_insert(frame.seq);
                 // Unwrap the 32-bit counter into a 64-bit position.
@@ -156,7 +243,7 @@ impl DriveLink {
                 self.counts += step;
                 let offset = *self.offset_counts.get_or_insert(self.counts);
                 let theta = scaling.theta(self.counts - offset);
-                let omega = self.observer.update(theta);
+                let omega = self.observer.update(theta, gap);
                 let bus = scaling.bus_volts(s.adc_bus);
                 let k = self.index_of(frame.seq);
                 let mut fault = 0;

@@ -9,7 +9,7 @@ use crate::link::EncoderCalibration;
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::path::PathBuf;
 use stepdrive_drive_protocol::transport::{Wire, WireError};
-use stepdrive_drive_protocol::{encode, Frame, MAX_FRAME};
+use stepdrive_drive_protocol::{encode, status, ConfigError, Frame, MAX_FRAME, VERSION};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Notify, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
@@ -94,6 +94,21 @@ pub enum BridgeError {
          for another drive"
     )]
     ComputeDelay(u32),
+    #[error("the drive at {drive} sent a CONFIG this host cannot use")]
+    Config {
+        drive: DriveAddr,
+        #[source]
+        source: ConfigError,
+    },
+    #[error(
+        "the drive at {drive} did not finish its alignment ({align_ms} ms announced) within \
+         {waited_ms} ms: no SAMPLE with ALIGNING set and then cleared (docs/drive-protocol.md §7)"
+    )]
+    Align {
+        drive: DriveAddr,
+        align_ms: u16,
+        waited_ms: u64,
+    },
 }
 
 /// The bridge's settings beside the scenario.
@@ -159,6 +174,8 @@ const HELLO_EVERY_NS: u64 = 50_000_000;
 const REFUSED_FOR_NS: u64 = 3_000_000_000;
 /// The longest the bridge polls its socket past a frame's due time before it blocks.
 const MAX_SPIN_PAST_DUE_NS: u64 = 100_000;
+/// How much longer than its announced time a drive may take to report its alignment done.
+const ALIGN_SLACK_MS: u64 = 1_000;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Phase {
@@ -168,6 +185,12 @@ enum Phase {
     },
     /// Configured; waiting for the stack before enabling the drive.
     Joining,
+    /// RESET and ALIGN sent: waiting for the drive's samples to show the alignment begin
+    /// and end.
+    Aligning {
+        since_ns: u64,
+        seen: bool,
+    },
     Running,
 }
 
@@ -178,6 +201,8 @@ pub struct BridgeNode {
     period_ns: u64,
     phase: Phase,
     refused_since_ns: Option<u64>,
+    /// The drive's alignment time (CONFIG), ms.
+    align_ms: u16,
     /// A sample taken by `poll` for the coming cycle.
     taken: Option<(DriveState, u64)>,
     rx: [u8; 2048],
@@ -205,6 +230,7 @@ impl BridgeNode {
             settings,
             phase: Phase::Handshake { next_hello_ns: 0 },
             refused_since_ns: None,
+            align_ms: 0,
             taken: None,
             rx: [0; 2048],
         })
@@ -233,8 +259,18 @@ impl BridgeNode {
                     self.refused_since_ns = None;
                     let now = cx.now();
                     let received = self.core.on_frame(&self.rx[..len], now, cx.stats);
+                    if let Received::BadConfig(source) = received {
+                        return Err(RunError::node(
+                            Role::Bridge,
+                            BridgeError::Config {
+                                drive: self.settings.drive.clone(),
+                                source,
+                            },
+                        ));
+                    }
                     if let Received::Config(c) = received {
                         tracing::info!(?c, "drive configuration");
+                        self.align_ms = c.align_ms;
                         if f64::from(c.sample_rate_hz) != self.sample_hz.round() {
                             return Err(RunError::node(
                                 Role::Bridge,
@@ -304,11 +340,18 @@ impl Node for BridgeNode {
             Phase::Handshake { .. } if self.refused_since_ns.is_some() => {
                 format!("a CONFIG from the drive at {drive} (nothing listens there yet)")
             }
-            Phase::Handshake { .. } => format!("a CONFIG from the drive at {drive}"),
+            Phase::Handshake { .. } => match self.core.link().other_version {
+                (0, _) => format!("a CONFIG from the drive at {drive}"),
+                (n, v) => format!(
+                    "a CONFIG from the drive at {drive}: it sent {n} frames of protocol \
+                     version {v}, this host speaks version {VERSION} (docs/drive-protocol.md)"
+                ),
+            },
             Phase::Joining => format!(
                 "the current loop, the position loop and {} state subscribers",
                 self.settings.wait_subscribers
             ),
+            Phase::Aligning { .. } => format!("the drive at {drive} to align the rotor"),
             Phase::Running => format!("SAMPLE frames from the drive at {drive}"),
         }
     }
@@ -329,19 +372,51 @@ impl Node for BridgeNode {
             }
             self.phase = Phase::Joining;
         }
-        let p = &ports.presence;
-        let ready = p.publishers(Topic::Command) >= 1
-            && p.publishers(Topic::Setpoint) >= 1
-            && p.subscribers(Topic::State) >= self.settings.wait_subscribers;
-        if !ready {
-            return Ok(Start::Waiting);
+        if self.phase == Phase::Joining {
+            let p = &ports.presence;
+            let ready = p.publishers(Topic::Command) >= 1
+                && p.publishers(Topic::Setpoint) >= 1
+                && p.subscribers(Topic::State) >= self.settings.wait_subscribers;
+            if !ready {
+                return Ok(Start::Waiting);
+            }
+            // A fresh start: nothing a previous session latched, the rotor at an electrical
+            // zero (unless the drive does not align: then the encoder's zero must be one).
+            for f in self.core.prepare(cx.now()) {
+                Self::send(ports, &f);
+            }
+            self.phase = Phase::Aligning {
+                since_ns: cx.now(),
+                seen: self.align_ms == 0,
+            };
         }
-        // Samples queued while the loops came up are stale: drop them and start the stream
-        // (k = 0) with the next one, then enable the drive.
+        if let Phase::Aligning { since_ns, seen } = self.phase {
+            self.read_frames(ports, cx)?;
+            let aligning = self.core.link().last_status & status::ALIGNING != 0;
+            if !seen || aligning {
+                let waited_ms = cx.now().saturating_sub(since_ns) / 1_000_000;
+                if waited_ms > u64::from(self.align_ms) + ALIGN_SLACK_MS {
+                    return Err(RunError::node(
+                        Role::Bridge,
+                        BridgeError::Align {
+                            drive: self.settings.drive.clone(),
+                            align_ms: self.align_ms,
+                            waited_ms,
+                        },
+                    ));
+                }
+                self.phase = Phase::Aligning {
+                    since_ns,
+                    seen: seen || aligning,
+                };
+                return Ok(Start::Waiting);
+            }
+        }
+        // Samples queued meanwhile are stale: drop them and start the stream (k = 0) with
+        // the next one, then enable the drive.
         while let Ok(Some(_)) = ports.wire.recv(&mut self.rx, 0) {}
-        for f in self.core.begin(cx.now()) {
-            Self::send(ports, &f);
-        }
+        let enable = self.core.begin(cx.now());
+        Self::send(ports, &enable);
         self.phase = Phase::Running;
         tracing::info!(drive = %self.settings.drive, "bridge running");
         Ok(Start::NOW)
@@ -430,7 +505,8 @@ impl Node for BridgeNode {
 
     /// Every exit path: the drive's outputs off.
     fn stop(&mut self, ports: &mut BridgePorts, cx: &mut Cx) {
-        if self.phase == Phase::Running {
+        // Aligning, the drive's outputs are on too.
+        if matches!(self.phase, Phase::Running | Phase::Aligning { .. }) {
             let f = self.core.disable(cx.now());
             Self::send(ports, &f);
         }

@@ -101,7 +101,9 @@ fn random_message(r: &mut Rng) -> Message {
                 watchdog_periods: r.next() as u16,
                 encoder_direction: r.next() as i8,
                 plan_capacity: r.next() as u16,
-                reserved: [0; 5],
+                align_current_ma: 1000,
+                align_ms: 300,
+                reserved: [0; 1],
             }
         }),
         5 => Message::Hello,

@@ -292,18 +292,40 @@ pub struct InjectArgs {
     /// Fault injection: send every N-th sample frame twice.
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub duplicate_every: u64,
-    /// Fault injection: stop sending samples after S seconds of running.
+    /// Fault injection: stop sending samples after S seconds of running (from the ENABLE).
     #[arg(long, value_name = "S")]
     pub stop_after: Option<f64>,
-    /// Fault injection: freeze the drive once, after S seconds of running, for
+    /// Fault injection: freeze the drive once, after S seconds of running (from the ENABLE), for
     /// --freeze-ms (no frames, its clock paused: what a host stall does to it).
     #[arg(long, value_name = "S")]
     pub freeze_at: Option<f64>,
     #[arg(long, default_value_t = 0, value_name = "MS")]
     pub freeze_ms: u64,
-    /// Fault injection: latch an over-current fault after S seconds of running.
+    /// Fault injection: latch an over-current fault after S seconds of running (from the ENABLE).
     #[arg(long, value_name = "S")]
     pub overcurrent_after: Option<f64>,
+    /// Fault injection: drop each sample frame with probability P % (seeded: the same
+    /// frames every run).
+    #[arg(long, default_value_t = 0.0, value_name = "P", value_parser = percent)]
+    pub drop_pct: f64,
+    /// Fault injection: corrupt one bit of each sample frame with probability P %.
+    #[arg(long, default_value_t = 0.0, value_name = "P", value_parser = percent)]
+    pub corrupt_pct: f64,
+    /// Fault injection: after S seconds of running (from the ENABLE), drop --dropout-samples samples in a row
+    /// (the drive keeps running: a link outage, not a drive stall).
+    #[arg(long, value_name = "S")]
+    pub dropout_at: Option<f64>,
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub dropout_samples: u64,
+}
+
+fn percent(s: &str) -> Result<f64, String> {
+    let p: f64 = s.parse().map_err(|e| format!("{e}"))?;
+    if (0.0..=100.0).contains(&p) {
+        Ok(p)
+    } else {
+        Err(format!("{s} is not a percentage (0 … 100)"))
+    }
 }
 
 pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
@@ -349,6 +371,10 @@ pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
             overcurrent_after_s: i.overcurrent_after,
             freeze_at_s: i.freeze_at,
             freeze_ns: i.freeze_ms.saturating_mul(1_000_000),
+            drop_fraction: i.drop_pct / 100.0,
+            corrupt_fraction: i.corrupt_pct / 100.0,
+            dropout_at_s: i.dropout_at,
+            dropout_samples: i.dropout_samples,
         },
         duration,
     })

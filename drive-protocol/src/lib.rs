@@ -1,4 +1,4 @@
-//! The drive wire protocol, version 2 (`docs/drive-protocol.md` is the specification; this
+//! The drive wire protocol, version 3 (`docs/drive-protocol.md` is the specification; this
 //! crate is its reference codec). The codec needs no `std` and no allocator, so a drive's
 //! firmware can use this very code (`default-features = false`); with the default `std`
 //! feature the crate adds the host side's byte transports ([`transport`]: UDP, serial) and
@@ -7,8 +7,8 @@
 //! Frames are little-endian with fixed fields:
 //!
 //! ```text
-//! 0  u16 magic 0x5344      2  u8 version (2)     3  u8 kind
-//! 4  u32 seq (sender's frame counter, +1 per frame)
+//! 0  u16 magic 0x5344      2  u8 version (3)     3  u8 kind
+//! 4  u32 seq (drive: sample index; host: frame counter)
 //! 8  u64 timestamp_ns (sender's monotonic clock)
 //! 16 u16 payload_len       18 payload            18+n u32 CRC-32 of bytes 0..18+n
 //! ```
@@ -27,7 +27,7 @@ pub mod units;
 use thiserror::Error;
 
 pub const MAGIC: u16 = 0x5344;
-pub const VERSION: u8 = 2;
+pub const VERSION: u8 = 3;
 pub const HEADER_LEN: usize = 18;
 pub const CRC_LEN: usize = 4;
 /// Most entries one PLAN can carry (12.8 ms at 20 kHz).
@@ -58,6 +58,8 @@ pub mod status {
     pub const COMMAND_HELD: u16 = 1 << 1;
     /// With [`COMMAND_HELD`]: the duties came from the PLAN.
     pub const COMMAND_PLANNED: u16 = 1 << 2;
+    /// The drive is aligning the rotor (CONTROL ALIGN): phase A at the align current.
+    pub const ALIGNING: u16 = 1 << 3;
 }
 
 /// Duty ±32767 means ±100 % of the bus voltage on that phase.
@@ -112,6 +114,9 @@ pub enum Action {
     Disable = 2,
     /// Clears latched faults (outputs stay off until ENABLE).
     Reset = 3,
+    /// Phase A at CONFIG's align current for its align time: the rotor comes to rest at an
+    /// electrical zero (N_r θ ≡ 0 mod 2π); then outputs off, not enabled.
+    Align = 4,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -136,7 +141,80 @@ pub struct Config {
     pub encoder_direction: i8,
     /// PLAN entries the drive keeps; 0: it ignores PLAN frames (none are sent).
     pub plan_capacity: u16,
-    pub reserved: [u8; 5],
+    /// Phase A current of an ALIGN, mA, and how long it is applied, ms (0 ms: the drive
+    /// does not align; the host must know the encoder's electrical zero).
+    pub align_current_ma: u16,
+    pub align_ms: u16,
+    pub reserved: [u8; 1],
+}
+
+/// A CONFIG field outside what the protocol allows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Error)]
+#[error("CONFIG field {field} = {value} is invalid: {rule}")]
+pub struct ConfigError {
+    pub field: &'static str,
+    pub value: i64,
+    pub rule: &'static str,
+}
+
+impl Config {
+    /// Checks every field against §4.5 of the specification, first failure first.
+    pub fn check(&self) -> Result<(), ConfigError> {
+        let rules: [(&'static str, i64, bool, &'static str); 8] = [
+            (
+                "sample_rate_hz",
+                self.sample_rate_hz.into(),
+                (100..=100_000).contains(&self.sample_rate_hz),
+                "must be 100 … 100 000",
+            ),
+            (
+                "counts_per_rev",
+                self.counts_per_rev.into(),
+                (4..=1 << 30).contains(&self.counts_per_rev),
+                "must be 4 … 2^30",
+            ),
+            (
+                "current_ua_per_count",
+                self.current_ua_per_count.into(),
+                self.current_ua_per_count > 0,
+                "must be > 0",
+            ),
+            (
+                "bus_uv_per_count",
+                self.bus_uv_per_count.into(),
+                self.bus_uv_per_count > 0,
+                "must be > 0",
+            ),
+            (
+                "watchdog_periods",
+                self.watchdog_periods.into(),
+                self.watchdog_periods >= 2,
+                "must be ≥ 2 (1 would latch on any late COMMAND)",
+            ),
+            (
+                "encoder_direction",
+                self.encoder_direction.into(),
+                self.encoder_direction == 1 || self.encoder_direction == -1,
+                "must be +1 or −1",
+            ),
+            (
+                "plan_capacity",
+                self.plan_capacity.into(),
+                usize::from(self.plan_capacity) <= MAX_PLAN_ENTRIES,
+                "must be 0 … 256",
+            ),
+            (
+                "align_current_ma",
+                self.align_current_ma.into(),
+                self.align_ms == 0 || self.align_current_ma > 0,
+                "must be > 0 when align_ms is",
+            ),
+        ];
+        match rules.into_iter().find(|r| !r.2) {
+            Some((field, value, _, rule)) => Err(ConfigError { field, value, rule }),
+            None => Ok(()),
+        }
+    }
 }
 
 // A Message lives on the stack of the wire path, which must not allocate: the 1 KB PLAN
@@ -345,6 +423,8 @@ pub fn encode(frame: &Frame, buf: &mut [u8; MAX_FRAME]) -> usize {
             w.put(&c.watchdog_periods.to_le_bytes());
             w.put(&c.encoder_direction.to_le_bytes());
             w.put(&c.plan_capacity.to_le_bytes());
+            w.put(&c.align_current_ma.to_le_bytes());
+            w.put(&c.align_ms.to_le_bytes());
             w.put(&c.reserved);
         }
         Message::Hello => w.put(&[VERSION, 0, 0, 0]),
@@ -450,6 +530,7 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
                 1 => Action::Enable,
                 2 => Action::Disable,
                 3 => Action::Reset,
+                4 => Action::Align,
                 other => return Err(DecodeError::BadAction(other)),
             })
         }
@@ -471,6 +552,8 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
                 watchdog_periods: r.u16(),
                 encoder_direction: i8::from_le_bytes(r.take()),
                 plan_capacity: r.u16(),
+                align_current_ma: r.u16(),
+                align_ms: r.u16(),
                 reserved: r.take(),
             };
             zero(kind, &config.reserved)?;
@@ -621,9 +704,9 @@ mod tests {
         assert_eq!(
             buf[..n],
             [
-                0x44, 0x53, 0x02, 0x02, 0x07, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x00, 0x00, 0x00, 0x00,
-                0x00, 0x00, 0x08, 0x00, 0x06, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x18, 0xFC, 0x67, 0x07,
-                0x4F, 0x39
+                0x44, 0x53, 0x03, 0x02, 0x07, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x00, 0x00, 0x00, 0x00,
+                0x00, 0x00, 0x08, 0x00, 0x06, 0x00, 0x00, 0x00, 0xE8, 0x03, 0x18, 0xFC, 0x40, 0x62,
+                0x6A, 0xB8
             ]
         );
         let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
@@ -642,9 +725,9 @@ mod tests {
         assert_eq!(
             buf[..n],
             [
-                0x44, 0x53, 0x02, 0x07, 0x08, 0x00, 0x00, 0x00, 0xD0, 0x07, 0x00, 0x00, 0x00, 0x00,
+                0x44, 0x53, 0x03, 0x07, 0x08, 0x00, 0x00, 0x00, 0xD0, 0x07, 0x00, 0x00, 0x00, 0x00,
                 0x00, 0x00, 0x10, 0x00, 0x06, 0x00, 0x00, 0x00, 0x02, 0x00, 0x00, 0x00, 0xE8, 0x03,
-                0x18, 0xFC, 0xD0, 0x07, 0x30, 0xF8, 0x05, 0x2E, 0x05, 0x11
+                0x18, 0xFC, 0xD0, 0x07, 0x30, 0xF8, 0xAF, 0x2B, 0xDF, 0xE0
             ]
         );
     }
@@ -707,7 +790,8 @@ mod tests {
             prop_oneof![
                 Just(Action::Enable),
                 Just(Action::Disable),
-                Just(Action::Reset)
+                Just(Action::Reset),
+                Just(Action::Align)
             ]
             .prop_map(Message::Control),
             (any::<u16>(), any::<u32>()).prop_map(|(f, s)| Message::FaultReport(FaultReport {
@@ -732,7 +816,9 @@ mod tests {
                     watchdog_periods: w,
                     encoder_direction: d,
                     plan_capacity: w,
-                    reserved: [0; 5]
+                    align_current_ma: z,
+                    align_ms: w,
+                    reserved: [0; 1]
                 })),
             Just(Message::Hello),
             (

@@ -18,7 +18,10 @@ pub fn default_config(sample_rate_hz: f64, watchdog_periods: u16, plan_capacity:
         watchdog_periods,
         encoder_direction: 1,
         plan_capacity,
-        reserved: [0; 5],
+        // 1 A holds the rotor at 25 N·m/rad (Table I motor); settled well within 300 ms.
+        align_current_ma: 1000,
+        align_ms: 300,
+        reserved: [0; 1],
     }
 }
 

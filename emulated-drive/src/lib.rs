@@ -8,7 +8,7 @@ use stepdrive_drive_protocol::transport::Wire;
 use stepdrive_drive_protocol::units::{default_config, volts_for, Scaling};
 use stepdrive_drive_protocol::{
     decode, encode, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport,
-    Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
+    Frame, Message, Plan, Sample, MAX_DUTY, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
 use stepdrive_plant::sim::PlantSim;
 use stepdrive_runtime::clock::monotonic_ns;
@@ -41,6 +41,28 @@ pub struct FaultInjection {
     /// paused, as when the host stops its process.
     pub freeze_at_s: Option<f64>,
     pub freeze_ns: u64,
+    /// Drop (corrupt) each SAMPLE with this probability, from a fixed seed.
+    pub drop_fraction: f64,
+    pub corrupt_fraction: f64,
+    /// Drop `dropout_samples` SAMPLEs in a row from this many seconds on (a link outage).
+    pub dropout_at_s: Option<f64>,
+    pub dropout_samples: u64,
+}
+
+/// A xorshift64* generator: the injected losses are the same in every run.
+struct Dice(u64);
+
+impl Dice {
+    fn roll(&mut self, p: f64) -> bool {
+        if p <= 0.0 {
+            return false;
+        }
+        self.0 ^= self.0 >> 12;
+        self.0 ^= self.0 << 25;
+        self.0 ^= self.0 >> 27;
+        let u = (self.0.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64;
+        u < p
+    }
 }
 
 /// Counters of what the drive received.
@@ -50,6 +72,8 @@ pub struct DriveCounters {
     pub bad_frames: u64,
     pub crc_errors: u64,
     pub stale_frames: u64,
+    /// Frames from an address other than the session's host (UDP).
+    pub foreign_frames: u64,
     pub commands_applied: u64,
     /// Periods without their COMMAND (the watchdog's count), and of those, the ones that
     /// got a PLAN entry instead of the held duties.
@@ -74,6 +98,15 @@ pub struct DriveCore {
     held_duty: (i16, i16),
     held_seq: u32,
     since_command: u32,
+    /// The watchdog counts from the first COMMAND applied after ENABLE (§5).
+    armed: bool,
+    /// Periods of alignment left, and whether phase A still holds the rotor after it
+    /// (until the first COMMAND after ENABLE).
+    aligning: u32,
+    holding: bool,
+    align_duty: i16,
+    /// The seq of the next SAMPLE (the sample index; CONFIG and FAULT_REPORT carry the
+    /// last one sent).
     tx_seq: u32,
     pub counters: DriveCounters,
 }
@@ -88,6 +121,11 @@ impl DriveCore {
     pub fn new(s: &Scenario, watchdog_periods: u16, plan_capacity: u16) -> Self {
         let capacity = plan_capacity.min(MAX_PLAN_ENTRIES as u16);
         let config = default_config(s.rates.current_loop_hz, watchdog_periods, capacity);
+        // Phase A at the align current in the steady state (R·I), within the bus.
+        let align_v = s.motor.resistance_ohm * f64::from(config.align_current_ma) * 1e-3;
+        let align_duty = (align_v / s.drive.bus_voltage_v * f64::from(MAX_DUTY))
+            .round()
+            .clamp(0.0, f64::from(MAX_DUTY)) as i16;
         Self {
             scaling: Scaling::new(&config),
             config,
@@ -103,7 +141,11 @@ impl DriveCore {
             held_duty: (0, 0),
             held_seq: 0,
             since_command: 0,
-            tx_seq: 0,
+            armed: false,
+            aligning: 0,
+            holding: false,
+            align_duty,
+            tx_seq: 1,
             counters: DriveCounters::default(),
         }
     }
@@ -114,6 +156,16 @@ impl DriveCore {
 
     pub fn outputs_on(&self) -> bool {
         self.enabled && self.latched == 0
+    }
+
+    /// The seq a CONFIG or FAULT_REPORT carries: the last SAMPLE's (0 before the first).
+    pub fn report_seq(&self) -> u32 {
+        self.tx_seq.wrapping_sub(1)
+    }
+
+    fn stop_aligning(&mut self) {
+        self.aligning = 0;
+        self.holding = false;
     }
 
     /// Handles one received datagram. Bad, duplicate and out-of-order frames are counted
@@ -135,9 +187,11 @@ impl DriveCore {
         // them.
         if frame.message == Message::Hello {
             self.enabled = false;
+            self.armed = false;
             self.pending = None;
             self.plan = None;
             self.since_command = 0;
+            self.stop_aligning();
         } else if !is_newer(frame.seq, self.last_rx_seq) {
             self.counters.stale_frames += 1;
             return None;
@@ -157,18 +211,34 @@ impl DriveCore {
             }
             Message::Control(Action::Enable) => {
                 self.enabled = true;
+                self.armed = false;
+                self.since_command = 0;
                 None
             }
             Message::Control(Action::Disable) => {
                 self.enabled = false;
+                self.armed = false;
+                self.stop_aligning();
                 None
             }
             Message::Control(Action::Reset) => {
                 self.latched = 0;
                 self.since_command = 0;
-                // Alignment: with phase A energized the rotor settles at an electrical zero
-                // (N_r θ = 0 mod 2π), where the host's encoder zero then commutates right.
-                self.sim.align();
+                self.enabled = false;
+                self.armed = false;
+                None
+            }
+            Message::Control(Action::Align) => {
+                // With phase A energized the rotor settles at an electrical zero
+                // (N_r θ ≡ 0 mod 2π), where the host's encoder zero then commutates right.
+                self.enabled = false;
+                self.armed = false;
+                self.pending = None;
+                self.plan = None;
+                let periods =
+                    u64::from(self.config.align_ms) * u64::from(self.config.sample_rate_hz) / 1000;
+                self.aligning = u32::try_from(periods).unwrap_or(u32::MAX);
+                self.holding = self.aligning > 0;
                 None
             }
             Message::Hello => Some(Reply::Config(self.config)),
@@ -180,8 +250,9 @@ impl DriveCore {
                     self.counters.bad_frames += 1;
                 } else if self
                     .plan
-                    .is_none_or(|(old, _)| is_newer(p.answers_sample, Some(old.answers_sample)))
+                    .is_none_or(|(old, _)| !is_newer(old.answers_sample, Some(p.answers_sample)))
                 {
+                    // Newer, or equal (a later frame for the same base replaces it).
                     self.plan = Some((p, frame.seq));
                 }
                 None
@@ -212,11 +283,15 @@ impl DriveCore {
         if self.outputs_on() {
             status_bits |= status::ENABLED;
         }
-        if self.since_command > 0 {
+        // Held: a period that expected a COMMAND (outputs on) and had none.
+        if self.since_command > 0 && self.outputs_on() {
             status_bits |= status::COMMAND_HELD;
         }
         if self.planned {
             status_bits |= status::COMMAND_PLANNED;
+        }
+        if self.aligning > 0 {
+            status_bits |= status::ALIGNING;
         }
         let frame = Frame {
             seq: self.tx_seq,
@@ -245,11 +320,18 @@ impl DriveCore {
         let before = self.latched;
         self.planned = false;
         let wanted = sample_seq.wrapping_sub(1);
+        if self.aligning > 0 && self.latched == 0 {
+            self.aligning -= 1;
+            self.pending = None;
+            return self.apply(self.align_duty_now(), 0, before, sample_seq);
+        }
         match self.pending.take() {
-            Some(c) if c.answers_sample == wanted => {
+            Some(c) if c.answers_sample == wanted && self.enabled => {
                 self.held_duty = (c.duty_a, c.duty_b);
                 self.held_seq = self.pending_seq;
                 self.since_command = 0;
+                self.armed = true;
+                self.holding = false;
                 self.counters.commands_applied += 1;
             }
             other => {
@@ -268,17 +350,42 @@ impl DriveCore {
                         self.counters.periods_planned += 1;
                     }
                 }
-                if self.since_command >= u32::from(self.config.watchdog_periods) {
+                if self.armed && self.since_command >= u32::from(self.config.watchdog_periods) {
                     self.latched |= faults::WATCHDOG;
                 }
             }
         }
+        if self.holding && self.latched == 0 && !self.armed {
+            // Aligned and not yet commanded: phase A keeps the rotor at its zero.
+            return self.apply(self.align_duty_now(), 0, before, sample_seq);
+        }
         if !self.outputs_on() {
             self.held_duty = (0, 0);
+            self.held_seq = 0;
         }
+        let (duty, seq) = (self.held_duty, self.held_seq);
+        self.apply(duty, seq, before, sample_seq)
+    }
+
+    fn align_duty_now(&self) -> (i16, i16) {
+        (self.align_duty, 0)
+    }
+
+    /// Applies `duty` (reported in the next SAMPLE with `seq`) over the period and
+    /// integrates the motor; a fault report if one latched since `before`.
+    fn apply(
+        &mut self,
+        duty: (i16, i16),
+        seq: u32,
+        before: u16,
+        sample_seq: u32,
+    ) -> Option<FaultReport> {
+        let duty = if self.latched == 0 { duty } else { (0, 0) };
+        self.held_duty = duty;
+        self.held_seq = if self.latched == 0 { seq } else { 0 };
         let v = DriveCommand {
-            v_a_v: volts_for(self.held_duty.0, self.bus_v),
-            v_b_v: volts_for(self.held_duty.1, self.bus_v),
+            v_a_v: volts_for(duty.0, self.bus_v),
+            v_b_v: volts_for(duty.1, self.bus_v),
             ..Default::default()
         };
         self.sim.advance(Some(&v));
@@ -318,6 +425,9 @@ pub enum EmulatorError {
     Rt(#[from] stepdrive_runtime::rt::RtError),
 }
 
+/// The kind byte of HELLO (frame offset 3).
+const HELLO_KIND: u8 = 6;
+
 fn send_frame(wire: &mut Wire, frame: &Frame, buf: &mut [u8; MAX_FRAME]) {
     let n = encode(frame, buf);
     // A full socket or line buffer drops the frame, as a wire would.
@@ -350,6 +460,8 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     let mut froze = false;
     let mut sample_seq: u32 = 0;
     let mut running_since: Option<u64> = None;
+    let mut dice = Dice(0x9E37_79B9_7F4A_7C15);
+    let mut dropout_left: Option<u64> = None;
     loop {
         if termination_requested() {
             break;
@@ -362,13 +474,22 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
         }
         // A peer that went away is no error for a drive: it waits for the next HELLO.
         while let Ok(Some((n, from))) = wire.recv(&mut rx, 0) {
+            // §2: once a host said HELLO, frames from any other address are not its
+            // (only a new HELLO moves the session).
+            if let (Wire::Udp { peer: Some(p), .. }, Some(from)) = (&wire, from) {
+                if from != *p && rx.get(3) != Some(&HELLO_KIND) {
+                    core.counters.foreign_frames += 1;
+                    continue;
+                }
+            }
             if let Some(Reply::Config(c)) = core.on_frame(&rx[..n]) {
                 if let (Wire::Udp { peer, .. }, Some(from)) = (&mut wire, from) {
                     *peer = Some(from);
                 }
                 connected = true;
+                running_since = None;
                 let f = Frame {
-                    seq: 0,
+                    seq: core.report_seq(),
                     timestamp_ns: monotonic_ns(),
                     message: Message::Config(c),
                 };
@@ -379,8 +500,12 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
             pacer.skip_to(monotonic_ns());
             continue;
         }
-        let since = *running_since.get_or_insert(tick.woke_ns);
-        let t_s = (tick.woke_ns - since) as f64 * 1e-9;
+        // Injection times count from the session's ENABLE (the run's start), not from the
+        // HELLO: the alignment and the stack's start-up before it take varying time.
+        if running_since.is_none() && core.outputs_on() {
+            running_since = Some(tick.woke_ns);
+        }
+        let t_s = running_since.map_or(-1.0, |since| (tick.woke_ns - since) as f64 * 1e-9);
         if o.inject.overcurrent_after_s.is_some_and(|a| t_s >= a)
             && core.latched_faults() & faults::OVERCURRENT == 0
         {
@@ -397,10 +522,18 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
         }
         let frame = core.sample_frame(monotonic_ns());
         let k = u64::from(sample_seq) + 1;
-        let silent = o.inject.stop_after_s.is_some_and(|s| t_s >= s);
+        let mut silent = o.inject.stop_after_s.is_some_and(|s| t_s >= s);
+        if o.inject.dropout_at_s.is_some_and(|s| t_s >= s) {
+            let left = dropout_left.get_or_insert(o.inject.dropout_samples);
+            if *left > 0 {
+                *left -= 1;
+                silent = true;
+            }
+        }
         let every = |n: u64| n > 0 && k % n == 0;
-        if !silent && !every(o.inject.drop_every) {
-            if every(o.inject.corrupt_every) {
+        let dropped = every(o.inject.drop_every) || dice.roll(o.inject.drop_fraction);
+        if !silent && !dropped {
+            if every(o.inject.corrupt_every) || dice.roll(o.inject.corrupt_fraction) {
                 let n = encode(&frame, &mut buf);
                 buf[n / 2] ^= 0x10;
                 wire.send(&buf[..n]);
@@ -418,13 +551,13 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 }
             }
         }
-        if let Some(report) = core.run_period(sample_seq) {
+        if let Some(report) = core.run_period(frame.seq) {
             tracing::warn!(
                 faults = report.fault_bits,
                 "drive fault latched: outputs off until RESET"
             );
             let f = Frame {
-                seq: 0,
+                seq: core.report_seq(),
                 timestamp_ns: monotonic_ns(),
                 message: Message::FaultReport(report),
             };
@@ -594,7 +727,9 @@ mod tests {
         d.run_period(22);
         assert!(!d.outputs_on());
         d.on_frame(&frame_bytes(4, Message::Control(Action::Reset)));
-        d.on_frame(&frame_bytes(5, cmd(22, 5000)));
+        assert!(!d.outputs_on(), "off until ENABLE");
+        d.on_frame(&frame_bytes(5, Message::Control(Action::Enable)));
+        d.on_frame(&frame_bytes(6, cmd(22, 5000)));
         d.run_period(23);
         assert!(d.outputs_on());
         let Message::Sample(s) = d.sample_frame(0).message else {
@@ -629,10 +764,11 @@ mod tests {
         assert_eq!(d.counters.stale_frames, 0);
     }
 
-    /// RESET aligns the rotor: it rests at an electrical zero, whatever a previous session
-    /// left it at.
+    /// ALIGN brings the rotor to an electrical zero, physically (phase A at the align
+    /// current for align_ms, ALIGNING set meanwhile), whatever a previous session left it
+    /// at; it rests there within the load's offset (0.01 N·m / 25 N·m/rad = 4e-4 rad).
     #[test]
-    fn reset_leaves_the_rotor_at_an_electrical_zero() {
+    fn align_leaves_the_rotor_at_an_electrical_zero() {
         let mut d = DriveCore::new(&Scenario::default(), 2000, 8);
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         for k in 0..400u32 {
@@ -651,13 +787,25 @@ mod tests {
             (before / pitch - (before / pitch).round()).abs() > 1e-3,
             "moved off a zero"
         );
-        d.on_frame(&frame_bytes(500, Message::Control(Action::Reset)));
+        d.on_frame(&frame_bytes(500, Message::Control(Action::Align)));
+        let periods = 300 * 20_000 / 1000;
+        for k in 0..periods - 1 {
+            d.run_period(400 + k);
+            let Message::Sample(s) = d.sample_frame(0).message else {
+                panic!()
+            };
+            assert_ne!(s.status & status::ALIGNING, 0, "aligning at {k}");
+            assert_eq!((s.status & status::ENABLED, s.duty_b), (0, 0));
+        }
+        d.run_period(400 + periods - 1);
         let after = theta(&mut d);
-        assert!(
-            (after / pitch - (after / pitch).round()).abs() < 1e-4,
-            "{after}"
-        );
-        assert!((after - before).abs() <= pitch / 2.0 + 1e-6);
+        let Message::Sample(s) = d.sample_frame(0).message else {
+            panic!()
+        };
+        assert_eq!(s.status & status::ALIGNING, 0, "done");
+        let off = (after / pitch - (after / pitch).round()) * pitch;
+        assert!(off.abs() < 1e-3, "{off} rad from the nearest zero");
+        assert!((after - before).abs() <= pitch / 2.0 + 1e-3);
     }
 
     /// Arbitrary frames, valid and corrupted with a matching CRC, at a drive between its

@@ -38,6 +38,9 @@ pub struct RunReport {
     /// v_a i_a + v_b i_b averaged over the run, W.
     pub mean_input_power_w: f64,
     pub max_abs_voltage_v: f64,
+    /// The largest phase voltage in the cruise window (what a disturbance at speed, e.g. a
+    /// link dropout, does to the commands; the whole-run maximum is set by the start).
+    pub cruise_max_abs_voltage_v: f64,
     /// R B ω_d / (K_m V_max N_r), rad.
     pub eq7_bound_rad: f64,
     pub sim_time_s: f64,
@@ -74,6 +77,7 @@ pub struct Metrics {
     sum_input: f64,
     intervals: u64,
     max_abs_voltage: f64,
+    cruise_max_abs_voltage: f64,
     samples: u64,
     limited: u64,
     faults: u64,
@@ -104,6 +108,7 @@ impl Metrics {
             sum_input: 0.0,
             intervals: 0,
             max_abs_voltage: 0.0,
+            cruise_max_abs_voltage: 0.0,
             samples: 0,
             limited: 0,
             faults: 0,
@@ -136,6 +141,10 @@ impl Metrics {
             self.cruise_sum_id += id;
             self.cruise_sum_iq += direction * iq;
             self.cruise_n += 1;
+            self.cruise_max_abs_voltage = self
+                .cruise_max_abs_voltage
+                .max(s.v_a_v.abs())
+                .max(s.v_b_v.abs());
         }
         if t >= self.final_from {
             self.final_sum_error += error;
@@ -237,6 +246,7 @@ impl Metrics {
             mean_copper_loss_w: mean(self.sum_copper, self.intervals),
             mean_input_power_w: mean(self.sum_input, self.intervals),
             max_abs_voltage_v: self.max_abs_voltage,
+            cruise_max_abs_voltage_v: self.cruise_max_abs_voltage,
             eq7_bound_rad: self.eq7,
             sim_time_s: self.last_time,
             wall_time_s,

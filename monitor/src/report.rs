@@ -63,7 +63,7 @@ fn sci(v: f64) -> String {
 
 pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
     type Row = (&'static str, fn(&RunReport) -> String);
-    let rows: [Row; 16] = [
+    let rows: [Row; 17] = [
         ("mode", |r| r.mode.clone()),
         ("outcome", |r| {
             let title = r.outcome.title().to_lowercase();
@@ -92,6 +92,9 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             format!("{:.4}", r.mean_input_power_w)
         }),
         ("max |v| [V]", |r| format!("{:.2}", r.max_abs_voltage_v)),
+        ("cruise max |v| [V]", |r| {
+            format!("{:.2}", r.cruise_max_abs_voltage_v)
+        }),
         ("eq. (7) bound [rad]", |r| sci(r.eq7_bound_rad)),
         ("sim time [s]", |r| format!("{:.3}", r.sim_time_s)),
         ("wall time [s]", |r| format!("{:.3}", r.wall_time_s)),

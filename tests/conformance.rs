@@ -1,0 +1,555 @@
+//! Drive protocol conformance (docs/drive-protocol.md §8 and §9), written from the document:
+//! its test vectors are read from the file itself, and each numbered item of §9 is one
+//! scripted exchange, played against the emulated drive's core (D1–D10) or the bridge's
+//! link (H1–H5). No clock, no sockets: frames in, frames out.
+
+use std::f64::consts::{FRAC_PI_2, TAU};
+use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event};
+use stepdrive_drive_protocol::{
+    crc32, decode, encode, faults, frame_bytes, status, Action, Command, Config, FaultReport,
+    Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
+};
+use stepdrive_emulated_drive::{DriveCore, Reply};
+use stepdrive_shared::Scenario;
+
+const SPEC: &str = include_str!("../docs/drive-protocol.md");
+
+/// The fenced hex blocks of §8, in order.
+fn vectors() -> Vec<Vec<u8>> {
+    let section = &SPEC[SPEC.find("## 8. Test vectors").expect("§8")..];
+    let section = &section[..section.find("## 9.").expect("§9")];
+    section
+        .split("```")
+        .skip(1)
+        .step_by(2)
+        .map(|block| {
+            block
+                .split_whitespace()
+                .map(|b| u8::from_str_radix(b, 16).expect("hex byte"))
+                .collect()
+        })
+        .collect()
+}
+
+fn frame(bytes: &[u8]) -> Frame {
+    let f = decode(bytes).expect("the vector decodes");
+    let mut out = [0u8; MAX_FRAME];
+    let n = encode(&f, &mut out);
+    assert_eq!(&out[..n], bytes, "the vector re-encodes to itself");
+    f
+}
+
+#[test]
+fn the_documents_test_vectors_decode_to_what_the_document_says() {
+    assert_eq!(crc32(b"123456789"), 0xCBF4_3926);
+    assert_eq!(crc32(&[0]), 0xD202_EF8D);
+    let v = vectors();
+    assert_eq!(v.len(), 4, "COMMAND, PLAN, CONFIG and SAMPLE vectors");
+    let f = frame(&v[0]);
+    assert_eq!((f.seq, f.timestamp_ns), (7, 1000));
+    assert_eq!(
+        f.message,
+        Message::Command(Command {
+            answers_sample: 6,
+            duty_a: 1000,
+            duty_b: -1000
+        })
+    );
+    let f = frame(&v[1]);
+    let Message::Plan(p) = f.message else {
+        panic!("a PLAN")
+    };
+    assert_eq!((f.seq, p.answers_sample), (8, 6));
+    assert_eq!(p.entries(), &[[1000, -1000], [2000, -2000]]);
+    let Message::Config(c) = frame(&v[2]).message else {
+        panic!("a CONFIG")
+    };
+    assert_eq!(
+        (c.sample_rate_hz, c.counts_per_rev, c.watchdog_periods),
+        (20_000, 1 << 20, 1000)
+    );
+    assert_eq!(
+        (
+            c.encoder_direction,
+            c.plan_capacity,
+            c.align_current_ma,
+            c.align_ms
+        ),
+        (1, 200, 1000, 300)
+    );
+    c.check().expect("the vector's CONFIG is valid");
+    // The SAMPLE in SI through the host's link with that CONFIG (zero at count 0).
+    let mut link = DriveLink::new(
+        20_000.0,
+        400.0,
+        EncoderCalibration {
+            offset_counts: Some(0),
+            reverse: false,
+        },
+    );
+    assert!(matches!(link.on_frame(&v[2], 0), Event::Config(_)));
+    let Event::State(st) = link.on_frame(&v[3], 0) else {
+        panic!("a state")
+    };
+    assert!((st.theta_rad - FRAC_PI_2).abs() < 1e-12);
+    assert!((st.i_a_a - 0.151).abs() < 1e-9 && st.i_b_a == 0.0);
+    assert!((st.bus_voltage_v - 24.0).abs() < 1e-9);
+    assert!((st.v_a_v - 12.0).abs() < 1e-3 && st.v_b_v == 0.0);
+    assert_eq!(st.applied_command_seq, 17);
+}
+
+// ---- the drive (D1–D10), against the emulated drive's core ----
+
+const WATCHDOG: u16 = 20;
+
+fn drive() -> DriveCore {
+    DriveCore::new(&Scenario::default(), WATCHDOG, 8)
+}
+
+/// The host's frames, numbered from 1 as a host process does.
+struct Host(u32);
+
+impl Host {
+    fn send(&mut self, d: &mut DriveCore, m: Message) -> Option<Reply> {
+        self.0 += 1;
+        d.on_frame(&frame_bytes(self.0, m))
+    }
+    fn control(&mut self, d: &mut DriveCore, a: Action) {
+        self.send(d, Message::Control(a));
+    }
+    /// C(s, duty) on both phases; returns its frame seq.
+    fn command(&mut self, d: &mut DriveCore, answers: u32, duty: i16) -> u32 {
+        self.send(
+            d,
+            Message::Command(Command {
+                answers_sample: answers,
+                duty_a: duty,
+                duty_b: duty,
+            }),
+        );
+        self.0
+    }
+}
+
+/// One period: the drive sends S(k) (which reports the period before) and runs the
+/// period that starts there. Returns k and S(k).
+fn period(d: &mut DriveCore) -> (u32, Sample) {
+    let f = d.sample_frame(0);
+    d.run_period(f.seq);
+    let Message::Sample(s) = f.message else {
+        panic!("a SAMPLE")
+    };
+    (f.seq, s)
+}
+
+fn hello(h: &mut Host, d: &mut DriveCore) -> Config {
+    match h.send(d, Message::Hello) {
+        Some(Reply::Config(c)) => c,
+        None => panic!("HELLO must be answered with CONFIG"),
+    }
+}
+
+#[test]
+fn d1_hello_is_answered_with_a_valid_config_and_starts_a_session() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d).check().expect("valid CONFIG");
+    h.control(&mut d, Action::Enable);
+    for _ in 0..500 {
+        let (k, _) = period(&mut d);
+        h.command(&mut d, k, 100);
+    }
+    assert!(d.outputs_on());
+    // A new host process numbers its frames from 1 again.
+    let mut next = Host(0);
+    hello(&mut next, &mut d);
+    assert_eq!(d.counters.stale_frames, 0);
+    assert!(!d.outputs_on(), "a new session starts with outputs off");
+}
+
+#[test]
+fn d2_samples_are_numbered_by_period() {
+    let mut d = drive();
+    hello(&mut Host(0), &mut d);
+    let (first, _) = period(&mut d);
+    for i in 1..100 {
+        assert_eq!(period(&mut d).0, first + i);
+    }
+    assert_eq!(
+        d.report_seq(),
+        first + 99,
+        "a report carries the last SAMPLE's seq"
+    );
+}
+
+#[test]
+fn d3_a_command_is_applied_over_the_period_after_the_next_sample_only() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Enable);
+    let (s, _) = period(&mut d);
+    let c = h.command(&mut d, s, 1000);
+    period(&mut d); // S(s+1): C(s) applies over this period
+    let (_, got) = period(&mut d); // S(s+2) reports it
+    assert_eq!((got.duty_a, got.applied_command_seq), (1000, c));
+    assert_eq!(got.status & status::COMMAND_HELD, 0);
+    // C(s) again, now for a period that has passed: not applied, the period held.
+    h.command(&mut d, s, 3000);
+    period(&mut d);
+    let (_, got) = period(&mut d);
+    assert_eq!((got.duty_a, got.applied_command_seq), (1000, c));
+    assert_ne!(got.status & status::COMMAND_HELD, 0);
+}
+
+#[test]
+fn d4_frames_failing_validation_or_sequence_are_never_acted_upon() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Enable);
+    let (s, _) = period(&mut d);
+    let command = |seq, duty| {
+        frame_bytes(
+            seq,
+            Message::Command(Command {
+                answers_sample: s,
+                duty_a: duty,
+                duty_b: duty,
+            }),
+        )
+    };
+    let mut flipped = command(h.0 + 1, 5000);
+    flipped[19] ^= 0x04;
+    assert!(d.on_frame(&flipped).is_none());
+    let c = h.command(&mut d, s, 1000);
+    // The same seq twice, and an older host seq.
+    d.on_frame(&command(c, 9000));
+    d.on_frame(&frame_bytes(c - 1, Message::Control(Action::Disable)));
+    period(&mut d);
+    let (_, got) = period(&mut d);
+    assert_eq!((got.duty_a, got.applied_command_seq), (1000, c));
+    assert!(d.outputs_on());
+    assert_eq!((d.counters.crc_errors, d.counters.stale_frames), (1, 2));
+}
+
+#[test]
+fn d5_every_state_reports_what_the_table_says() {
+    let mut d = drive();
+    let mut h = Host(0);
+    let config = hello(&mut h, &mut d);
+    assert!(config.align_ms > 0);
+    period(&mut d);
+    // Disabled.
+    let (_, s) = period(&mut d);
+    assert_eq!(
+        (s.status, s.duty_a, s.duty_b, s.applied_command_seq),
+        (0, 0, 0, 0)
+    );
+    // Aligning: phase A only, not enabled, no command.
+    h.control(&mut d, Action::Align);
+    period(&mut d);
+    let (_, s) = period(&mut d);
+    assert_eq!(s.status, status::ALIGNING);
+    assert!(s.duty_a > 0 && s.duty_b == 0 && s.applied_command_seq == 0);
+    while period(&mut d).1.status & status::ALIGNING != 0 {}
+    // Holding: enabled, the align duties, no command yet.
+    h.control(&mut d, Action::Enable);
+    period(&mut d);
+    let (k, s) = period(&mut d);
+    assert_eq!(s.status, status::ENABLED | status::COMMAND_HELD);
+    assert!(s.duty_a > 0 && s.duty_b == 0 && s.applied_command_seq == 0);
+    // Following.
+    let c = h.command(&mut d, k, -700);
+    period(&mut d);
+    let (_, s) = period(&mut d);
+    assert_eq!(s.status, status::ENABLED);
+    assert_eq!((s.duty_a, s.duty_b, s.applied_command_seq), (-700, -700, c));
+    // Faulted.
+    d.trip(faults::OVERCURRENT);
+    period(&mut d);
+    let (_, s) = period(&mut d);
+    assert_eq!(
+        (s.status, s.duty_a, s.duty_b, s.applied_command_seq),
+        (0, 0, 0, 0)
+    );
+    assert_eq!(s.fault_bits, faults::OVERCURRENT);
+}
+
+#[test]
+fn d6_the_watchdog_arms_at_the_first_command_after_enable() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Enable);
+    for _ in 0..3 * WATCHDOG {
+        period(&mut d);
+    }
+    assert_eq!(d.latched_faults(), 0, "not armed before the first COMMAND");
+    let (k, _) = period(&mut d);
+    h.command(&mut d, k, 100);
+    period(&mut d); // applied: armed
+    let mut report: Option<FaultReport> = None;
+    for _ in 0..WATCHDOG {
+        let k = d.sample_frame(0).seq;
+        report = report.or(d.run_period(k));
+    }
+    let r = report.expect("WATCHDOG latched after watchdog_periods without a COMMAND");
+    assert_eq!(r.fault_bits, faults::WATCHDOG);
+}
+
+#[test]
+fn d7_an_out_of_range_duty_latches_bad_command_and_applies_nothing() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Enable);
+    let (k, _) = period(&mut d);
+    h.command(&mut d, k, i16::MIN);
+    period(&mut d);
+    let (_, s) = period(&mut d);
+    assert_eq!(s.fault_bits, faults::BAD_COMMAND);
+    assert_eq!((s.duty_a, s.duty_b), (0, 0));
+}
+
+#[test]
+fn d8_faults_clear_only_on_reset_and_outputs_return_only_on_enable() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Enable);
+    d.trip(faults::OVERCURRENT);
+    let (k, _) = period(&mut d);
+    h.command(&mut d, k, 100);
+    period(&mut d);
+    assert_eq!(
+        d.latched_faults(),
+        faults::OVERCURRENT,
+        "a COMMAND never clears"
+    );
+    h.control(&mut d, Action::Reset);
+    assert_eq!(d.latched_faults(), 0);
+    assert!(!d.outputs_on(), "off until ENABLE");
+    h.control(&mut d, Action::Enable);
+    let (k, _) = period(&mut d);
+    let c = h.command(&mut d, k, 2500);
+    period(&mut d);
+    let (_, s) = period(&mut d);
+    assert_eq!((s.duty_a, s.applied_command_seq), (2500, c));
+}
+
+#[test]
+fn d9_align_brings_the_rotor_to_an_electrical_zero_from_wherever_it_was() {
+    let mut d = drive();
+    let mut h = Host(0);
+    let config = hello(&mut h, &mut d);
+    h.control(&mut d, Action::Enable);
+    // Drive it somewhere else, as a previous session would.
+    for _ in 0..400 {
+        let (k, _) = period(&mut d);
+        h.command(&mut d, k, 12_000);
+    }
+    let theta = |s: Sample| f64::from(s.encoder_counts) / f64::from(config.counts_per_rev) * TAU;
+    let pitch = TAU / 50.0;
+    let off_zero = |th: f64| (th / pitch - (th / pitch).round()) * pitch;
+    let before = theta(period(&mut d).1);
+    assert!(off_zero(before).abs() > 1e-2, "moved off a zero: {before}");
+    h.control(&mut d, Action::Align);
+    let mut flagged = 0;
+    let after = loop {
+        let (_, s) = period(&mut d);
+        if s.status & status::ALIGNING == 0 {
+            break theta(s);
+        }
+        flagged += 1;
+        assert!(flagged < 100_000, "ALIGNING never cleared");
+    };
+    let expected = u32::from(config.align_ms) * config.sample_rate_hz / 1000;
+    assert_eq!(flagged, expected, "ALIGNING for align_ms");
+    // Within the load's offset at 1 A (0.01 N·m / 25 N·m/rad = 4e-4 rad).
+    assert!(off_zero(after).abs() < 1e-3, "{after}");
+    assert!((after - before).abs() <= pitch / 2.0 + 1e-3);
+}
+
+fn plan(answers: u32, duties: &[i16]) -> Message {
+    let mut d = [[0i16; 2]; MAX_PLAN_ENTRIES];
+    for (slot, &x) in d.iter_mut().zip(duties) {
+        *slot = [x, x];
+    }
+    Message::Plan(Plan {
+        answers_sample: answers,
+        count: duties.len() as u16,
+        duties: d,
+    })
+}
+
+#[test]
+fn d10_the_newest_plan_covers_missing_commands_and_an_equal_one_replaces_it() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Enable);
+    let (s, _) = period(&mut d);
+    h.command(&mut d, s, 1000);
+    h.send(&mut d, plan(s, &[2000, 3000]));
+    h.send(&mut d, plan(s, &[4000, 5000])); // the same base: replaces
+    h.send(&mut d, plan(s.wrapping_sub(1), &[9000, 9000])); // older: ignored
+    period(&mut d); // s + 1: C(s)
+    let planned = status::ENABLED | status::COMMAND_HELD | status::COMMAND_PLANNED;
+    assert_eq!(period(&mut d).1.duty_a, 1000); // s + 2: entry 0 runs
+    let (_, got) = period(&mut d); // s + 3: entry 1 runs
+    assert_eq!((got.duty_a, got.status), (4000, planned));
+    assert_eq!(period(&mut d).1.duty_a, 5000);
+}
+
+// ---- the host (H1–H5), against the bridge's link ----
+
+fn configured_link() -> DriveLink {
+    let mut l = DriveLink::new(
+        20_000.0,
+        400.0,
+        EncoderCalibration {
+            offset_counts: Some(0),
+            reverse: false,
+        },
+    );
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    assert!(matches!(
+        l.on_frame(&frame_bytes(0, Message::Config(config)), 0),
+        Event::Config(_)
+    ));
+    l
+}
+
+fn sample_at(seq: u32, counts: i32) -> Vec<u8> {
+    frame_bytes(
+        seq,
+        Message::Sample(Sample {
+            encoder_counts: counts,
+            adc_a: 32768,
+            adc_b: 32768,
+            adc_bus: 2400,
+            duty_a: 0,
+            duty_b: 0,
+            applied_command_seq: 0,
+            fault_bits: 0,
+            status: status::ENABLED,
+        }),
+    )
+}
+
+#[test]
+fn h1_a_lost_sample_advances_the_host_by_the_gap() {
+    let mut l = configured_link();
+    let w = 13.13;
+    let counts =
+        |k: u32| (w * f64::from(k) / 20_000.0 / TAU * f64::from(1u32 << 20)).round() as i32;
+    let mut before = 0.0;
+    for k in 1..=4000 {
+        let Event::State(st) = l.on_frame(&sample_at(k, counts(k)), 0) else {
+            panic!()
+        };
+        before = st.omega_rad_s;
+    }
+    let Event::State(st) = l.on_frame(&sample_at(4002, counts(4002)), 0) else {
+        panic!()
+    };
+    assert_eq!(st.seq, 4001, "index k advances by the gap");
+    assert_eq!(l.lost_on_wire, 1);
+    // The encoder's 6 µrad quantum alone moves the 400 Hz estimate by ~0.1 rad/s; stepped
+    // one period for the two, it would jump by ω·β ≈ 2.9 rad/s.
+    assert!(
+        (st.omega_rad_s - w).abs() < 0.3 && (st.omega_rad_s - before).abs() < 0.3,
+        "ω̂ {before} → {}",
+        st.omega_rad_s
+    );
+}
+
+#[test]
+fn h2_a_reordered_sample_is_counted_once() {
+    let mut l = configured_link();
+    for seq in [1, 3, 2] {
+        l.on_frame(&sample_at(seq, 0), 0);
+    }
+    assert_eq!((l.lost_on_wire, l.bad_frames), (0, 1));
+    // A true duplicate is dropped and counted too, and never makes a loss negative.
+    l.on_frame(&sample_at(2, 0), 0);
+    assert_eq!((l.lost_on_wire, l.bad_frames), (0, 2));
+}
+
+#[test]
+fn h3_a_stale_fault_report_is_dropped() {
+    let mut l = configured_link();
+    l.on_frame(&sample_at(2000, 0), 0);
+    let report = |seq| {
+        frame_bytes(
+            seq,
+            Message::FaultReport(FaultReport {
+                fault_bits: faults::WATCHDOG,
+                at_sample: seq,
+            }),
+        )
+    };
+    assert_eq!(l.on_frame(&report(5), 0), Event::Dropped);
+    assert_eq!(l.stale_reports, 1);
+    assert!(matches!(l.on_frame(&report(2000), 0), Event::Fault(_)));
+}
+
+#[test]
+fn h4_an_invalid_config_is_refused_naming_the_field() {
+    let good = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    let cases = [
+        (
+            Config {
+                encoder_direction: 0,
+                ..good
+            },
+            "encoder_direction",
+        ),
+        (
+            Config {
+                plan_capacity: 300,
+                ..good
+            },
+            "plan_capacity",
+        ),
+        (
+            Config {
+                watchdog_periods: 1,
+                ..good
+            },
+            "watchdog_periods",
+        ),
+        (
+            Config {
+                counts_per_rev: 0,
+                ..good
+            },
+            "counts_per_rev",
+        ),
+    ];
+    for (config, field) in cases {
+        let mut l = DriveLink::new(20_000.0, 400.0, EncoderCalibration::default());
+        match l.on_frame(&frame_bytes(0, Message::Config(config)), 0) {
+            Event::BadConfig(e) => {
+                assert_eq!(e.field, field);
+                assert!(e.to_string().contains(field), "{e}");
+            }
+            other => panic!("{field}: accepted as {other:?}"),
+        }
+        assert!(!l.configured());
+    }
+}
+
+#[test]
+fn h5_frames_of_another_version_are_counted_with_it() {
+    let mut l = DriveLink::new(20_000.0, 400.0, EncoderCalibration::default());
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    let mut v2 = frame_bytes(0, Message::Config(config));
+    v2[2] = 2;
+    let n = v2.len();
+    let crc = crc32(&v2[..n - 4]);
+    v2[n - 4..].copy_from_slice(&crc.to_le_bytes());
+    assert_eq!(l.on_frame(&v2, 0), Event::Dropped);
+    assert_eq!(l.other_version, (1, 2));
+}

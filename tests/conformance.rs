@@ -456,10 +456,10 @@ fn h1_a_lost_sample_advances_the_host_by_the_gap() {
     };
     assert_eq!(st.seq, 4001, "index k advances by the gap");
     assert_eq!(l.lost_on_wire, 1);
-    // The encoder's 6 µrad quantum alone moves the 400 Hz estimate by ~0.1 rad/s; stepped
-    // one period for the two, it would jump by ω·β ≈ 2.9 rad/s.
+    // The encoder's 6 µrad quantum moves the 400 Hz estimate by ~2e-3 rad/s a sample;
+    // stepped one period for the two, it would jump by β/T · ωT ≈ 0.18 rad/s.
     assert!(
-        (st.omega_rad_s - w).abs() < 0.3 && (st.omega_rad_s - before).abs() < 0.3,
+        (st.omega_rad_s - w).abs() < 0.03 && (st.omega_rad_s - before).abs() < 0.03,
         "ω̂ {before} → {}",
         st.omega_rad_s
     );

@@ -32,8 +32,9 @@ impl VelocityObserver {
     /// samples were lost on the way); returns the velocity estimate.
     ///
     /// Why the gap matters: stepping the prediction one period for a sample that is two
-    /// periods on reads the motor's travel over the lost period as a velocity error of
-    /// ω·β (with the 400 Hz observer at 13 rad/s: ~0.8 of the next command's volts).
+    /// periods on reads the motor's travel over the lost period, ωT, as a residual, and
+    /// moves the estimate by β/T · ωT (0.18 rad/s at 13 rad/s with the 400 Hz observer,
+    /// a hundred times its quantization noise), decaying over a few milliseconds.
     pub fn update(&mut self, theta: f64, periods: u32) -> f64 {
         if !self.started {
             self.theta = theta;

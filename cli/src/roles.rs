@@ -53,7 +53,8 @@ pub struct DriveLinkArgs {
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub silence_periods: Option<u32>,
     /// Bridge: send the current loop's voltage plan to the drive (if its CONFIG says it keeps
-    /// one) whenever it is this many samples newer than the last sent (default 10).
+    /// one) whenever it is this many samples newer than the last sent (default 1: every plan
+    /// the current loop publishes, i.e. every 10th command and after each lost sample).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub plan_every: Option<u32>,
     /// Bridge: encoder reading (counts) at θ = 0, for an absolute encoder; by default the
@@ -262,6 +263,14 @@ pub struct EmulateArgs {
     /// (default 200).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(0..=256))]
     pub plan_capacity: Option<u16>,
+    /// ALIGN time, ms: phase A at --align-ma brings the rotor to an electrical zero before
+    /// each run (docs/drive-protocol.md §7). 0: the drive does not align, as one with an
+    /// absolute encoder may not (the host then needs --encoder-offset).
+    #[arg(long, default_value_t = 300, value_name = "MS")]
+    pub align_ms: u16,
+    /// ALIGN current, mA (its voltage R·I is capped at the bus).
+    #[arg(long, default_value_t = 1000, value_name = "MA", value_parser = clap::value_parser!(u16).range(1..))]
+    pub align_ma: u16,
     /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
     #[arg(long, value_name = "S")]
     pub duration: Option<f64>,
@@ -360,6 +369,8 @@ pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
         rt: d.rt(Process::EmulatedDrive, Mode::Realtime),
         watchdog_periods,
         plan_capacity: a.plan_capacity.unwrap_or(d.drive.emulated_plan_capacity),
+        align_ma: a.align_ma,
+        align_ms: a.align_ms,
         inject: FaultInjection {
             drop_every: i.drop_every,
             corrupt_every: i.corrupt_every,

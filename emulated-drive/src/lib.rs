@@ -121,11 +121,7 @@ impl DriveCore {
     pub fn new(s: &Scenario, watchdog_periods: u16, plan_capacity: u16) -> Self {
         let capacity = plan_capacity.min(MAX_PLAN_ENTRIES as u16);
         let config = default_config(s.rates.current_loop_hz, watchdog_periods, capacity);
-        // Phase A at the align current in the steady state (R·I), within the bus.
-        let align_v = s.motor.resistance_ohm * f64::from(config.align_current_ma) * 1e-3;
-        let align_duty = (align_v / s.drive.bus_voltage_v * f64::from(MAX_DUTY))
-            .round()
-            .clamp(0.0, f64::from(MAX_DUTY)) as i16;
+        let align_duty = align_duty(s, config.align_current_ma);
         Self {
             scaling: Scaling::new(&config),
             config,
@@ -156,6 +152,14 @@ impl DriveCore {
 
     pub fn outputs_on(&self) -> bool {
         self.enabled && self.latched == 0
+    }
+
+    /// Its ALIGN: phase A at `current_ma` for `ms` (0: it does not align, as a drive with an
+    /// absolute encoder may not), announced in CONFIG.
+    pub fn set_alignment(&mut self, s: &Scenario, current_ma: u16, ms: u16) {
+        self.config.align_current_ma = current_ma;
+        self.config.align_ms = ms;
+        self.align_duty = align_duty(s, current_ma);
     }
 
     /// The seq a CONFIG or FAULT_REPORT carries: the last SAMPLE's (0 before the first).
@@ -408,6 +412,9 @@ pub struct EmulatorOptions {
     pub watchdog_periods: u16,
     /// PLAN entries the drive keeps (announced in CONFIG; 0: none).
     pub plan_capacity: u16,
+    /// ALIGN current, mA, and time, ms (0 ms: no alignment).
+    pub align_ma: u16,
+    pub align_ms: u16,
     pub inject: FaultInjection,
     /// Stop after this long (None: until SIGTERM/SIGINT).
     pub duration: Option<Duration>,
@@ -423,6 +430,14 @@ pub enum EmulatorError {
     },
     #[error(transparent)]
     Rt(#[from] stepdrive_runtime::rt::RtError),
+}
+
+/// Phase A's duty for `current_ma` in the steady state (R·I), within the bus.
+fn align_duty(s: &Scenario, current_ma: u16) -> i16 {
+    let v = s.motor.resistance_ohm * f64::from(current_ma) * 1e-3;
+    (v / s.drive.bus_voltage_v * f64::from(MAX_DUTY))
+        .round()
+        .clamp(0.0, f64::from(MAX_DUTY)) as i16
 }
 
 /// The kind byte of HELLO (frame offset 3).
@@ -447,6 +462,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     };
     o.rt.apply()?;
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
+    core.set_alignment(&o.scenario, o.align_ma, o.align_ms);
     let period_ns = o.scenario.sample_period_ns();
     let mut buf = [0u8; MAX_FRAME];
     let mut rx = [0u8; 2048];

@@ -54,7 +54,10 @@ pub struct DriveLink {
     /// forwarding commands until the drive speaks again.
     pub silence_periods: u32,
     /// Forward the current loop's voltage plan when it is this many samples newer than the
-    /// last one sent (a full PLAN is ~830 bytes: every period at 20 kHz would be 17 MB/s).
+    /// last one sent. 1: every plan the loop publishes (it publishes one every 10th command
+    /// and after every lost sample, ~1.7 MB/s of 200-entry PLANs at 20 kHz), so the drive
+    /// holds the very plan the loop predicts with; a larger value spares a slow link, and
+    /// after a lost sample the drive may then hold an older plan than the loop assumes.
     pub plan_every: u32,
     /// Bandwidth of the bridge's encoder velocity observer, Hz.
     pub observer_hz: f64,
@@ -72,7 +75,7 @@ impl Default for DriveLink {
         Self {
             address: None,
             silence_periods: 200,
-            plan_every: 10,
+            plan_every: 1,
             observer_hz: 400.0,
             encoder_offset_counts: None,
             reverse_encoder: false,

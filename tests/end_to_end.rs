@@ -749,3 +749,36 @@ fn serial_path_works_over_a_pseudo_terminal_pair() {
         "only {applied} commands applied: {drive_log}"
     );
 }
+
+/// A drive whose CONFIG breaks the protocol (a 1-period watchdog would latch on any late
+/// COMMAND) is refused at the handshake, the field named, before anything is enabled.
+#[test]
+fn a_drive_with_an_invalid_config_is_refused_naming_the_field() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("hwconfig");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    let json = dir.path("hw.json");
+    let inst = instance("hwconfig");
+    let listen = format!("127.0.0.1:{}", free_udp_port());
+    let mut args = vec![
+        "emulate-drive",
+        "--listen",
+        &listen,
+        "--watchdog-periods",
+        "1",
+    ];
+    args.extend(ORDINARY_SCHEDULING);
+    args.extend(["--scenario", scenario.to_str().unwrap()]);
+    let mut drive = spawn_logged(&args);
+    let started = std::time::Instant::now();
+    let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
+    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{stderr}");
+    assert!(stderr.contains("watchdog_periods"), "{stderr}");
+    assert!(
+        started.elapsed() < Duration::from_secs(15),
+        "refused at once"
+    );
+}

@@ -10,6 +10,7 @@ use stepdrive_monitor::latency::{run_latency, table as latency_table, LatencyOpt
 use stepdrive_monitor::launcher::{run_stack, LaunchOptions};
 use stepdrive_monitor::metrics::RunReport;
 use stepdrive_monitor::outcome::Outcome;
+use stepdrive_monitor::recording::Recording;
 use stepdrive_monitor::report::{document, headline, overall, table};
 use stepdrive_monitor::simulate::{simulate as simulate_run, simulate_stalls};
 use stepdrive_monitor::throttling::ThrottlingLifted;
@@ -41,6 +42,15 @@ pub struct RunArgs {
     /// plant is a bridge to a drive (--drive, or an emulated one started for the run).
     #[arg(long, value_enum, default_value_t = Mode::Lockstep)]
     mode: Mode,
+    /// Record every state sample, each loop's statistics and the faults to FILE (MCAP, JSON
+    /// messages with schemas: opens in Foxglove, Lichtblick and PlotJuggler). The file is
+    /// finished on every exit the run controls, Ctrl-C and a dead child included.
+    #[arg(long, value_name = "FILE")]
+    record: Option<PathBuf>,
+    /// Draw the paper's figures of the run into DIR (SVG and PNG; needs no --record, a
+    /// temporary recording is made if none is asked for).
+    #[arg(long, value_name = "DIR")]
+    plots: Option<PathBuf>,
     #[command(flatten)]
     stack: StackArgs,
 }
@@ -231,6 +241,19 @@ pub fn run(a: RunArgs) -> Result<()> {
     a.stack.apply_duration(&mut s)?;
     let deployment = a.stack.deployment(a.mode)?;
     let json = JsonOut::create(a.select.json.as_ref())?;
+    let record_path = match (&a.record, &a.plots) {
+        (Some(p), _) => Some(p.clone()),
+        (None, Some(dir)) => Some(dir.join("run.mcap")),
+        (None, None) => None,
+    };
+    if let Some(dir) = &a.plots {
+        std::fs::create_dir_all(dir)
+            .with_context(|| format!("cannot create the plot directory {}", dir.display()))?;
+    }
+    let mut recording = match &record_path {
+        Some(p) => Some(Recording::create(p, &s)?),
+        None => None,
+    };
     let _throttling = throttling_guard(&a.stack, &deployment, a.mode)?;
     let opts = LaunchOptions {
         instance: a.stack.instance.clone(),
@@ -244,10 +267,11 @@ pub fn run(a: RunArgs) -> Result<()> {
             a.mode.as_str(),
             s.duration_s()
         );
-        let report = match run_stack(&s, *method, &opts) {
+        let report = match run_stack(&s, *method, &opts, recording.as_mut()) {
             Ok(report) => report,
             Err(e) => {
                 // The stack could not start: keep what the earlier methods gathered.
+                close_recording(recording.take(), a.plots.as_deref());
                 if !runs.is_empty() {
                     conclude(&s, &runs, json).ok();
                 }
@@ -260,7 +284,28 @@ pub fn run(a: RunArgs) -> Result<()> {
             break;
         }
     }
+    close_recording(recording, a.plots.as_deref());
     conclude(&s, &runs, json)
+}
+
+/// Finishes the recording (its summary makes it complete) and draws its plots; a failure
+/// here is said, and never hides the run's own outcome.
+fn close_recording(recording: Option<Recording>, plots: Option<&std::path::Path>) {
+    let Some(r) = recording else { return };
+    let path = r.path().to_path_buf();
+    match r.finish() {
+        Ok(()) => println!("recording written to {}", path.display()),
+        Err(e) => {
+            tracing::error!("{e:#}");
+            return;
+        }
+    }
+    if let Some(dir) = plots {
+        match stepdrive_monitor::plot::plot_file(&path, dir) {
+            Ok(files) => println!("{} plots written to {}", files.len(), dir.display()),
+            Err(e) => tracing::error!("cannot draw the plots: {e:#}"),
+        }
+    }
 }
 
 pub fn simulate(a: SimulateArgs) -> Result<()> {
@@ -374,6 +419,41 @@ pub fn deploy(a: DeployArgs) -> Result<()> {
             "{}",
             Deployment::default().resolved(a.mode).to_toml_string()
         ),
+    }
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct PlotArgs {
+    /// The recording (MCAP) to draw.
+    file: PathBuf,
+    /// Directory for the figures (created if missing).
+    #[arg(long, value_name = "DIR", default_value = "plots")]
+    out: PathBuf,
+}
+
+pub fn plot(a: PlotArgs) -> Result<()> {
+    let files = stepdrive_monitor::plot::plot_file(&a.file, &a.out)?;
+    for f in &files {
+        println!("{}", f.display());
+    }
+    Ok(())
+}
+
+#[derive(Args, Debug)]
+pub struct ExportArgs {
+    /// The recording (MCAP) to export.
+    file: PathBuf,
+    /// Directory for the CSV files (created if missing): <method>_state.csv,
+    /// <method>_stats.csv, <method>_fault.csv.
+    #[arg(long, value_name = "DIR")]
+    csv: PathBuf,
+}
+
+pub fn export(a: ExportArgs) -> Result<()> {
+    let files = stepdrive_monitor::recording::export_csv(&a.file, &a.csv)?;
+    for (f, rows) in &files {
+        println!("{} ({rows} rows)", f.display());
     }
     Ok(())
 }

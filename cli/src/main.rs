@@ -50,6 +50,12 @@ enum Cmd {
     /// Attach to a running stack (one started by hand) and compute its run's figures from
     /// its state stream, as `run` does: table, JSON, exit code.
     Monitor(commands::MonitorArgs),
+    /// Draw the paper's figures from a recording (run --record): position, tracking error
+    /// (linear and log, eq. (7) bound, cruise window), phase currents, i_d/i_q, voltages and
+    /// the bus, torque; SVG and PNG, methods overlaid.
+    Plot(commands::PlotArgs),
+    /// Write a recording's topics as CSV files, one per topic (time in s, SI columns).
+    Export(commands::ExportArgs),
     /// Print the default scenario as TOML, or check a scenario file.
     Scenario(commands::CheckArgs),
     /// Print the default deployment (wait strategies, priorities, CPUs, timeouts, watchdog,
@@ -95,6 +101,8 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::CurrentLoop(a) => roles::current_loop(a),
         Cmd::PositionLoop(a) => roles::position_loop(a),
         Cmd::Scenario(a) => commands::scenario(a),
+        Cmd::Plot(a) => commands::plot(a),
+        Cmd::Export(a) => commands::export(a),
         Cmd::Reset(a) => commands::reset(a),
         Cmd::Monitor(a) => commands::monitor(a),
         Cmd::Deploy(a) => commands::deploy(a),

@@ -7,6 +7,7 @@
 
 use crate::metrics::{Metrics, RunReport};
 use crate::outcome::Outcome;
+use crate::recording::Recording;
 use crate::timing::{rss_kib, Resources, Rss, TimingReport};
 use anyhow::{Context, Result};
 use std::io::{BufRead, BufReader};
@@ -265,7 +266,15 @@ enum Ending {
 /// Runs one method of one scenario on three processes and returns its report: complete, or
 /// with what ran before it stopped (a child died, the stack hung, Ctrl-C), its outcome
 /// saying which. An error only when the stack could not be started at all.
-pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<RunReport> {
+///
+/// With `recording`, every state sample the monitor sees and every statistics report go to
+/// the file too (on channels of their own for this method).
+pub fn run_stack(
+    s: &Scenario,
+    method: Method,
+    opts: &LaunchOptions,
+    recording: Option<&mut Recording>,
+) -> Result<RunReport> {
     let mode = opts.mode;
     let realtime = mode != Mode::Lockstep;
     let hardware = mode == Mode::Hardware;
@@ -332,7 +341,18 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         &with(&["--method", method.as_str()]),
     )?);
     let mut stats = Finals::default();
+    let recording = match recording {
+        Some(r) => match r.begin(method) {
+            Ok(()) => Some(r),
+            Err(e) => {
+                tracing::error!("{e:#}; the run goes on unrecorded");
+                None
+            }
+        },
+        None => None,
+    };
     let mut watch = Watch {
+        recording,
         metrics: Metrics::new(s),
         rss_start: Vec::new(),
         rss_end: Vec::new(),
@@ -364,7 +384,7 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
         }
         for child in children.iter_mut() {
             let status = child.finish(Duration::from_secs(10));
-            stats.drain(&mut stats_sub)?;
+            stats.drain(&mut stats_sub, watch.recording.as_deref_mut())?;
             let verdict = status
                 .code()
                 .is_some_and(|c| VERDICT_EXIT_CODES.contains(&c));
@@ -373,7 +393,10 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
             }
         }
     }
-    stats.drain(&mut stats_sub)?;
+    stats.drain(&mut stats_sub, watch.recording.as_deref_mut())?;
+    if let Some(r) = watch.recording.as_deref_mut() {
+        r.lost(watch.monitor_lost);
+    }
     drop(stats_sub);
     drop(children);
     drop(states);
@@ -417,7 +440,9 @@ pub fn run_stack(s: &Scenario, method: Method, opts: &LaunchOptions) -> Result<R
 }
 
 /// What the monitor gathers from the state stream, and the processes' resources.
-struct Watch {
+struct Watch<'r> {
+    /// Where every sample and report also goes, if the run is recorded.
+    recording: Option<&'r mut Recording>,
     metrics: Metrics,
     /// (process, pid, RSS at the first sample in KiB) of every child and the monitor.
     rss_start: Vec<(&'static str, u32, u64)>,
@@ -431,7 +456,17 @@ struct Watch {
     last_ns: u64,
 }
 
-impl Watch {
+impl Watch<'_> {
+    /// Records a sample; a recording that fails is given up (the run goes on), once said.
+    fn record(&mut self, st: &DriveState) {
+        if let Some(r) = self.recording.as_deref_mut() {
+            if let Err(e) = r.state(st) {
+                tracing::error!("{e:#}; the rest of the run goes unrecorded");
+                self.recording = None;
+            }
+        }
+    }
+
     fn read_rss_end(&mut self) {
         self.rss_end.resize(self.rss_start.len(), 0);
         for (end, &(_, pid, _)) in self.rss_end.iter_mut().zip(&self.rss_start) {
@@ -450,8 +485,18 @@ struct Finals {
 }
 
 impl Finals {
-    fn drain(&mut self, sub: &mut IpcSubscriber<StatsReport>) -> Result<()> {
+    fn drain(
+        &mut self,
+        sub: &mut IpcSubscriber<StatsReport>,
+        mut recording: Option<&mut Recording>,
+    ) -> Result<()> {
         while let Some(r) = sub.receive()? {
+            if let Some(rec) = recording.as_deref_mut() {
+                if let Err(e) = rec.stats(&r) {
+                    tracing::error!("{e:#}");
+                    recording = None;
+                }
+            }
             let i = r.role as usize;
             if i < 3 {
                 if r.is_final != 0 {
@@ -502,7 +547,7 @@ fn supervise(
     stats_sub: &mut IpcSubscriber<StatsReport>,
     stats: &mut Finals,
     children: &mut [Supervised],
-    w: &mut Watch,
+    w: &mut Watch<'_>,
     files: &RunFiles,
 ) -> Result<Ending> {
     let total = s.sample_count();
@@ -515,7 +560,7 @@ fn supervise(
     let mut misses_at_minute = 0;
     loop {
         let mut got = false;
-        stats.drain(stats_sub)?;
+        stats.drain(stats_sub, w.recording.as_deref_mut())?;
         while let Some(state) = states.receive()? {
             got = true;
             let expected = w.last_seq.map_or(0, |q| q + 1);
@@ -547,6 +592,7 @@ fn supervise(
             w.first_ns.get_or_insert(state.publish_time_ns);
             w.last_ns = state.publish_time_ns;
             w.metrics.push(&state);
+            w.record(&state);
             if state.flags & state_flags::LAST != 0 {
                 return Ok(Ending::Last);
             }

@@ -11,6 +11,8 @@ pub mod launcher;
 pub mod metrics;
 pub mod outcome;
 pub mod pingpong;
+pub mod plot;
+pub mod recording;
 pub mod report;
 pub mod simulate;
 pub mod throttling;

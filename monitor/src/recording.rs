@@ -1,0 +1,596 @@
+//! Recording a run to MCAP: what the motor did, sample by sample, in a file that Foxglove,
+//! Lichtblick and PlotJuggler open as is.
+//!
+//! It runs in the monitor, outside every loop: the monitor already drains the state stream
+//! for its metrics, and writes each sample it sees. A sample it never saw (it is the one
+//! reader allowed to fall behind) is counted, and the file says how many.
+//!
+//! Layout: one channel per method and kind, `/<method>/state` (every sample, SI units, with
+//! the reference and the derived d/q currents and torque), `/<method>/stats` (each loop's
+//! counters as they are published) and `/<method>/fault` (each change of the fault bits);
+//! JSON messages, each channel with its JSON Schema. Times are **simulated** time in ns
+//! (log time = publish time, so PlotJuggler, which plots by publish time, overlays the
+//! methods from t = 0). Metadata: `scenario` (the scenario as TOML, so the file explains
+//! itself) and, when the file is finished, `recording` (samples written and lost per
+//! method).
+
+use mcap::records::{MessageHeader, Metadata};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use stepdrive_shared::frames::dq_currents;
+use stepdrive_shared::messages::DriveState;
+use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::trajectory::Trapezoid;
+use stepdrive_shared::{Method, Scenario};
+
+#[derive(Debug, thiserror::Error)]
+pub enum RecordError {
+    #[error("cannot create the recording {path}")]
+    Create {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("cannot write the recording {path}")]
+    Write {
+        path: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
+    #[error("cannot read the recording {path}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path} is not a readable MCAP recording")]
+    Parse {
+        path: PathBuf,
+        #[source]
+        source: mcap::McapError,
+    },
+    #[error("{path}: message on {topic} is not a stepdrive record")]
+    Message {
+        path: PathBuf,
+        topic: String,
+        #[source]
+        source: serde_json::Error,
+    },
+}
+
+/// One state sample as recorded (SI units; angles in rad, currents in A, volts in V).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct StateRecord {
+    pub t: f64,
+    pub seq: u64,
+    pub theta: f64,
+    pub theta_d: f64,
+    pub error: f64,
+    pub omega: f64,
+    pub omega_d: f64,
+    pub i_a: f64,
+    pub i_b: f64,
+    pub i_d: f64,
+    pub i_q: f64,
+    pub v_a: f64,
+    pub v_b: f64,
+    pub bus: f64,
+    pub torque: f64,
+    pub flags: u32,
+    pub fault: u32,
+}
+
+/// The fields of [`StateRecord`], in order, with their units (the schema and CSV header).
+pub const STATE_FIELDS: [(&str, &str); 17] = [
+    ("t", "s"),
+    ("seq", ""),
+    ("theta", "rad"),
+    ("theta_d", "rad"),
+    ("error", "rad"),
+    ("omega", "rad/s"),
+    ("omega_d", "rad/s"),
+    ("i_a", "A"),
+    ("i_b", "A"),
+    ("i_d", "A"),
+    ("i_q", "A"),
+    ("v_a", "V"),
+    ("v_b", "V"),
+    ("bus", "V"),
+    ("torque", "N·m"),
+    ("flags", ""),
+    ("fault", ""),
+];
+
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct StatsRecord {
+    pub t: f64,
+    pub role: String,
+    pub cycles: u64,
+    pub misses: u64,
+    pub planned: u64,
+    pub overruns: u64,
+    pub lost: u64,
+    pub longest_miss_run: u64,
+}
+
+const STATS_FIELDS: [&str; 8] = [
+    "t",
+    "role",
+    "cycles",
+    "misses",
+    "planned",
+    "overruns",
+    "lost",
+    "longest_miss_run",
+];
+
+#[derive(Debug, Clone, Serialize, serde::Deserialize)]
+pub struct FaultRecord {
+    pub t: f64,
+    pub seq: u64,
+    pub fault: u32,
+}
+
+const FAULT_FIELDS: [&str; 3] = ["t", "seq", "fault"];
+
+/// A JSON Schema of an object whose fields are all numbers (but `role`).
+fn schema(title: &str, fields: &[&str]) -> String {
+    let props: Vec<String> = fields
+        .iter()
+        .map(|f| {
+            let ty = if *f == "role" { "string" } else { "number" };
+            format!("\"{f}\":{{\"type\":\"{ty}\"}}")
+        })
+        .collect();
+    format!(
+        "{{\"title\":\"{title}\",\"type\":\"object\",\"properties\":{{{}}},\"required\":[{}]}}",
+        props.join(","),
+        fields
+            .iter()
+            .map(|f| format!("\"{f}\""))
+            .collect::<Vec<_>>()
+            .join(",")
+    )
+}
+
+struct Channels {
+    method: Method,
+    state: u16,
+    stats: u16,
+    fault: u16,
+    written: u64,
+    lost: u64,
+    last_fault: u32,
+    last_t: f64,
+}
+
+/// An MCAP file being written. Finished (summary and indexes written) by [`Self::finish`],
+/// or when dropped on any other path.
+pub struct Recording {
+    writer: Option<mcap::Writer<BufWriter<File>>>,
+    path: PathBuf,
+    schemas: [u16; 3],
+    channels: Vec<Channels>,
+    trajectory: Trapezoid,
+    n_r: f64,
+    k_m: f64,
+    sequence: u32,
+    buf: Vec<u8>,
+}
+
+fn topic(method: Method, kind: &str) -> String {
+    format!("/{}/{kind}", method.as_str())
+}
+
+impl Recording {
+    /// Creates `path` (refusing at once if it cannot be written) with the scenario as
+    /// metadata.
+    pub fn create(path: &Path, s: &Scenario) -> Result<Self, RecordError> {
+        let file = File::create(path).map_err(|source| RecordError::Create {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let wrap = |source| RecordError::Write {
+            path: path.to_path_buf(),
+            source,
+        };
+        // Uncompressed: the codecs the mcap crate offers are C libraries (see the README).
+        let mut writer = mcap::WriteOptions::new()
+            .compression(None)
+            .profile("")
+            .create(BufWriter::new(file))
+            .map_err(wrap)?;
+        let schemas = [
+            writer
+                .add_schema(
+                    "stepdrive.State",
+                    "jsonschema",
+                    schema("stepdrive.State", &STATE_FIELDS.map(|f| f.0)).as_bytes(),
+                )
+                .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.Stats",
+                    "jsonschema",
+                    schema("stepdrive.Stats", &STATS_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.Fault",
+                    "jsonschema",
+                    schema("stepdrive.Fault", &FAULT_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
+        ];
+        let toml = s.to_toml_string().unwrap_or_default();
+        writer
+            .write_metadata(&Metadata {
+                name: "scenario".into(),
+                metadata: BTreeMap::from([("toml".to_string(), toml)]),
+            })
+            .map_err(wrap)?;
+        Ok(Self {
+            writer: Some(writer),
+            path: path.to_path_buf(),
+            schemas,
+            channels: Vec::new(),
+            trajectory: Trapezoid::new(&s.trajectory),
+            n_r: f64::from(s.motor.rotor_teeth),
+            k_m: s.motor.torque_constant_nm_per_a,
+            sequence: 0,
+            buf: Vec::with_capacity(512),
+        })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    fn wrap(&self) -> impl Fn(mcap::McapError) -> RecordError + '_ {
+        |source| RecordError::Write {
+            path: self.path.clone(),
+            source,
+        }
+    }
+
+    /// The channels of `method`'s run; what follows is recorded on them.
+    pub fn begin(&mut self, method: Method) -> Result<(), RecordError> {
+        let path = self.path.clone();
+        let wrap = |source| RecordError::Write {
+            path: path.clone(),
+            source,
+        };
+        let Some(w) = self.writer.as_mut() else {
+            return Ok(());
+        };
+        let none = BTreeMap::new();
+        let state = w
+            .add_channel(self.schemas[0], &topic(method, "state"), "json", &none)
+            .map_err(wrap)?;
+        let stats = w
+            .add_channel(self.schemas[1], &topic(method, "stats"), "json", &none)
+            .map_err(wrap)?;
+        let fault = w
+            .add_channel(self.schemas[2], &topic(method, "fault"), "json", &none)
+            .map_err(wrap)?;
+        self.channels.push(Channels {
+            method,
+            state,
+            stats,
+            fault,
+            written: 0,
+            lost: 0,
+            last_fault: 0,
+            last_t: 0.0,
+        });
+        Ok(())
+    }
+
+    fn put(&mut self, channel: u16, t: f64, json: &impl Serialize) -> Result<(), RecordError> {
+        self.buf.clear();
+        // Serialising plain numbers into a Vec cannot fail.
+        let _ = serde_json::to_writer(&mut self.buf, json);
+        let ns = (t.max(0.0) * 1e9).round() as u64;
+        self.sequence = self.sequence.wrapping_add(1);
+        let header = MessageHeader {
+            channel_id: channel,
+            sequence: self.sequence,
+            log_time: ns,
+            publish_time: ns,
+        };
+        let Some(w) = self.writer.as_mut() else {
+            return Ok(());
+        };
+        w.write_to_known_channel(&header, &self.buf)
+            .map_err(self.wrap())
+    }
+
+    /// One state sample of the current method's run.
+    pub fn state(&mut self, st: &DriveState) -> Result<(), RecordError> {
+        let Some(ch) = self.channels.last() else {
+            return Ok(());
+        };
+        let (state_ch, fault_ch, last_fault) = (ch.state, ch.fault, ch.last_fault);
+        let t = st.sample_time_s;
+        let r = self.trajectory.at(t);
+        let (i_d, i_q) = dq_currents(st.theta_rad, self.n_r, st.i_a_a, st.i_b_a);
+        let rec = StateRecord {
+            t,
+            seq: st.seq,
+            theta: st.theta_rad,
+            theta_d: r.theta,
+            error: r.theta - st.theta_rad,
+            omega: st.omega_rad_s,
+            omega_d: r.omega,
+            i_a: st.i_a_a,
+            i_b: st.i_b_a,
+            i_d,
+            i_q,
+            v_a: st.v_a_v,
+            v_b: st.v_b_v,
+            bus: st.bus_voltage_v,
+            torque: self.k_m * i_q,
+            flags: st.flags,
+            fault: st.fault,
+        };
+        self.put(state_ch, t, &rec)?;
+        if st.fault != last_fault {
+            let f = FaultRecord {
+                t,
+                seq: st.seq,
+                fault: st.fault,
+            };
+            self.put(fault_ch, t, &f)?;
+        }
+        if let Some(ch) = self.channels.last_mut() {
+            ch.written += 1;
+            ch.last_fault = st.fault;
+            ch.last_t = t;
+        }
+        Ok(())
+    }
+
+    /// Samples of the current run the monitor never saw.
+    pub fn lost(&mut self, n: u64) {
+        if let Some(ch) = self.channels.last_mut() {
+            ch.lost += n;
+        }
+    }
+
+    /// A loop's statistics report, at the latest sample's time.
+    pub fn stats(&mut self, r: &StatsReport) -> Result<(), RecordError> {
+        let Some(ch) = self.channels.last() else {
+            return Ok(());
+        };
+        let (channel, t) = (ch.stats, ch.last_t);
+        let role = match r.role {
+            stepdrive_shared::stats::roles::PLANT => "plant",
+            stepdrive_shared::stats::roles::CURRENT_LOOP => "current-loop",
+            stepdrive_shared::stats::roles::POSITION_LOOP => "position-loop",
+            _ => "other",
+        };
+        let rec = StatsRecord {
+            t,
+            role: role.to_string(),
+            cycles: r.cycles,
+            misses: r.misses,
+            planned: r.planned,
+            overruns: r.overruns,
+            lost: r.lost,
+            longest_miss_run: r.longest_miss_run,
+        };
+        self.put(channel, t, &rec)
+    }
+
+    /// Writes what was recorded and lost, then the summary: the file is complete.
+    pub fn finish(mut self) -> Result<(), RecordError> {
+        self.close()
+    }
+
+    fn close(&mut self) -> Result<(), RecordError> {
+        let Some(mut w) = self.writer.take() else {
+            return Ok(());
+        };
+        let wrap = |source| RecordError::Write {
+            path: self.path.clone(),
+            source,
+        };
+        let mut counts = BTreeMap::new();
+        for ch in &self.channels {
+            let m = ch.method.as_str();
+            counts.insert(format!("{m}.samples_recorded"), ch.written.to_string());
+            counts.insert(format!("{m}.samples_lost"), ch.lost.to_string());
+        }
+        w.write_metadata(&Metadata {
+            name: "recording".into(),
+            metadata: counts,
+        })
+        .map_err(wrap)?;
+        w.finish().map_err(wrap)?;
+        Ok(())
+    }
+}
+
+impl Drop for Recording {
+    fn drop(&mut self) {
+        if let Err(e) = self.close() {
+            tracing::error!("{e:#}");
+        }
+    }
+}
+
+/// A recording read back: per method, its states in order, and the file's metadata.
+#[derive(Debug, Default)]
+pub struct Recorded {
+    pub runs: Vec<(String, Vec<StateRecord>)>,
+    pub stats: Vec<(String, Vec<StatsRecord>)>,
+    pub faults: Vec<(String, Vec<FaultRecord>)>,
+    pub metadata: BTreeMap<String, BTreeMap<String, String>>,
+}
+
+impl Recorded {
+    pub fn read(path: &Path) -> Result<Self, RecordError> {
+        let bytes = std::fs::read(path).map_err(|source| RecordError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let parse = |source| RecordError::Parse {
+            path: path.to_path_buf(),
+            source,
+        };
+        let mut out = Recorded::default();
+        for m in mcap::MessageStream::new(&bytes).map_err(parse)? {
+            let m = m.map_err(parse)?;
+            let topic = m.channel.topic.clone();
+            let bad = |source| RecordError::Message {
+                path: path.to_path_buf(),
+                topic: topic.clone(),
+                source,
+            };
+            let Some((method, kind)) = topic.trim_start_matches('/').split_once('/') else {
+                continue;
+            };
+            match kind {
+                "state" => push(
+                    &mut out.runs,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "stats" => push(
+                    &mut out.stats,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "fault" => push(
+                    &mut out.faults,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                _ => {}
+            }
+        }
+        let summary = mcap::Summary::read(&bytes).map_err(parse)?;
+        if let Some(summary) = summary {
+            for index in &summary.metadata_indexes {
+                let meta = mcap::read::metadata(&bytes, index).map_err(parse)?;
+                out.metadata.insert(meta.name, meta.metadata);
+            }
+        }
+        Ok(out)
+    }
+
+    /// The scenario the recording was made with.
+    pub fn scenario(&self) -> Option<Scenario> {
+        let text = self.metadata.get("scenario")?.get("toml")?;
+        Scenario::from_toml_str(text).ok()
+    }
+}
+
+fn push<T>(list: &mut Vec<(String, Vec<T>)>, method: &str, item: T) {
+    match list.iter_mut().find(|(m, _)| m == method) {
+        Some((_, v)) => v.push(item),
+        None => list.push((method.to_string(), vec![item])),
+    }
+}
+
+/// Writes each topic of the recording at `path` as a CSV file in `dir` (a header of field
+/// names with units, then one row per message); returns the files and their row counts.
+pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, RecordError> {
+    use std::io::Write;
+    let rec = Recorded::read(path)?;
+    let create = |p: &Path| -> Result<BufWriter<File>, RecordError> {
+        File::create(p)
+            .map(BufWriter::new)
+            .map_err(|source| RecordError::Create {
+                path: p.to_path_buf(),
+                source,
+            })
+    };
+    std::fs::create_dir_all(dir).map_err(|source| RecordError::Create {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let io = |p: &Path| {
+        let p = p.to_path_buf();
+        move |source| RecordError::Create {
+            path: p.clone(),
+            source,
+        }
+    };
+    let mut written = Vec::new();
+    for (method, states) in &rec.runs {
+        let p = dir.join(format!("{method}_state.csv"));
+        let mut f = create(&p)?;
+        let header: Vec<String> = STATE_FIELDS
+            .iter()
+            .map(|(n, u)| {
+                if u.is_empty() {
+                    n.to_string()
+                } else {
+                    format!("{n} [{u}]")
+                }
+            })
+            .collect();
+        writeln!(f, "{}", header.join(",")).map_err(io(&p))?;
+        for s in states {
+            writeln!(
+                f,
+                "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+                s.t,
+                s.seq,
+                s.theta,
+                s.theta_d,
+                s.error,
+                s.omega,
+                s.omega_d,
+                s.i_a,
+                s.i_b,
+                s.i_d,
+                s.i_q,
+                s.v_a,
+                s.v_b,
+                s.bus,
+                s.torque,
+                s.flags,
+                s.fault
+            )
+            .map_err(io(&p))?;
+        }
+        f.flush().map_err(io(&p))?;
+        written.push((p, states.len()));
+    }
+    for (method, stats) in &rec.stats {
+        let p = dir.join(format!("{method}_stats.csv"));
+        let mut f = create(&p)?;
+        writeln!(
+            f,
+            "t [s],role,cycles,misses,planned,overruns,lost,longest_miss_run"
+        )
+        .map_err(io(&p))?;
+        for s in stats {
+            writeln!(
+                f,
+                "{},{},{},{},{},{},{},{}",
+                s.t, s.role, s.cycles, s.misses, s.planned, s.overruns, s.lost, s.longest_miss_run
+            )
+            .map_err(io(&p))?;
+        }
+        f.flush().map_err(io(&p))?;
+        written.push((p, stats.len()));
+    }
+    for (method, faults) in &rec.faults {
+        let p = dir.join(format!("{method}_fault.csv"));
+        let mut f = create(&p)?;
+        writeln!(f, "t [s],seq,fault").map_err(io(&p))?;
+        for s in faults {
+            writeln!(f, "{},{},{}", s.t, s.seq, s.fault).map_err(io(&p))?;
+        }
+        f.flush().map_err(io(&p))?;
+        written.push((p, faults.len()));
+    }
+    Ok(written)
+}

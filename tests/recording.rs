@@ -1,0 +1,214 @@
+//! Recording, plotting and exporting a run: the MCAP file read back with the `mcap` reader,
+//! against the run's own JSON figures; a recording cut short by Ctrl-C or a dead child is
+//! still a finished file; the plots and CSVs hold what the recording holds.
+
+mod common;
+
+use common::*;
+use std::process::{Command, Stdio};
+use std::time::Duration;
+use stepdrive_monitor::recording::Recorded;
+
+/// Every channel of the file has a schema, and the file has its summary (what a reader
+/// such as PlotJuggler needs).
+fn assert_finished(path: &std::path::Path) -> Vec<String> {
+    let bytes = std::fs::read(path).expect("the recording exists");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("a readable file")
+        .expect("a summary section: the file was finished");
+    let mut topics: Vec<String> = summary
+        .channels
+        .values()
+        .map(|c| {
+            let schema = c.schema.as_ref().expect("every channel has a schema");
+            assert_eq!(schema.encoding, "jsonschema", "{}", c.topic);
+            assert_eq!(c.message_encoding, "json", "{}", c.topic);
+            c.topic.clone()
+        })
+        .collect();
+    topics.sort();
+    topics
+}
+
+#[test]
+fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("record");
+    let scenario = dir.file("short.toml", SHORT);
+    let json = dir.path("run.json");
+    let mcap = dir.path("run.mcap");
+    let figs = dir.path("figs");
+    let inst = instance("record");
+    let out = stepdrive(&[
+        "run",
+        "--instance",
+        &inst,
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+        "--record",
+        mcap.to_str().unwrap(),
+        "--plots",
+        figs.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let topics = assert_finished(&mcap);
+    let expected: Vec<String> = ["lyapunov", "proposed"]
+        .iter()
+        .flat_map(|m| ["fault", "state", "stats"].map(|k| format!("/{m}/{k}")))
+        .collect();
+    assert_eq!(topics, expected);
+    let doc = read_json(&json);
+    let rec = Recorded::read(&mcap).expect("read back");
+    assert_eq!(
+        rec.scenario().expect("the scenario is in the file").name,
+        "short"
+    );
+    for (method, states) in &rec.runs {
+        let run = run_of(&doc, method);
+        assert_eq!(states.len() as f64, num(run, "samples"), "{method}");
+        assert!(
+            states.windows(2).all(|w| w[1].seq == w[0].seq + 1),
+            "{method}"
+        );
+        // The figures the monitor computed, from the very samples in the file.
+        let max = states.iter().map(|s| s.error.abs()).fold(0.0, f64::max);
+        assert_eq!(max, num(run, "max_abs_error_rad"), "{method}");
+        let last = states.last().expect("samples");
+        assert!((last.theta_d - last.theta - last.error).abs() < 1e-15);
+        let meta = &rec.metadata["recording"];
+        assert_eq!(
+            meta[&format!("{method}.samples_recorded")],
+            states.len().to_string()
+        );
+        assert_eq!(meta[&format!("{method}.samples_lost")], "0");
+    }
+    // The plots: every figure as SVG and PNG, both methods named in the legend.
+    for name in [
+        "position",
+        "error",
+        "error_log",
+        "currents",
+        "dq_currents",
+        "voltages",
+        "torque",
+    ] {
+        let svg = std::fs::read_to_string(figs.join(format!("{name}.svg"))).expect(name);
+        assert!(
+            svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"),
+            "{name}"
+        );
+        assert!(
+            svg.contains("proposed") && svg.contains("lyapunov"),
+            "{name}"
+        );
+        let png = std::fs::File::open(figs.join(format!("{name}.png"))).expect(name);
+        let info = png::Decoder::new(png)
+            .read_info()
+            .expect("a PNG that decodes");
+        let (w, h) = stepdrive_monitor::plot::PNG_SIZE;
+        assert_eq!((info.info().width, info.info().height), (w, h), "{name}");
+    }
+    assert!(std::fs::read_to_string(figs.join("error.svg"))
+        .expect("error.svg")
+        .contains("eq. (7) bound"));
+    // CSV: a header and one row per recorded sample.
+    let csv = dir.path("csv");
+    let out = stepdrive(&[
+        "export",
+        mcap.to_str().unwrap(),
+        "--csv",
+        csv.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    for (method, states) in &rec.runs {
+        let text = std::fs::read_to_string(csv.join(format!("{method}_state.csv"))).expect("csv");
+        let mut lines = text.lines();
+        let header = lines.next().expect("header");
+        assert!(header.starts_with("t [s],seq,theta [rad],theta_d [rad],error [rad]"));
+        assert_eq!(header.split(',').count(), 17);
+        assert_eq!(lines.count(), states.len(), "{method}");
+    }
+}
+
+/// Starts a long lockstep run with a recording; returns it once samples are flowing.
+fn start_recorded_run(dir: &TempDir, inst: &str, mcap: &std::path::Path) -> std::process::Child {
+    // 2 kHz with a 300 s hold: it runs for many seconds, and its file grows slowly.
+    let long = slow_scenario().replace("hold_s = 0.15", "hold_s = 300.0");
+    let scenario = dir.file("long.toml", &long);
+    let child = Command::new(exe())
+        .args([
+            "run",
+            "--method",
+            "proposed",
+            "--instance",
+            inst,
+            "--scenario",
+        ])
+        .arg(&scenario)
+        .arg("--record")
+        .arg(mcap)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn run");
+    assert!(
+        wait_until(Duration::from_secs(30), || {
+            std::fs::metadata(mcap).is_ok_and(|m| m.len() > 1_000_000)
+        }),
+        "no samples recorded"
+    );
+    child
+}
+
+#[test]
+fn a_recording_cut_short_by_ctrl_c_or_a_dead_child_is_finished() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("recordcut");
+    for (case, victim) in [("ctrl-c", None), ("dead child", Some("\0current-loop\0"))] {
+        let inst = instance(&format!("recordcut{}", victim.is_some()));
+        let mcap = dir.path(&format!("{}.mcap", victim.is_some()));
+        let mut run = start_recorded_run(&dir, &inst, &mcap);
+        let target = match victim {
+            None => run.id(),
+            Some(role) => *processes_with(&inst)
+                .iter()
+                .find(|pid| {
+                    std::fs::read(format!("/proc/{pid}/cmdline"))
+                        .is_ok_and(|c| String::from_utf8_lossy(&c).contains(role))
+                })
+                .expect("the current loop"),
+        };
+        let signal = if victim.is_some() {
+            libc::SIGKILL
+        } else {
+            libc::SIGINT
+        };
+        unsafe { libc::kill(target as i32, signal) };
+        let status = wait_with_timeout(&mut run, Duration::from_secs(30));
+        assert_eq!(
+            status.code(),
+            Some(if victim.is_some() { 5 } else { 130 }),
+            "{case}"
+        );
+        assert_finished(&mcap);
+        let rec = Recorded::read(&mcap).expect(case);
+        let states = &rec.runs[0].1;
+        assert!(states.len() > 1000, "{case}: {} samples", states.len());
+        assert_eq!(
+            rec.metadata["recording"]["proposed.samples_recorded"],
+            states.len().to_string(),
+            "{case}"
+        );
+    }
+}

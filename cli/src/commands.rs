@@ -387,8 +387,35 @@ pub fn reset(a: ResetArgs) -> Result<()> {
 pub fn monitor(a: MonitorArgs) -> Result<()> {
     let s = a.scenario.load()?;
     let json = JsonOut::create(a.json.as_ref())?;
-    let report = stepdrive_monitor::attach::watch(&a.instance, &s, a.method, a.peer_timeout_s)?;
+    let report =
+        stepdrive_monitor::attach::watch(&a.instance, &s, a.method, a.peer_timeout_s, None)?;
     conclude(&s, &[report], json)
+}
+
+#[derive(Args, Debug)]
+pub struct RecordArgs {
+    /// The recording to write (MCAP; see `run --record`).
+    file: PathBuf,
+    #[command(flatten)]
+    watch: MonitorArgs,
+}
+
+/// `monitor` with a recording: attaches to a running stack (one started by hand too) and
+/// records until its last sample, Ctrl-C, or its silence; the file is finished on each.
+pub fn record(a: RecordArgs) -> Result<()> {
+    let w = a.watch;
+    let s = w.scenario.load()?;
+    let json = JsonOut::create(w.json.as_ref())?;
+    let mut recording = Recording::create(&a.file, &s)?;
+    let report = stepdrive_monitor::attach::watch(
+        &w.instance,
+        &s,
+        w.method,
+        w.peer_timeout_s,
+        Some(&mut recording),
+    );
+    close_recording(Some(recording), None);
+    conclude(&s, &[report?], json)
 }
 
 pub fn scenario(a: CheckArgs) -> Result<()> {

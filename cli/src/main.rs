@@ -56,6 +56,9 @@ enum Cmd {
     Plot(commands::PlotArgs),
     /// Write a recording's topics as CSV files, one per topic (time in s, SI columns).
     Export(commands::ExportArgs),
+    /// Attach to a running stack (one started by hand too) and record it to an MCAP file
+    /// until its last sample or Ctrl-C, then print its figures as `monitor` does.
+    Record(commands::RecordArgs),
     /// Print the default scenario as TOML, or check a scenario file.
     Scenario(commands::CheckArgs),
     /// Print the default deployment (wait strategies, priorities, CPUs, timeouts, watchdog,
@@ -102,6 +105,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::PositionLoop(a) => roles::position_loop(a),
         Cmd::Scenario(a) => commands::scenario(a),
         Cmd::Plot(a) => commands::plot(a),
+        Cmd::Record(a) => commands::record(a),
         Cmd::Export(a) => commands::export(a),
         Cmd::Reset(a) => commands::reset(a),
         Cmd::Monitor(a) => commands::monitor(a),

@@ -8,6 +8,7 @@
 
 use crate::metrics::{Metrics, RunReport};
 use crate::outcome::{fault_names, Outcome, LATCHED};
+use crate::recording::Recording;
 use anyhow::{bail, Result};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::clock::monotonic_ns;
@@ -86,12 +87,14 @@ pub fn describe(r: &ResetResult) -> String {
 
 /// Computes the figures of the run on `instance` from its state stream, until its last
 /// sample, the stack going silent for `peer_timeout`, or Ctrl-C. `scenario` must be the
-/// stack's (its fingerprint is checked); `method` labels the report.
+/// stack's (its fingerprint is checked); `method` labels the report. With `recording`,
+/// every sample seen goes to the file, and those missed are counted.
 pub fn watch(
     instance: &str,
     scenario: &Scenario,
     method: Method,
     peer_timeout: Duration,
+    mut recording: Option<&mut Recording>,
 ) -> Result<RunReport> {
     // A monitor may be started before the stack: it waits for it.
     let mut bus = IpcBus::attach(instance, "monitor", Duration::from_secs(30))?;
@@ -106,6 +109,10 @@ pub fn watch(
     let mode = bus.mode();
     let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let mut metrics = Metrics::new(scenario);
+    if let Some(r) = recording.as_deref_mut() {
+        r.begin(method)?;
+    }
+    let mut last_seq: Option<u64> = None;
     let mut last_heard = Instant::now();
     let (mut first_ns, mut last_ns) = (None, 0);
     let started = Instant::now();
@@ -115,6 +122,14 @@ pub fn watch(
             first_ns.get_or_insert(s.publish_time_ns);
             last_ns = s.publish_time_ns;
             metrics.push(&s);
+            if let Some(r) = recording.as_deref_mut() {
+                // Attached late or fallen behind: the samples never seen are counted.
+                if let Some(gap) = last_seq.map(|q| s.seq.saturating_sub(q + 1)) {
+                    r.lost(gap);
+                }
+                r.state(&s)?;
+            }
+            last_seq = Some(s.seq);
             last_heard = Instant::now();
             last |= s.flags & state_flags::LAST != 0;
         }

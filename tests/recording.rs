@@ -212,3 +212,91 @@ fn a_recording_cut_short_by_ctrl_c_or_a_dead_child_is_finished() {
         );
     }
 }
+
+/// The figures of a JSON document without what depends on the wall clock.
+fn figures(doc: &serde_json::Value) -> serde_json::Value {
+    let mut doc = doc.clone();
+    for run in doc["runs"].as_array_mut().expect("runs") {
+        let run = run.as_object_mut().expect("a run");
+        run.remove("wall_time_s");
+        run.remove("timing");
+    }
+    doc
+}
+
+/// The scope only reads: a lockstep run with a scope attached (in a pseudo-terminal, as a
+/// user's) gives bit-identical results to one without, and the scope leaves when told.
+#[test]
+fn a_scope_attached_to_a_lockstep_run_changes_nothing() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("scope");
+    // 2 kHz and a few seconds of hold: long enough to attach to, quick in lockstep.
+    let long = slow_scenario().replace("hold_s = 0.15", "hold_s = 20.0");
+    let scenario = dir.file("long.toml", &long);
+    let sc = scenario.to_str().unwrap();
+    let run = |inst: &str, json: &std::path::Path| {
+        stepdrive(&[
+            "run",
+            "--method",
+            "proposed",
+            "--instance",
+            inst,
+            "--scenario",
+            sc,
+            "--json",
+            json.to_str().unwrap(),
+        ])
+    };
+    let plain = dir.path("plain.json");
+    let out = run(&instance("scope-plain"), &plain);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    // The scope waits for the stack's services to appear, so it starts first.
+    let inst = instance("scope");
+    // A pseudo-terminal without a size has no cells to draw: give it one.
+    let cmd = format!(
+        "stty cols 120 rows 40; exec {} scope --instance {inst} --scenario {sc}",
+        exe()
+    );
+    let mut scope = Command::new("script")
+        .args(["-qfec", &cmd, "/dev/null"])
+        .env("TERM", "xterm")
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("script(1) runs the scope in a pseudo-terminal");
+    std::thread::sleep(Duration::from_millis(300));
+    let watched = dir.path("watched.json");
+    let out = run(&inst, &watched);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(
+        scope.try_wait().expect("wait").is_none(),
+        "the scope is still up"
+    );
+    // Its screen shows the stack it watched.
+    let pid = processes_with(&format!("scope --instance {inst}"))
+        .into_iter()
+        .find(|&p| {
+            std::fs::read(format!("/proc/{p}/cmdline"))
+                .is_ok_and(|c| c.starts_with(exe().as_bytes()))
+        })
+        .expect("the scope process");
+    unsafe { libc::kill(pid as i32, libc::SIGTERM) };
+    let status = wait_with_timeout(&mut scope, Duration::from_secs(10));
+    let mut screen = String::new();
+    use std::io::Read;
+    if let Some(mut o) = scope.stdout.take() {
+        let _ = o.read_to_string(&mut screen);
+    }
+    assert!(status.success(), "the scope left cleanly: {status:?}");
+    assert!(screen.contains("stepdrive scope"), "{screen}");
+    assert_eq!(figures(&read_json(&watched)), figures(&read_json(&plain)));
+}

@@ -484,3 +484,18 @@ pub fn export(a: ExportArgs) -> Result<()> {
     }
     Ok(())
 }
+
+#[derive(Args, Debug)]
+pub struct ScopeArgs {
+    /// The stack's instance name.
+    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    instance: String,
+    /// The stack's scenario (its fingerprint must match the stack's).
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+}
+
+pub fn scope(a: ScopeArgs) -> Result<()> {
+    let s = a.scenario.load()?;
+    stepdrive_monitor::scope::run_scope(&a.instance, &s)
+}

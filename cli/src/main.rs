@@ -56,6 +56,9 @@ enum Cmd {
     Plot(commands::PlotArgs),
     /// Write a recording's topics as CSV files, one per topic (time in s, SI columns).
     Export(commands::ExportArgs),
+    /// A live terminal view of a running stack: rolling e, ω, i_d/i_q, v_a/v_b, each
+    /// loop's timing, faults in red. Only reads: it never disturbs the loops.
+    Scope(commands::ScopeArgs),
     /// Attach to a running stack (one started by hand too) and record it to an MCAP file
     /// until its last sample or Ctrl-C, then print its figures as `monitor` does.
     Record(commands::RecordArgs),
@@ -106,6 +109,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::Scenario(a) => commands::scenario(a),
         Cmd::Plot(a) => commands::plot(a),
         Cmd::Record(a) => commands::record(a),
+        Cmd::Scope(a) => commands::scope(a),
         Cmd::Export(a) => commands::export(a),
         Cmd::Reset(a) => commands::reset(a),
         Cmd::Monitor(a) => commands::monitor(a),

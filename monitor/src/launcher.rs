@@ -558,116 +558,154 @@ fn supervise(
     let mut files_removed = false;
     let mut next_minute = Instant::now() + Duration::from_secs(60);
     let mut misses_at_minute = 0;
-    loop {
-        let mut got = false;
-        stats.drain(stats_sub, w.recording.as_deref_mut())?;
-        while let Some(state) = states.receive()? {
-            got = true;
-            let expected = w.last_seq.map_or(0, |q| q + 1);
-            w.last_seq = Some(state.seq);
-            if state.seq < expected {
-                // A sample repeated or published after a newer one: whatever the mode, the
-                // plant (or bridge) broke its contract.
-                return Ok(Ending::Stopped(
-                    Outcome::ProcessDied,
-                    format!(
-                        "the plant published sample {} after sample {}",
-                        state.seq,
-                        expected - 1
-                    ),
-                ));
-            }
-            if state.seq != expected {
-                if !realtime {
+    // On a terminal a bar with the simulated time, misses and faults so far; otherwise (a
+    // log, CI) the plain progress lines below.
+    let bar = std::io::IsTerminal::is_terminal(&std::io::stderr()).then(|| {
+        let bar = indicatif::ProgressBar::new(total);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{prefix} [{bar:30}] {percent:>3} % {msg} ({elapsed})",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+            .progress_chars("=> "),
+        );
+        bar.set_prefix(method.to_string());
+        bar
+    });
+    let mut next_bar = Instant::now();
+    let ending = (|| -> Result<Ending> {
+        loop {
+            let mut got = false;
+            stats.drain(stats_sub, w.recording.as_deref_mut())?;
+            while let Some(state) = states.receive()? {
+                got = true;
+                let expected = w.last_seq.map_or(0, |q| q + 1);
+                w.last_seq = Some(state.seq);
+                if state.seq < expected {
+                    // A sample repeated or published after a newer one: whatever the mode, the
+                    // plant (or bridge) broke its contract.
                     return Ok(Ending::Stopped(
                         Outcome::ProcessDied,
                         format!(
-                            "monitor expected sample {expected}, got {}: samples were lost",
-                            state.seq
+                            "the plant published sample {} after sample {}",
+                            state.seq,
+                            expected - 1
                         ),
                     ));
                 }
-                w.monitor_lost += state.seq - expected;
+                if state.seq != expected {
+                    if !realtime {
+                        return Ok(Ending::Stopped(
+                            Outcome::ProcessDied,
+                            format!(
+                                "monitor expected sample {expected}, got {}: samples were lost",
+                                state.seq
+                            ),
+                        ));
+                    }
+                    w.monitor_lost += state.seq - expected;
+                }
+                w.first_ns.get_or_insert(state.publish_time_ns);
+                w.last_ns = state.publish_time_ns;
+                w.metrics.push(&state);
+                w.record(&state);
+                if state.flags & state_flags::LAST != 0 {
+                    return Ok(Ending::Last);
+                }
             }
-            w.first_ns.get_or_insert(state.publish_time_ns);
-            w.last_ns = state.publish_time_ns;
-            w.metrics.push(&state);
-            w.record(&state);
-            if state.flags & state_flags::LAST != 0 {
-                return Ok(Ending::Last);
+            if got {
+                if !files_removed {
+                    // A sample means every child is up, with its files read.
+                    files.remove();
+                    files_removed = true;
+                    let me = std::process::id();
+                    w.rss_start = children
+                        .iter()
+                        .map(|c| (c.role(), c.pid()))
+                        .chain([("monitor", me)])
+                        .map(|(role, pid)| (role, pid, rss_kib(pid).unwrap_or(0)))
+                        .collect();
+                }
+                last_sample_at = Instant::now();
             }
-        }
-        if got {
-            if !files_removed {
-                // A sample means every child is up, with its files read.
-                files.remove();
-                files_removed = true;
-                let me = std::process::id();
-                w.rss_start = children
-                    .iter()
-                    .map(|c| (c.role(), c.pid()))
-                    .chain([("monitor", me)])
-                    .map(|(role, pid)| (role, pid, rss_kib(pid).unwrap_or(0)))
-                    .collect();
+            for child in children.iter_mut() {
+                if let Some(status) = child.poll_exit()? {
+                    return Ok(Ending::Stopped(
+                        Outcome::ProcessDied,
+                        child.describe_failure(status),
+                    ));
+                }
             }
-            last_sample_at = Instant::now();
-        }
-        for child in children.iter_mut() {
-            if let Some(status) = child.poll_exit()? {
+            if termination_requested() {
                 return Ok(Ending::Stopped(
-                    Outcome::ProcessDied,
-                    child.describe_failure(status),
+                    Outcome::Interrupted,
+                    "interrupted (SIGINT/SIGTERM); all stack processes were stopped".to_string(),
                 ));
             }
-        }
-        if termination_requested() {
-            return Ok(Ending::Stopped(
-                Outcome::Interrupted,
-                "interrupted (SIGINT/SIGTERM); all stack processes were stopped".to_string(),
-            ));
-        }
-        let limit = if w.metrics.samples() == 0 {
-            d.startup_timeout()
-        } else {
-            d.peer_timeout()
-        } + Duration::from_secs(1);
-        if last_sample_at.elapsed() > limit {
-            return Ok(Ending::Stopped(
-                Outcome::ProcessDied,
-                format!(
-                    "no state sample for {:.1} s (after {} of {total}); the stack is stuck",
-                    last_sample_at.elapsed().as_secs_f64(),
-                    w.metrics.samples()
-                ),
-            ));
-        }
-        if realtime && Instant::now() >= next_minute {
-            let misses = stats.latest[roles::PLANT as usize].map_or(0, |p| p.misses);
-            w.misses_per_minute
-                .push(misses.saturating_sub(misses_at_minute));
-            misses_at_minute = misses;
-            next_minute += Duration::from_secs(60);
-        }
-        if Instant::now() >= next_progress {
-            let k = w.last_seq.map_or(0, |q| q + 1);
-            let done_s = k as f64 / s.rates.current_loop_hz;
-            let misses = stats.latest[roles::PLANT as usize].map_or(0, |p| p.misses);
-            tracing::info!(
-                "{method}: {done_s:.2} of {duration:.2} s ({:.0} %), {:.1} s elapsed{}",
-                100.0 * k as f64 / total as f64,
-                started.elapsed().as_secs_f64(),
+            let limit = if w.metrics.samples() == 0 {
+                d.startup_timeout()
+            } else {
+                d.peer_timeout()
+            } + Duration::from_secs(1);
+            if last_sample_at.elapsed() > limit {
+                return Ok(Ending::Stopped(
+                    Outcome::ProcessDied,
+                    format!(
+                        "no state sample for {:.1} s (after {} of {total}); the stack is stuck",
+                        last_sample_at.elapsed().as_secs_f64(),
+                        w.metrics.samples()
+                    ),
+                ));
+            }
+            if realtime && Instant::now() >= next_minute {
+                let misses = stats.latest[roles::PLANT as usize].map_or(0, |p| p.misses);
+                w.misses_per_minute
+                    .push(misses.saturating_sub(misses_at_minute));
+                misses_at_minute = misses;
+                next_minute += Duration::from_secs(60);
+            }
+            if let Some(bar) = bar.as_ref().filter(|_| Instant::now() >= next_bar) {
+                let k = w.last_seq.map_or(0, |q| q + 1);
+                let misses = stats.latest[roles::PLANT as usize].map_or(0, |p| p.misses);
+                let mut msg = format!(
+                    "{:.2} of {duration:.2} s",
+                    k as f64 / s.rates.current_loop_hz
+                );
                 if realtime {
-                    format!(", {misses} deadline misses so far")
-                } else {
-                    String::new()
+                    msg += &format!(", {misses} misses");
                 }
-            );
-            next_progress += Duration::from_secs(if realtime { 5 } else { 1 });
-            // The last reading while every child lives: one that has exited has none.
-            w.read_rss_end();
+                msg += &format!(", {} faulted samples", w.metrics.faulted_samples());
+                bar.set_position(k);
+                bar.set_message(msg);
+                next_bar = Instant::now() + Duration::from_millis(200);
+            }
+            if Instant::now() >= next_progress {
+                let k = w.last_seq.map_or(0, |q| q + 1);
+                let done_s = k as f64 / s.rates.current_loop_hz;
+                let misses = stats.latest[roles::PLANT as usize].map_or(0, |p| p.misses);
+                if bar.is_none() {
+                    tracing::info!(
+                        "{method}: {done_s:.2} of {duration:.2} s ({:.0} %), {:.1} s elapsed{}",
+                        100.0 * k as f64 / total as f64,
+                        started.elapsed().as_secs_f64(),
+                        if realtime {
+                            format!(", {misses} deadline misses so far")
+                        } else {
+                            String::new()
+                        }
+                    );
+                }
+                next_progress += Duration::from_secs(if realtime { 5 } else { 1 });
+                // The last reading while every child lives: one that has exited has none.
+                w.read_rss_end();
+            }
+            std::thread::sleep(Duration::from_micros(if realtime { 1000 } else { 500 }));
         }
-        std::thread::sleep(Duration::from_micros(if realtime { 1000 } else { 500 }));
+    })();
+    if let Some(bar) = bar {
+        bar.finish_and_clear();
     }
+    ending
 }
 
 /// A loopback UDP address no one is using right now, for the emulated drive.

@@ -183,6 +183,11 @@ impl Metrics {
         self.last_time = t;
     }
 
+    /// Samples with any fault bit so far.
+    pub fn faulted_samples(&self) -> u64 {
+        self.faults
+    }
+
     pub fn samples(&self) -> u64 {
         self.samples
     }

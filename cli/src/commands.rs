@@ -47,8 +47,8 @@ pub struct RunArgs {
     /// finished on every exit the run controls, Ctrl-C and a dead child included.
     #[arg(long, value_name = "FILE")]
     record: Option<PathBuf>,
-    /// Draw the paper's figures of the run into DIR (SVG and PNG; needs no --record, a
-    /// temporary recording is made if none is asked for).
+    /// Draw the paper's figures of the run into DIR (SVG and PNG). Without --record the
+    /// recording they are drawn from is kept as DIR/run.mcap.
     #[arg(long, value_name = "DIR")]
     plots: Option<PathBuf>,
     #[command(flatten)]

@@ -6,8 +6,8 @@
 use std::f64::consts::{FRAC_PI_2, TAU};
 use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event};
 use stepdrive_drive_protocol::{
-    crc32, decode, encode, faults, frame_bytes, status, Action, Command, Config, FaultReport,
-    Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
+    crc32, decode, encode, faults, frame_bytes, reseal, status, Action, Command, Config,
+    FaultReport, Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
 use stepdrive_emulated_drive::{DriveCore, Reply};
 use stepdrive_shared::Scenario;
@@ -547,9 +547,7 @@ fn h5_frames_of_another_version_are_counted_with_it() {
     let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
     let mut v2 = frame_bytes(0, Message::Config(config));
     v2[2] = 2;
-    let n = v2.len();
-    let crc = crc32(&v2[..n - 4]);
-    v2[n - 4..].copy_from_slice(&crc.to_le_bytes());
+    reseal(&mut v2);
     assert_eq!(l.on_frame(&v2, 0), Event::Dropped);
     assert_eq!(l.other_version, (1, 2));
 }

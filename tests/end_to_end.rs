@@ -173,16 +173,8 @@ fn a_dying_child_fails_the_run_and_leaves_nothing_behind() {
     let dir = TempDir::new("kill");
     let inst = instance("kill");
     let mut run = start_long_run(&dir, &inst);
-    let victim = processes_with(&inst)
-        .into_iter()
-        .find(|pid| {
-            std::fs::read(format!("/proc/{pid}/cmdline"))
-                .map(|c| String::from_utf8_lossy(&c).contains("\0current-loop\0"))
-                .unwrap_or(false)
-        })
-        .expect("current-loop process");
-    // SAFETY: kill(2) on a PID we just found.
-    unsafe { libc::kill(victim as i32, libc::SIGKILL) };
+    let victim = pid_of_role(&inst, "current-loop").expect("current-loop process");
+    signal(victim, libc::SIGKILL);
     let status = wait_with_timeout(&mut run, Duration::from_secs(30));
     let stderr = stderr_of(&mut run);
     assert_eq!(status.code(), Some(5), "{stderr}");
@@ -203,8 +195,7 @@ fn ctrl_c_stops_the_whole_stack() {
     let dir = TempDir::new("sigint");
     let inst = instance("sigint");
     let mut run = start_long_run(&dir, &inst);
-    // SAFETY: kill(2) on our own child.
-    unsafe { libc::kill(run.id() as i32, libc::SIGINT) };
+    signal(run.id(), libc::SIGINT);
     let status = wait_with_timeout(&mut run, Duration::from_secs(30));
     let stderr = stderr_of(&mut run);
     assert_eq!(status.code(), Some(130), "{stderr}");
@@ -544,15 +535,15 @@ fn killing_the_current_loop_turns_the_drive_outputs_off() {
         current.try_wait().unwrap().is_none(),
         "current loop died early"
     );
-    unsafe { libc::kill(current.id() as i32, libc::SIGKILL) };
+    signal(current.id(), libc::SIGKILL);
     let _ = current.wait();
     // 20 periods at 2 kHz is 10 ms; give the drive a generous second, then stop it.
     std::thread::sleep(Duration::from_secs(1));
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    signal(drive.id(), libc::SIGTERM);
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
     let log = stderr_of(&mut drive);
     for p in [&mut bridge, &mut position] {
-        unsafe { libc::kill(p.id() as i32, libc::SIGTERM) };
+        signal(p.id(), libc::SIGTERM);
         let _ = wait_with_timeout(p, Duration::from_secs(10));
     }
     assert!(
@@ -597,7 +588,7 @@ fn a_silent_drive_is_reported_by_the_bridge() {
         &json,
         &["--drive", &listen, "--peer-timeout-s", "1"],
     );
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    signal(drive.id(), libc::SIGTERM);
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_eq!(out.status.code(), Some(5), "{stderr}");
@@ -721,7 +712,7 @@ fn serial_path_works_over_a_pseudo_terminal_pair() {
         .concat(),
     );
     let out = hardware_run(&scenario, &inst, &json, &["--drive-port", &cable.b]);
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    signal(drive.id(), libc::SIGTERM);
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
     let drive_log = stderr_of(&mut drive);
     assert!(
@@ -772,7 +763,7 @@ fn a_drive_with_an_invalid_config_is_refused_naming_the_field() {
     let mut drive = spawn_logged(&args);
     let started = std::time::Instant::now();
     let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    signal(drive.id(), libc::SIGTERM);
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(!out.status.success(), "{stderr}");

@@ -145,23 +145,17 @@ fn start_recorded_run(dir: &TempDir, inst: &str, mcap: &std::path::Path) -> std:
     // 2 kHz with a 300 s hold: it runs for many seconds, and its file grows slowly.
     let long = slow_scenario().replace("hold_s = 0.15", "hold_s = 300.0");
     let scenario = dir.file("long.toml", &long);
-    let child = Command::new(exe())
-        .args([
-            "run",
-            "--method",
-            "proposed",
-            "--instance",
-            inst,
-            "--scenario",
-        ])
-        .arg(&scenario)
-        .arg("--record")
-        .arg(mcap)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn run");
+    let child = spawn_run(&[
+        "run",
+        "--method",
+        "proposed",
+        "--instance",
+        inst,
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--record",
+        mcap.to_str().unwrap(),
+    ]);
     assert!(
         wait_until(Duration::from_secs(30), || {
             std::fs::metadata(mcap).is_ok_and(|m| m.len() > 1_000_000)
@@ -175,26 +169,22 @@ fn start_recorded_run(dir: &TempDir, inst: &str, mcap: &std::path::Path) -> std:
 fn a_recording_cut_short_by_ctrl_c_or_a_dead_child_is_finished() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("recordcut");
-    for (case, victim) in [("ctrl-c", None), ("dead child", Some("\0current-loop\0"))] {
+    for (case, victim) in [("ctrl-c", None), ("dead child", Some("current-loop"))] {
         let inst = instance(&format!("recordcut{}", victim.is_some()));
         let mcap = dir.path(&format!("{}.mcap", victim.is_some()));
         let mut run = start_recorded_run(&dir, &inst, &mcap);
         let target = match victim {
             None => run.id(),
-            Some(role) => *processes_with(&inst)
-                .iter()
-                .find(|pid| {
-                    std::fs::read(format!("/proc/{pid}/cmdline"))
-                        .is_ok_and(|c| String::from_utf8_lossy(&c).contains(role))
-                })
-                .expect("the current loop"),
+            Some(role) => pid_of_role(&inst, role).expect("the current loop"),
         };
-        let signal = if victim.is_some() {
-            libc::SIGKILL
-        } else {
-            libc::SIGINT
-        };
-        unsafe { libc::kill(target as i32, signal) };
+        signal(
+            target,
+            if victim.is_some() {
+                libc::SIGKILL
+            } else {
+                libc::SIGINT
+            },
+        );
         let status = wait_with_timeout(&mut run, Duration::from_secs(30));
         assert_eq!(
             status.code(),
@@ -289,7 +279,7 @@ fn a_scope_attached_to_a_lockstep_run_changes_nothing() {
                 .is_ok_and(|c| c.starts_with(exe().as_bytes()))
         })
         .expect("the scope process");
-    unsafe { libc::kill(pid as i32, libc::SIGTERM) };
+    signal(pid, libc::SIGTERM);
     let status = wait_with_timeout(&mut scope, Duration::from_secs(10));
     let mut screen = String::new();
     use std::io::Read;

@@ -8,41 +8,8 @@ mod common;
 
 use common::*;
 use serde_json::Value;
-use std::process::{Child, Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
-
-fn spawn_run(args: &[&str]) -> Child {
-    Command::new(exe())
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn stepdrive")
-}
-
-fn stdout_of(child: &mut Child) -> String {
-    let mut s = String::new();
-    use std::io::Read;
-    if let Some(mut o) = child.stdout.take() {
-        let _ = o.read_to_string(&mut s);
-    }
-    s
-}
-
-fn pid_of_role(inst: &str, role: &str) -> Option<u32> {
-    let needle = format!("\0{role}\0");
-    processes_with(inst).into_iter().find(|pid| {
-        std::fs::read(format!("/proc/{pid}/cmdline"))
-            .map(|c| String::from_utf8_lossy(&c).contains(&needle))
-            .unwrap_or(false)
-    })
-}
-
-fn signal(pid: u32, sig: libc::c_int) {
-    // SAFETY: plain kill(2) on a process this test started.
-    unsafe { libc::kill(pid as libc::pid_t, sig) };
-}
 
 /// Finding 1: a realtime run whose current loop stops for 60 ms, six times the watchdog,
 /// loses the motor. It exits 3 with a FAULT headline naming the fault and when it latched,

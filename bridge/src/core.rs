@@ -641,14 +641,7 @@ mod tests {
             let mut stats = StatsReport::default();
             let mut last: Option<u64> = None;
             for (i, (seq, kind, payload)) in frames.into_iter().enumerate() {
-                // A header for `kind` around an arbitrary payload, CRC made to match.
-                let mut bytes = vec![0x44, 0x53, stepdrive_drive_protocol::VERSION, kind % 9];
-                bytes.extend_from_slice(&seq.to_le_bytes());
-                bytes.extend_from_slice(&0u64.to_le_bytes());
-                bytes.extend_from_slice(&(payload.len() as u16).to_le_bytes());
-                bytes.extend_from_slice(&payload);
-                let crc = stepdrive_drive_protocol::crc32(&bytes);
-                bytes.extend_from_slice(&crc.to_le_bytes());
+                let bytes = stepdrive_drive_protocol::raw_frame(seq, kind % 9, &payload);
                 let now = (i as u64 + 1) * PERIOD;
                 c.on_frame(&bytes, now, &mut stats);
                 if let Some((st, rx)) = c.take_sample(&mut stats) {

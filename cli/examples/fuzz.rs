@@ -22,8 +22,8 @@ use stepdrive_bridge::link::EncoderCalibration;
 use stepdrive_drive_protocol::transport::Deframer;
 use stepdrive_drive_protocol::units::default_config;
 use stepdrive_drive_protocol::{
-    cobs_encode, crc32, decode, encode, Action, Command, Config, FaultReport, Frame, Message, Plan,
-    Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
+    cobs_encode, decode, encode, reseal, Action, Command, Config, FaultReport, Frame, Message,
+    Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
 use stepdrive_emulated_drive::DriveCore;
 use stepdrive_shared::scenario::MAX_SAMPLES;
@@ -145,10 +145,8 @@ fn random_frame_bytes(r: &mut Rng, seq: u32) -> Vec<u8> {
             let cut = r.below(bytes.len() + 1);
             bytes.truncate(cut);
         }
-        if r.chance(2) && bytes.len() >= 22 {
-            let end = bytes.len() - 4;
-            let crc = crc32(&bytes[..end]);
-            bytes[end..].copy_from_slice(&crc.to_le_bytes());
+        if r.chance(2) {
+            reseal(&mut bytes);
         }
     }
     bytes

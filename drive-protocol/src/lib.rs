@@ -665,6 +665,32 @@ pub fn is_newer(seq: u32, last: Option<u32>) -> bool {
     }
 }
 
+/// Recomputes the CRC of a frame whose bytes were changed, so that it passes the CRC
+/// check and the receiver's other checks are what meets it (tests and tools). Frames
+/// shorter than a header and a CRC are left as they are.
+pub fn reseal(bytes: &mut [u8]) {
+    if bytes.len() >= HEADER_LEN + CRC_LEN {
+        let end = bytes.len() - CRC_LEN;
+        let crc = crc32(&bytes[..end]);
+        bytes[end..].copy_from_slice(&crc.to_le_bytes());
+    }
+}
+
+/// A frame of any `kind` byte around an arbitrary `payload`, with a matching CRC: what a
+/// receiver must survive whatever the payload says (tests and tools).
+#[cfg(feature = "std")]
+pub fn raw_frame(seq: u32, kind: u8, payload: &[u8]) -> Vec<u8> {
+    let mut bytes = MAGIC.to_le_bytes().to_vec();
+    bytes.extend_from_slice(&[VERSION, kind]);
+    bytes.extend_from_slice(&seq.to_le_bytes());
+    bytes.extend_from_slice(&0u64.to_le_bytes());
+    bytes.extend_from_slice(&(payload.len() as u16).to_le_bytes());
+    bytes.extend_from_slice(payload);
+    bytes.extend_from_slice(&[0; CRC_LEN]);
+    reseal(&mut bytes);
+    bytes
+}
+
 /// One encoded frame as bytes (tests and tools).
 #[cfg(feature = "std")]
 pub fn frame_bytes(seq: u32, message: Message) -> Vec<u8> {
@@ -869,15 +895,6 @@ mod tests {
         }
     }
 
-    /// A frame with a correct CRC whose bytes were changed anyway: a consistent liar.
-    fn relabel_crc(bytes: &mut [u8]) {
-        if bytes.len() >= HEADER_LEN + CRC_LEN {
-            let end = bytes.len() - CRC_LEN;
-            let crc = crc32(&bytes[..end]);
-            bytes[end..].copy_from_slice(&crc.to_le_bytes());
-        }
-    }
-
     proptest! {
         /// Arbitrary bytes: no panic, and whatever is accepted re-encodes to exactly the
         /// bytes it came from (there is one way to write every frame).
@@ -888,7 +905,7 @@ mod tests {
         ) {
             let mut bytes = bytes;
             if lie {
-                relabel_crc(&mut bytes);
+                reseal(&mut bytes);
             }
             if let Ok(frame) = decode(&bytes) {
                 let mut buf = [0u8; MAX_FRAME];
@@ -917,7 +934,7 @@ mod tests {
             if let Some(cut) = cut {
                 bytes.truncate(cut % (bytes.len() + 1));
             }
-            relabel_crc(&mut bytes);
+            reseal(&mut bytes);
             if let Ok(f) = decode(&bytes) {
                 let mut again = [0u8; MAX_FRAME];
                 let m = encode(&f, &mut again);
@@ -995,7 +1012,7 @@ mod tests {
             let mut bytes = frame_bytes(1, message);
             assert!(decode(&bytes).is_ok());
             bytes[reserved_at] = 1;
-            relabel_crc(&mut bytes);
+            reseal(&mut bytes);
             assert_eq!(decode(&bytes), Err(DecodeError::Reserved(message.kind())));
         }
     }

@@ -837,13 +837,7 @@ mod tests {
         proptest!(|(frames in proptest::collection::vec(frame, 1..100))| {
             let mut d = DriveCore::new(&Scenario::default(), 20, 8);
             for (k, (seq, kind, payload)) in frames.into_iter().enumerate() {
-                let mut bytes = vec![0x44, 0x53, stepdrive_drive_protocol::VERSION, kind % 9];
-                bytes.extend_from_slice(&seq.to_le_bytes());
-                bytes.extend_from_slice(&0u64.to_le_bytes());
-                bytes.extend_from_slice(&(payload.len() as u16).to_le_bytes());
-                bytes.extend_from_slice(&payload);
-                let crc = stepdrive_drive_protocol::crc32(&bytes);
-                bytes.extend_from_slice(&crc.to_le_bytes());
+                let bytes = stepdrive_drive_protocol::raw_frame(seq, kind % 9, &payload);
                 d.on_frame(&bytes);
                 d.run_period(k as u32);
                 let Message::Sample(s) = d.sample_frame(0).message else {

@@ -85,6 +85,22 @@ pub fn describe(r: &ResetResult) -> String {
     }
 }
 
+/// Attaches a reader (a monitor, a scope) to the stack on `instance`, waiting up to 30 s
+/// for it to appear (a reader may be started before the stack), and checks that the stack
+/// runs `scenario`: the reader's figures would mean nothing for another.
+pub fn attach_reader(instance: &str, role: &str, scenario: &Scenario) -> Result<IpcBus> {
+    let bus = IpcBus::attach(instance, role, Duration::from_secs(30))?;
+    let ours = Stamp::new(bus.mode(), scenario);
+    if bus.stamp() != &ours {
+        bail!(
+            "instance `{instance}` runs scenario {}; the scenario given is {}",
+            bus.stamp().scenario,
+            ours.scenario
+        );
+    }
+    Ok(bus)
+}
+
 /// Computes the figures of the run on `instance` from its state stream, until its last
 /// sample, the stack going silent for `peer_timeout`, or Ctrl-C. `scenario` must be the
 /// stack's (its fingerprint is checked); `method` labels the report. With `recording`,
@@ -96,16 +112,7 @@ pub fn watch(
     peer_timeout: Duration,
     mut recording: Option<&mut Recording>,
 ) -> Result<RunReport> {
-    // A monitor may be started before the stack: it waits for it.
-    let mut bus = IpcBus::attach(instance, "monitor", Duration::from_secs(30))?;
-    let ours = Stamp::new(bus.mode(), scenario);
-    if bus.stamp() != &ours {
-        bail!(
-            "instance `{instance}` runs scenario {}; the scenario given is {}",
-            bus.stamp().scenario,
-            ours.scenario
-        );
-    }
+    let mut bus = attach_reader(instance, "monitor", scenario)?;
     let mode = bus.mode();
     let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let mut metrics = Metrics::new(scenario);

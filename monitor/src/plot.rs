@@ -332,20 +332,14 @@ pub fn plot_file(path: &Path, dir: &Path) -> Result<Vec<PathBuf>, PlotError> {
     let scenario = rec.scenario();
     let mut written = Vec::new();
     for c in charts(&rec, scenario.as_ref()) {
+        let failed = |path: &Path| {
+            let path = path.to_path_buf();
+            move |message| PlotError::Draw { path, message }
+        };
         let svg = dir.join(format!("{}.svg", c.file));
-        draw(SVGBackend::new(&svg, PNG_SIZE).into_drawing_area(), &c).map_err(|message| {
-            PlotError::Draw {
-                path: svg.clone(),
-                message,
-            }
-        })?;
+        draw(SVGBackend::new(&svg, PNG_SIZE).into_drawing_area(), &c).map_err(failed(&svg))?;
         let png = dir.join(format!("{}.png", c.file));
-        draw(BitMapBackend::new(&png, PNG_SIZE).into_drawing_area(), &c).map_err(|message| {
-            PlotError::Draw {
-                path: png.clone(),
-                message,
-            }
-        })?;
+        draw(BitMapBackend::new(&png, PNG_SIZE).into_drawing_area(), &c).map_err(failed(&png))?;
         written.extend([svg, png]);
     }
     Ok(written)

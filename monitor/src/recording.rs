@@ -181,6 +181,14 @@ pub struct Recording {
     buf: Vec<u8>,
 }
 
+/// What a failed write of the recording at `path` is.
+fn write_error(path: &Path) -> impl Fn(mcap::McapError) -> RecordError + Copy + '_ {
+    move |source| RecordError::Write {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
 fn topic(method: Method, kind: &str) -> String {
     format!("/{}/{kind}", method.as_str())
 }
@@ -193,10 +201,7 @@ impl Recording {
             path: path.to_path_buf(),
             source,
         })?;
-        let wrap = |source| RecordError::Write {
-            path: path.to_path_buf(),
-            source,
-        };
+        let wrap = write_error(path);
         // Uncompressed: the codecs the mcap crate offers are C libraries (see the README).
         let mut writer = mcap::WriteOptions::new()
             .compression(None)
@@ -250,20 +255,9 @@ impl Recording {
         &self.path
     }
 
-    fn wrap(&self) -> impl Fn(mcap::McapError) -> RecordError + '_ {
-        |source| RecordError::Write {
-            path: self.path.clone(),
-            source,
-        }
-    }
-
     /// The channels of `method`'s run; what follows is recorded on them.
     pub fn begin(&mut self, method: Method) -> Result<(), RecordError> {
-        let path = self.path.clone();
-        let wrap = |source| RecordError::Write {
-            path: path.clone(),
-            source,
-        };
+        let wrap = write_error(&self.path);
         let Some(w) = self.writer.as_mut() else {
             return Ok(());
         };
@@ -306,7 +300,7 @@ impl Recording {
             return Ok(());
         };
         w.write_to_known_channel(&header, &self.buf)
-            .map_err(self.wrap())
+            .map_err(write_error(&self.path))
     }
 
     /// One state sample of the current method's run.
@@ -395,10 +389,7 @@ impl Recording {
         let Some(mut w) = self.writer.take() else {
             return Ok(());
         };
-        let wrap = |source| RecordError::Write {
-            path: self.path.clone(),
-            source,
-        };
+        let wrap = write_error(&self.path);
         let mut counts = BTreeMap::new();
         for ch in &self.channels {
             let m = ch.method.as_str();
@@ -500,45 +491,26 @@ fn push<T>(list: &mut Vec<(String, Vec<T>)>, method: &str, item: T) {
 /// Writes each topic of the recording at `path` as a CSV file in `dir` (a header of field
 /// names with units, then one row per message); returns the files and their row counts.
 pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, RecordError> {
-    use std::io::Write;
     let rec = Recorded::read(path)?;
-    let create = |p: &Path| -> Result<BufWriter<File>, RecordError> {
-        File::create(p)
-            .map(BufWriter::new)
-            .map_err(|source| RecordError::Create {
-                path: p.to_path_buf(),
-                source,
-            })
-    };
     std::fs::create_dir_all(dir).map_err(|source| RecordError::Create {
         path: dir.to_path_buf(),
         source,
     })?;
-    let io = |p: &Path| {
-        let p = p.to_path_buf();
-        move |source| RecordError::Create {
-            path: p.clone(),
-            source,
-        }
-    };
+    let state_header: Vec<String> = STATE_FIELDS
+        .iter()
+        .map(|(n, u)| {
+            if u.is_empty() {
+                n.to_string()
+            } else {
+                format!("{n} [{u}]")
+            }
+        })
+        .collect();
     let mut written = Vec::new();
     for (method, states) in &rec.runs {
         let p = dir.join(format!("{method}_state.csv"));
-        let mut f = create(&p)?;
-        let header: Vec<String> = STATE_FIELDS
-            .iter()
-            .map(|(n, u)| {
-                if u.is_empty() {
-                    n.to_string()
-                } else {
-                    format!("{n} [{u}]")
-                }
-            })
-            .collect();
-        writeln!(f, "{}", header.join(",")).map_err(io(&p))?;
-        for s in states {
-            writeln!(
-                f,
+        write_csv(&p, &state_header.join(","), states, |s| {
+            format!(
                 "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
                 s.t,
                 s.seq,
@@ -558,39 +530,46 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
                 s.flags,
                 s.fault
             )
-            .map_err(io(&p))?;
-        }
-        f.flush().map_err(io(&p))?;
+        })?;
         written.push((p, states.len()));
     }
     for (method, stats) in &rec.stats {
         let p = dir.join(format!("{method}_stats.csv"));
-        let mut f = create(&p)?;
-        writeln!(
-            f,
-            "t [s],role,cycles,misses,planned,overruns,lost,longest_miss_run"
-        )
-        .map_err(io(&p))?;
-        for s in stats {
-            writeln!(
-                f,
+        let header = "t [s],role,cycles,misses,planned,overruns,lost,longest_miss_run";
+        write_csv(&p, header, stats, |s| {
+            format!(
                 "{},{},{},{},{},{},{},{}",
                 s.t, s.role, s.cycles, s.misses, s.planned, s.overruns, s.lost, s.longest_miss_run
             )
-            .map_err(io(&p))?;
-        }
-        f.flush().map_err(io(&p))?;
+        })?;
         written.push((p, stats.len()));
     }
     for (method, faults) in &rec.faults {
         let p = dir.join(format!("{method}_fault.csv"));
-        let mut f = create(&p)?;
-        writeln!(f, "t [s],seq,fault").map_err(io(&p))?;
-        for s in faults {
-            writeln!(f, "{},{},{}", s.t, s.seq, s.fault).map_err(io(&p))?;
-        }
-        f.flush().map_err(io(&p))?;
+        write_csv(&p, "t [s],seq,fault", faults, |s| {
+            format!("{},{},{}", s.t, s.seq, s.fault)
+        })?;
         written.push((p, faults.len()));
     }
     Ok(written)
+}
+
+/// One CSV file: `header`, then `row` of each item.
+fn write_csv<T>(
+    path: &Path,
+    header: &str,
+    items: &[T],
+    row: impl Fn(&T) -> String,
+) -> Result<(), RecordError> {
+    use std::io::Write;
+    let io = |source| RecordError::Create {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut f = BufWriter::new(File::create(path).map_err(io)?);
+    writeln!(f, "{header}").map_err(io)?;
+    for item in items {
+        writeln!(f, "{}", row(item)).map_err(io)?;
+    }
+    f.flush().map_err(io)
 }

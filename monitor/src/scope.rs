@@ -8,7 +8,7 @@
 //! ([`render`]), tested on ratatui's `TestBackend`.
 
 use crate::outcome::fault_names;
-use anyhow::{bail, Result};
+use anyhow::Result;
 use ratatui::layout::{Constraint, Layout};
 use ratatui::style::{Color, Modifier, Style};
 use ratatui::symbols::Marker;
@@ -17,7 +17,6 @@ use ratatui::widgets::{Axis, Block, Chart, Dataset, GraphType, Paragraph};
 use ratatui::Frame;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
-use stepdrive_runtime::ipc::{IpcBus, Stamp};
 use stepdrive_runtime::port::PortFactory;
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::DriveState;
@@ -268,15 +267,7 @@ pub fn render(f: &mut Frame, v: &View) {
 /// the stack's end.
 pub fn run_scope(instance: &str, s: &Scenario) -> Result<()> {
     use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
-    let mut bus = IpcBus::attach(instance, "scope", Duration::from_secs(30))?;
-    let ours = Stamp::new(bus.mode(), s);
-    if bus.stamp() != &ours {
-        bail!(
-            "instance `{instance}` runs scenario {}; the scenario given is {}",
-            bus.stamp().scenario,
-            ours.scenario
-        );
-    }
+    let mut bus = crate::attach::attach_reader(instance, "scope", s)?;
     let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let mut stats = bus.subscriber::<StatsReport>(4)?;
     let rate = s.rates.current_loop_hz;

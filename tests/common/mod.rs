@@ -163,16 +163,11 @@ pub fn start_long_run(dir: &TempDir, inst: &str) -> Child {
         .spawn()
         .expect("spawn run");
     // Wait until all three stack processes are up.
-    let role_up = |role: &str| {
-        processes_with(inst).iter().any(|pid| {
-            std::fs::read(format!("/proc/{pid}/cmdline"))
-                .map(|c| String::from_utf8_lossy(&c).contains(role))
-                .unwrap_or(false)
-        })
-    };
     assert!(
         wait_until(Duration::from_secs(30), || {
-            role_up("\0plant\0") && role_up("\0current-loop\0") && role_up("\0position-loop\0")
+            ["plant", "current-loop", "position-loop"]
+                .iter()
+                .all(|role| pid_of_role(inst, role).is_some())
         }),
         "stack did not come up"
     );
@@ -187,6 +182,41 @@ pub fn stderr_of(child: &mut Child) -> String {
         let _ = e.read_to_string(&mut s);
     }
     s
+}
+
+pub fn stdout_of(child: &mut Child) -> String {
+    let mut s = String::new();
+    use std::io::Read;
+    if let Some(mut o) = child.stdout.take() {
+        let _ = o.read_to_string(&mut s);
+    }
+    s
+}
+
+/// `stepdrive ARGS` started in the background, its output piped.
+pub fn spawn_run(args: &[&str]) -> Child {
+    Command::new(exe())
+        .args(args)
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn stepdrive")
+}
+
+/// The process of `role` (plant, current-loop, ...) in the stack on `inst`.
+pub fn pid_of_role(inst: &str, role: &str) -> Option<u32> {
+    let needle = format!("\0{role}\0");
+    processes_with(inst).into_iter().find(|pid| {
+        std::fs::read(format!("/proc/{pid}/cmdline"))
+            .map(|c| String::from_utf8_lossy(&c).contains(&needle))
+            .unwrap_or(false)
+    })
+}
+
+pub fn signal(pid: u32, sig: libc::c_int) {
+    // SAFETY: plain kill(2) on a process this test started.
+    unsafe { libc::kill(pid as libc::pid_t, sig) };
 }
 
 /// A process started by hand without real-time settings: the deployment's defaults
@@ -232,23 +262,16 @@ pub fn run_with_frozen_current_loop(
         .stderr(Stdio::piped())
         .spawn()
         .expect("spawn run");
-    let current_loop = || {
-        processes_with(inst).into_iter().find(|pid| {
-            std::fs::read(format!("/proc/{pid}/cmdline"))
-                .map(|c| String::from_utf8_lossy(&c).contains("\0current-loop\0"))
-                .unwrap_or(false)
-        })
-    };
+    let current_loop = || pid_of_role(inst, "current-loop");
     assert!(
         wait_until(Duration::from_secs(30), || current_loop().is_some()),
         "current loop did not come up"
     );
-    let pid = current_loop().expect("current loop") as libc::pid_t;
+    let pid = current_loop().expect("current loop");
     std::thread::sleep(after);
-    // SAFETY: plain kill(2) on a process of ours.
-    unsafe { libc::kill(pid, libc::SIGSTOP) };
+    signal(pid, libc::SIGSTOP);
     std::thread::sleep(freeze);
-    unsafe { libc::kill(pid, libc::SIGCONT) };
+    signal(pid, libc::SIGCONT);
     let status = wait_with_timeout(&mut child, Duration::from_secs(60));
     assert!(status.success(), "run failed: {}", stderr_of(&mut child));
     assert!(processes_with(inst).is_empty());
@@ -323,7 +346,7 @@ pub fn hardware_run_against(
     args.extend(injection);
     let mut drive = spawn_logged(&args);
     let out = hardware_run(scenario, inst, json, &["--drive", &listen]);
-    unsafe { libc::kill(drive.id() as i32, libc::SIGTERM) };
+    signal(drive.id(), libc::SIGTERM);
     let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
     let drive_log = stderr_of(&mut drive);
     assert!(

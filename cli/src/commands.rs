@@ -25,7 +25,8 @@ use stepdrive_shared::{Method, Scenario};
 pub struct Selection {
     #[command(flatten)]
     scenario: ScenarioOpt,
-    /// Methods to run, in order (comma-separated or repeated): proposed, lyapunov, open_loop.
+    /// Methods to run, in order (comma-separated or repeated): proposed, lyapunov, open_loop,
+    /// pi (the industrial baseline: constant-amplitude microstepping currents, PI per phase).
     #[arg(long = "method", value_enum, value_delimiter = ',', default_values = ["proposed", "lyapunov"])]
     methods: Vec<Method>,
     /// Also write the results as JSON to FILE.
@@ -498,4 +499,76 @@ pub struct ScopeArgs {
 pub fn scope(a: ScopeArgs) -> Result<()> {
     let s = a.scenario.load()?;
     stepdrive_monitor::scope::run_scope(&a.instance, &s)
+}
+
+#[derive(Args, Debug)]
+pub struct RobustnessArgs {
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// Write every cell's full results as JSON to FILE.
+    #[arg(long, value_name = "FILE", default_value = "robustness.json")]
+    json: PathBuf,
+    /// Simulations run side by side (default: the CPUs available).
+    #[arg(long, value_parser = clap::value_parser!(u16).range(1..=64))]
+    threads: Option<u16>,
+}
+
+/// Every case of the robustness table with every controller, in lockstep: markdown tables
+/// on stdout, the full results in JSON. Step-outs and faults are results here, named in
+/// the table and summed up at the end, not errors of the command.
+pub fn robustness(a: RobustnessArgs) -> Result<()> {
+    use stepdrive_monitor::robustness::{run_table, tables, RobustnessDocument};
+    let s = a.scenario.load()?;
+    let threads = a.threads.map_or_else(
+        || std::thread::available_parallelism().map_or(1, |n| n.get()),
+        usize::from,
+    );
+    let json = JsonOut::create(Some(&a.json))?;
+    let started = std::time::Instant::now();
+    let bar = indicatif::ProgressBar::new(0);
+    let cells = run_table(&s, threads, &|done, total| {
+        bar.set_length(total as u64);
+        bar.set_position(done as u64);
+    })
+    .context("a robustness simulation failed")?;
+    bar.finish_and_clear();
+    println!(
+        "robustness of scenario {}: {} cases × 4 controllers, lockstep, {:.1} s",
+        s.name,
+        cells.len() / 4,
+        started.elapsed().as_secs_f64()
+    );
+    print!("{}", tables(&cells));
+    if let Some(mut out) = json {
+        use std::io::Write;
+        let doc = RobustnessDocument {
+            stepdrive_version: env!("CARGO_PKG_VERSION"),
+            scenario: &s,
+            cells: &cells,
+        };
+        let text = serde_json::to_string_pretty(&doc)?;
+        out.file
+            .write_all((text + "\n").as_bytes())
+            .with_context(|| format!("cannot write {}", out.path.display()))?;
+        println!("\nresults written to {}", out.path.display());
+    }
+    let lost: Vec<String> = cells
+        .iter()
+        .filter(|c| c.report.outcome != Outcome::Ok)
+        .map(|c| {
+            format!(
+                "{} with {}: {}",
+                c.case,
+                c.controller,
+                c.report.outcome.title()
+            )
+        })
+        .collect();
+    if !lost.is_empty() {
+        println!("\n{} of {} cells lost the motor:", lost.len(), cells.len());
+        for l in &lost {
+            println!("  {l}");
+        }
+    }
+    Ok(())
 }

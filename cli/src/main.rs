@@ -37,6 +37,9 @@ enum Cmd {
     /// The same nodes in one process on virtual time, no IPC: the reference a `run` must
     /// reproduce exactly; with --stall, what a host stall of the current loop costs.
     Simulate(commands::SimulateArgs),
+    /// Each method against plants that are not its model (R, L, K_m, J, B ±20 %, an unknown
+    /// load, a load step, detent torque, all at once): lockstep, markdown tables, JSON.
+    Robustness(commands::RobustnessArgs),
     /// The plant process: motor model eq. (1), publishes drive/state, applies drive/command;
     /// in hardware mode a bridge to a drive.
     Plant(roles::PlantArgs),
@@ -103,6 +106,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Cmd::Run(a) => commands::run(a),
         Cmd::Simulate(a) => commands::simulate(a),
+        Cmd::Robustness(a) => commands::robustness(a),
         Cmd::Plant(a) => roles::plant(a),
         Cmd::CurrentLoop(a) => roles::current_loop(a),
         Cmd::PositionLoop(a) => roles::position_loop(a),

@@ -7,6 +7,7 @@ use crate::laws::commutation::commutate;
 use crate::laws::current_tracking::SampledCurrentLaw;
 use crate::laws::microstepping::{microstep_currents, microstep_voltages};
 use crate::laws::phasor::{Complex, Rotating};
+use crate::laws::pi_current::PiCurrent;
 use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint, MAX_PLAN};
 use stepdrive_shared::scenario::MAX_COMPUTE_DELAY_PERIODS;
 use stepdrive_shared::{Method, Scenario};
@@ -17,6 +18,8 @@ const MAX_DELAY: usize = MAX_COMPUTE_DELAY_PERIODS as usize;
 pub struct CurrentLoop {
     method: Method,
     law: SampledCurrentLaw,
+    /// The industrial baseline's PI loops (its integrators are its only state).
+    pi: PiCurrent,
     k_m: f64,
     n_r: f64,
     r: f64,
@@ -56,7 +59,7 @@ impl CurrentLoop {
     pub fn new(s: &Scenario, method: Method) -> Self {
         let decay = match method {
             Method::Lyapunov => s.gains.rho_per_s,
-            Method::Proposed | Method::OpenLoop => s.gains.k3_per_s,
+            Method::Proposed | Method::OpenLoop | Method::Pi => s.gains.k3_per_s,
         };
         let m = &s.motor;
         Self {
@@ -68,6 +71,12 @@ impl CurrentLoop {
                 m.n_r(),
                 s.sample_period_s(),
                 decay,
+            ),
+            pi: PiCurrent::new(
+                m.inductance_h,
+                m.resistance_ohm,
+                s.pi_bandwidth_rad_s(),
+                s.sample_period_s(),
             ),
             k_m: m.torque_constant_nm_per_a,
             n_r: m.n_r(),
@@ -191,7 +200,8 @@ impl CurrentLoop {
                 let (v, predicted) = law.decide(i, theta, omega, decided, reference);
                 let v = clamp(v);
                 let seed = planning.then(|| {
-                    let references = microstep_sequence(setpoint, t_plan, period, n_r, v_max / r);
+                    let amplitude = Complex::new(v_max / r, 0.0);
+                    let references = microstep_sequence(setpoint, t_plan, period, n_r, amplitude);
                     seed_law(predicted, v, references)
                 });
                 (v, reference(d + 1), seed)
@@ -211,10 +221,30 @@ impl CurrentLoop {
                         t_plan + half,
                         period,
                         n_r,
-                        self.v_max,
+                        Complex::new(self.v_max, 0.0),
                     ))
                 });
                 (v, [v[0] / self.r, v[1] / self.r], seed)
+            }
+            Method::Pi => {
+                // What a drive does: the reference at the sample, no prediction, no model.
+                let reference = microstep_currents(setpoint.theta_d_at(t), self.v_max, self.r, n_r);
+                let v = self.pi.decide(reference, i, bus_v);
+                // The plan turns the last voltage with θ_d: a PI loop's steady state.
+                let seed = planning.then(|| {
+                    let half = 0.5 * period;
+                    let t_mid = t + period * d as f64 + half;
+                    let relative =
+                        Complex::from_pair(v) / Complex::unit(n_r * setpoint.theta_d_at(t_mid));
+                    Seed::Voltages(microstep_sequence(
+                        setpoint,
+                        t_plan + half,
+                        period,
+                        n_r,
+                        relative,
+                    ))
+                });
+                (v, reference, seed)
             }
         };
         // Keep what the drive will apply, for the next cycle's prediction.
@@ -281,12 +311,12 @@ fn microstep_sequence(
     t0: f64,
     period: f64,
     n_r: f64,
-    amplitude: f64,
+    amplitude: Complex,
 ) -> Rotating {
     let phase = n_r * sp.theta_d_at(t0);
     let step = n_r * (sp.theta_d_at(t0 + period) - sp.theta_d_at(t0));
     let step_change = n_r * sp.alpha_d_rad_s2 * period * period;
-    Rotating::new(Complex::new(amplitude, 0.0), phase, step, step_change)
+    Rotating::new(amplitude, phase, step, step_change)
 }
 
 #[cfg(test)]
@@ -402,6 +432,7 @@ mod tests {
         omega_d_rad_s: 0.0,
         alpha_d_rad_s2: 0.0,
         torque_nm: 0.0757,
+        load_estimate_nm: 0.0,
     };
 
     /// The plan is the law's own future: on the model it assumes (constant speed, same

@@ -215,6 +215,8 @@ impl DriveCore {
             }
             Message::Control(Action::Enable) => {
                 self.enabled = true;
+                // The plant's load profile (steps, ramps) counts from ENABLE, as a run does.
+                self.sim.restart_load_clock();
                 self.armed = false;
                 self.since_command = 0;
                 None

@@ -14,6 +14,7 @@ pub mod pingpong;
 pub mod plot;
 pub mod recording;
 pub mod report;
+pub mod robustness;
 pub mod scope;
 pub mod simulate;
 pub mod throttling;

@@ -54,6 +54,83 @@ pub struct RunReport {
     /// Realtime only: loop timing, deadline misses, latencies.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub timing: Option<crate::timing::TimingReport>,
+    /// With a load step in `[plant.load]`: what the first one did.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub load_step: Option<LoadStepReport>,
+}
+
+/// The error after the plant's first load step, over [step, end of the cruise window] (or
+/// the end of the run for a step after the cruise).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct LoadStepReport {
+    pub at_s: f64,
+    pub torque_nm: f64,
+    /// max |θ_d − θ| from the step to the window's end, rad.
+    pub peak_abs_error_rad: f64,
+    /// From the step until |θ_d − θ| stays within [`RECOVERED_RAD`], s; null when it is
+    /// not back by the window's end.
+    pub back_within_1e4_rad_after_s: Option<f64>,
+}
+
+/// "Back" after a load step: within 1e-4 rad.
+pub const RECOVERED_RAD: f64 = 1e-4;
+
+#[derive(Debug, Clone, Copy)]
+struct StepWatch {
+    at: f64,
+    torque: f64,
+    until: f64,
+    peak: f64,
+    /// The last sample in the window above the threshold, and the last sample seen.
+    last_above: Option<f64>,
+    last_seen: Option<f64>,
+}
+
+impl StepWatch {
+    fn new(s: &Scenario) -> Option<Self> {
+        let step = s.plant.load.steps.first()?;
+        let until = if step.at_s < s.metrics.cruise_end_s {
+            s.metrics.cruise_end_s
+        } else {
+            s.duration_s()
+        };
+        Some(Self {
+            at: step.at_s,
+            torque: step.torque_nm,
+            until,
+            peak: 0.0,
+            last_above: None,
+            last_seen: None,
+        })
+    }
+
+    fn push(&mut self, t: f64, abs_error: f64) {
+        if t < self.at || t > self.until {
+            return;
+        }
+        if abs_error.is_nan() || abs_error > self.peak {
+            self.peak = abs_error;
+        }
+        if abs_error.is_nan() || abs_error > RECOVERED_RAD {
+            self.last_above = Some(t);
+        }
+        self.last_seen = Some(t);
+    }
+
+    fn report(&self, period: f64) -> LoadStepReport {
+        let back = match (self.last_above, self.last_seen) {
+            (_, None) => None,
+            (None, Some(_)) => Some(0.0),
+            (Some(above), Some(seen)) if above < seen => Some(above + period - self.at),
+            (Some(_), Some(_)) => None,
+        };
+        LoadStepReport {
+            at_s: self.at,
+            torque_nm: self.torque,
+            peak_abs_error_rad: self.peak,
+            back_within_1e4_rad_after_s: back,
+        }
+    }
 }
 
 /// Accumulates [`RunReport`] figures one state sample at a time; no allocation per sample.
@@ -85,17 +162,21 @@ pub struct Metrics {
     step_out_rad: f64,
     previous_i: Option<[f64; 2]>,
     last_time: f64,
+    step: Option<StepWatch>,
+    period: f64,
 }
 
 impl Metrics {
     pub fn new(s: &Scenario) -> Self {
+        // The figures are the truth's: the plant's motor, not the controller's model.
+        let plant = s.plant_motor();
         Self {
             trajectory: Trapezoid::new(&s.trajectory),
             cruise: (s.metrics.cruise_start_s, s.metrics.cruise_end_s),
             final_from: s.final_window_start_s(),
-            r: s.motor.resistance_ohm,
-            k_m: s.motor.torque_constant_nm_per_a,
-            n_r: s.motor.n_r(),
+            r: plant.resistance_ohm,
+            k_m: plant.torque_constant_nm_per_a,
+            n_r: plant.n_r(),
             eq7: s.eq7_bound_rad(),
             cruise_max_abs_error: 0.0,
             max_abs_error: 0.0,
@@ -116,6 +197,8 @@ impl Metrics {
             step_out_rad: step_out_threshold_rad(s),
             previous_i: None,
             last_time: 0.0,
+            step: StepWatch::new(s),
+            period: s.sample_period_s(),
         }
     }
 
@@ -145,6 +228,9 @@ impl Metrics {
                 .cruise_max_abs_voltage
                 .max(s.v_a_v.abs())
                 .max(s.v_b_v.abs());
+        }
+        if let Some(w) = self.step.as_mut() {
+            w.push(t, abs);
         }
         if t >= self.final_from {
             self.final_sum_error += error;
@@ -259,6 +345,7 @@ impl Metrics {
             voltage_limited_samples: self.limited,
             fault_samples: self.faults,
             timing: None,
+            load_step: self.step.map(|w| w.report(self.period)),
         }
     }
 }

@@ -103,6 +103,25 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             format!("{} / {}", r.voltage_limited_samples, r.fault_samples)
         }),
     ];
+    let step_rows: [Row; 2] = [
+        ("load step: peak |e| [rad]", |r| {
+            r.load_step
+                .as_ref()
+                .map_or("n/a".into(), |l| sci(l.peak_abs_error_rad))
+        }),
+        ("back within 1e-4 rad [ms]", |r| {
+            match r.load_step.as_ref() {
+                None => "n/a".into(),
+                Some(l) => l
+                    .back_within_1e4_rad_after_s
+                    .map_or("not back".into(), |b| format!("{:.1}", b * 1e3)),
+            }
+        }),
+    ];
+    let mut rows = rows.to_vec();
+    if runs.iter().any(|r| r.load_step.is_some()) {
+        rows.splice(5..5, step_rows);
+    }
     let label_w = rows
         .iter()
         .map(|(l, _)| l.chars().count())

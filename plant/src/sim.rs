@@ -7,13 +7,14 @@ use stepdrive_runtime::cycle::MissRuns;
 use stepdrive_shared::messages::{
     fault_bits, state_flags, DriveCommand, DrivePlan, DriveState, NONE_SEQ,
 };
+use stepdrive_shared::plant::Disturbance;
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
 #[derive(Debug, Clone)]
 pub struct PlantSim {
     motor: Motor,
-    tau_l: f64,
+    load: Disturbance,
     bus_v: f64,
     period: f64,
     substeps: u32,
@@ -21,6 +22,8 @@ pub struct PlantSim {
     sample_hz: f64,
     x: MotorState,
     k: u64,
+    /// The sample the load profile's time counts from.
+    load_origin: u64,
     applied: [f64; 2],
     applied_seq: u64,
     flags: u32,
@@ -30,8 +33,8 @@ pub struct PlantSim {
 impl PlantSim {
     pub fn new(scenario: &Scenario) -> Self {
         Self {
-            motor: Motor::from(&scenario.motor),
-            tau_l: scenario.load.torque_nm,
+            motor: Motor::from(&scenario.plant_motor()),
+            load: scenario.disturbance(),
             bus_v: scenario.drive.bus_voltage_v,
             period: scenario.sample_period_s(),
             substeps: scenario.rates.plant_substeps,
@@ -39,6 +42,7 @@ impl PlantSim {
             sample_hz: scenario.rates.current_loop_hz,
             x: MotorState::zeros(),
             k: 0,
+            load_origin: 0,
             applied: [0.0; 2],
             applied_seq: NONE_SEQ,
             flags: 0,
@@ -63,6 +67,12 @@ impl PlantSim {
         self.x[OMEGA] = 0.0;
         self.x[I_A] = 0.0;
         self.x[I_B] = 0.0;
+    }
+
+    /// The load profile's time starts again at the current sample (a drive's ENABLE: its
+    /// samples before that were not the run's).
+    pub fn restart_load_clock(&mut self) {
+        self.load_origin = self.k;
     }
 
     /// Clears the latched faults: the outputs follow the commands again from the next
@@ -179,9 +189,10 @@ impl PlantSim {
         } else {
             seq = NONE_SEQ;
         }
+        let t = (self.k - self.load_origin) as f64 / self.sample_hz;
         self.x = self
             .motor
-            .integrate(&self.x, v, self.tau_l, self.period, self.substeps);
+            .integrate_loaded(&self.x, v, &self.load, t, self.period, self.substeps);
         self.applied = v;
         self.applied_seq = seq;
         self.k += 1;

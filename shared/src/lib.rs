@@ -6,6 +6,7 @@
 
 pub mod frames;
 pub mod messages;
+pub mod plant;
 pub mod scenario;
 pub mod services;
 pub mod stats;

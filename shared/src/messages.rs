@@ -199,6 +199,9 @@ pub struct TorqueSetpoint {
     pub alpha_d_rad_s2: f64,
     /// Torque demand of eq. (12), N·m (unused by the baselines).
     pub torque_nm: f64,
+    /// The load torque (12) used for τ_L: `[load]`'s when known, the observer's estimate
+    /// of the lumped disturbance, or 0, N·m.
+    pub load_estimate_nm: f64,
 }
 
 impl TorqueSetpoint {

@@ -3,6 +3,7 @@
 //! error names the offending field.
 
 use crate::messages::MAX_PLAN;
+pub use crate::plant::{Disturbance, PlantParams};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 use std::str::FromStr;
@@ -220,6 +221,12 @@ pub struct Scenario {
     pub trajectory: TrajectoryParams,
     pub metrics: MetricWindows,
     pub run: RunParams,
+    /// How the simulated motor differs from `motor` and `load` (absent: it does not).
+    #[serde(skip_serializing_if = "PlantParams::is_default")]
+    pub plant: PlantParams,
+    /// Load compensation of (12) and the industrial baseline's current loop.
+    #[serde(skip_serializing_if = "ControlParams::is_default")]
+    pub control: ControlParams,
 }
 
 impl Default for Scenario {
@@ -234,7 +241,57 @@ impl Default for Scenario {
             trajectory: TrajectoryParams::default(),
             metrics: MetricWindows::default(),
             run: RunParams::default(),
+            plant: PlantParams::default(),
+            control: ControlParams::default(),
         }
+    }
+}
+
+/// What (12) uses for τ_L.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LoadCompensation {
+    /// `[load] torque_nm`, as the paper assumes.
+    #[default]
+    Known,
+    /// The load-torque observer's estimate of the lumped disturbance.
+    Observer,
+    /// Nothing: the soft outer loop alone holds the load.
+    None,
+}
+
+impl LoadCompensation {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            LoadCompensation::Known => "known",
+            LoadCompensation::Observer => "observer",
+            LoadCompensation::None => "none",
+        }
+    }
+}
+
+/// `[control]`: choices beyond the paper's gains.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct ControlParams {
+    /// known | observer | none.
+    pub load_compensation: LoadCompensation,
+    /// Bandwidth λ of the load-torque observer, rad/s: its estimate of a step settles like
+    /// 1 − e^{−λt} after one position-loop period of measurement delay. Absent: 2 ×
+    /// `rates.position_loop_hz` (4000 rad/s at 2 kHz: pole e^{−2} per tick; see
+    /// `controller/src/laws/load_observer.rs` for why).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub observer_bandwidth_rad_s: Option<f64>,
+    /// ω_c of the industrial baseline's PI current loops (`--method pi`), rad/s: K_p = ω_c L,
+    /// K_i = ω_c R. Absent: 2π × `rates.current_loop_hz` / 20 (1 kHz at 20 kHz: 27° of
+    /// phase lost to the 1.5 periods of compute delay and hold at crossover).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pi_bandwidth_rad_s: Option<f64>,
+}
+
+impl ControlParams {
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
     }
 }
 
@@ -248,7 +305,13 @@ pub fn num(v: f64) -> String {
 }
 
 /// `v` must be finite and within [lo, hi] (`unit` for the message).
-fn within(field: &'static str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(), ScenarioError> {
+pub(crate) fn within(
+    field: &'static str,
+    v: f64,
+    lo: f64,
+    hi: f64,
+    unit: &str,
+) -> Result<(), ScenarioError> {
     if v.is_finite() && v >= lo && v <= hi {
         return Ok(());
     }
@@ -263,7 +326,7 @@ fn within(field: &'static str, v: f64, lo: f64, hi: f64, unit: &str) -> Result<(
     ))
 }
 
-fn invalid(field: &'static str, message: String) -> ScenarioError {
+pub(crate) fn invalid(field: &'static str, message: String) -> ScenarioError {
     ScenarioError::Invalid { field, message }
 }
 
@@ -487,7 +550,63 @@ impl Scenario {
             pass,
             "s (one pass of the trajectory)",
         )?;
+        self.plant.validate()?;
+        let c = &self.control;
+        // Past π f (half the sample rate) the estimate or the loop would be noise.
+        if let Some(l) = c.observer_bandwidth_rad_s {
+            within(
+                "control.observer_bandwidth_rad_s",
+                l,
+                1.0,
+                std::f64::consts::PI * r.position_loop_hz,
+                "rad/s (at most π × rates.position_loop_hz)",
+            )?;
+        }
+        if let Some(w) = c.pi_bandwidth_rad_s {
+            within(
+                "control.pi_bandwidth_rad_s",
+                w,
+                1.0,
+                std::f64::consts::FRAC_PI_2 * r.current_loop_hz,
+                "rad/s (at most π/2 × rates.current_loop_hz)",
+            )?;
+        }
         Ok(())
+    }
+
+    /// λ of the load-torque observer, rad/s.
+    pub fn observer_bandwidth_rad_s(&self) -> f64 {
+        self.control
+            .observer_bandwidth_rad_s
+            .unwrap_or(2.0 * self.rates.position_loop_hz)
+    }
+
+    /// ω_c of the PI baseline's current loops, rad/s.
+    pub fn pi_bandwidth_rad_s(&self) -> f64 {
+        self.control
+            .pi_bandwidth_rad_s
+            .unwrap_or(std::f64::consts::TAU * self.rates.current_loop_hz / 20.0)
+    }
+
+    /// The motor the plant simulates: `[motor]` with `[plant.motor]`'s fields.
+    pub fn plant_motor(&self) -> MotorParams {
+        self.plant.motor.apply(&self.motor)
+    }
+
+    /// The plant's load: `[plant.load]` (its constant defaulting to `[load]`) and detent.
+    pub fn disturbance(&self) -> Disturbance {
+        let l = &self.plant.load;
+        let d = &self.plant.detent;
+        Disturbance {
+            constant_nm: l.torque_nm.unwrap_or(self.load.torque_nm),
+            steps: l.steps.clone(),
+            ramps: l.ramps.clone(),
+            coulomb_nm: l.coulomb_nm,
+            coulomb_smoothing_rad_s: l.coulomb_smoothing_rad_s,
+            detent_nm: d.amplitude_nm,
+            detent_wavenumber: f64::from(d.harmonic) * self.motor.n_r(),
+            detent_phase_rad: d.phase_rad,
+        }
     }
 
     /// The final window within this run: its last `final_window_s`, or the whole of a
@@ -577,16 +696,25 @@ pub enum Method {
     /// Open-loop microstepping voltages, eq. (2).
     #[cfg_attr(feature = "clap", value(alias = "open-loop"))]
     OpenLoop,
+    /// The industrial baseline: microstepping currents of constant amplitude (V_max/R)
+    /// tracked by a PI loop per phase, no back-EMF feed-forward.
+    Pi,
 }
 
 impl Method {
-    pub const ALL: [Method; 3] = [Method::Proposed, Method::Lyapunov, Method::OpenLoop];
+    pub const ALL: [Method; 4] = [
+        Method::Proposed,
+        Method::Lyapunov,
+        Method::OpenLoop,
+        Method::Pi,
+    ];
 
     pub fn as_str(self) -> &'static str {
         match self {
             Method::Proposed => "proposed",
             Method::Lyapunov => "lyapunov",
             Method::OpenLoop => "open_loop",
+            Method::Pi => "pi",
         }
     }
 }
@@ -604,8 +732,9 @@ impl FromStr for Method {
             "proposed" => Ok(Method::Proposed),
             "lyapunov" => Ok(Method::Lyapunov),
             "open_loop" | "open-loop" => Ok(Method::OpenLoop),
+            "pi" => Ok(Method::Pi),
             other => Err(format!(
-                "unknown method `{other}` (expected proposed, lyapunov or open_loop)"
+                "unknown method `{other}` (expected proposed, lyapunov, open_loop or pi)"
             )),
         }
     }

@@ -4,7 +4,7 @@
 //! link (H1–H5). No clock, no sockets: frames in, frames out.
 
 use std::f64::consts::{FRAC_PI_2, TAU};
-use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event};
+use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event, HeldLoad};
 use stepdrive_drive_protocol::{
     crc32, decode, encode, faults, frame_bytes, reseal, status, Action, Command, Config,
     FaultReport, Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
@@ -85,6 +85,7 @@ fn the_documents_test_vectors_decode_to_what_the_document_says() {
         EncoderCalibration {
             offset_counts: Some(0),
             reverse: false,
+            held_load: None,
         },
     );
     assert!(matches!(link.on_frame(&v[2], 0), Event::Config(_)));
@@ -402,7 +403,7 @@ fn d10_the_newest_plan_covers_missing_commands_and_an_equal_one_replaces_it() {
     assert_eq!(period(&mut d).1.duty_a, 5000);
 }
 
-// ---- the host (H1–H5), against the bridge's link ----
+// ---- the host (H1–H7), against the bridge's link ----
 
 fn configured_link() -> DriveLink {
     let mut l = DriveLink::new(
@@ -411,6 +412,7 @@ fn configured_link() -> DriveLink {
         EncoderCalibration {
             offset_counts: Some(0),
             reverse: false,
+            held_load: None,
         },
     );
     let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
@@ -550,4 +552,81 @@ fn h5_frames_of_another_version_are_counted_with_it() {
     reseal(&mut v2);
     assert_eq!(l.on_frame(&v2, 0), Event::Dropped);
     assert_eq!(l.other_version, (1, 2));
+}
+
+fn sample_with_status(seq: u32, status_bits: u16) -> Vec<u8> {
+    frame_bytes(
+        seq,
+        Message::Sample(Sample {
+            encoder_counts: 0,
+            adc_a: 32768,
+            adc_b: 32768,
+            adc_bus: 2400,
+            duty_a: 0,
+            duty_b: 0,
+            applied_command_seq: 0,
+            fault_bits: 0,
+            status: status_bits,
+        }),
+    )
+}
+
+#[test]
+fn h6_the_run_starts_at_the_first_enabled_sample_after_enable() {
+    let mut l = configured_link();
+    // What the host does when it sends ENABLE: the stream starts again.
+    l.restart();
+    for seq in [100, 101] {
+        assert!(matches!(
+            l.on_frame(&sample_with_status(seq, status::ALIGNING), 0),
+            Event::Dropped
+        ));
+    }
+    let Event::State(st) = l.on_frame(&sample_with_status(102, status::ENABLED), 0) else {
+        panic!("the enabled sample is a state")
+    };
+    assert_eq!(st.seq, 0, "k = 0");
+    assert_eq!((l.before_enable, l.lost_on_wire), (2, 0));
+}
+
+#[test]
+fn h7_theta_zero_is_the_electrical_zero_after_an_alignment_under_load() {
+    let mut l = DriveLink::new(
+        20_000.0,
+        400.0,
+        EncoderCalibration {
+            offset_counts: None,
+            reverse: false,
+            held_load: Some(HeldLoad {
+                torque_nm: 0.01,
+                torque_constant_nm_per_a: 0.5,
+                rotor_teeth: 50.0,
+            }),
+        },
+    );
+    let mut config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    config.align_current_ma = 1000;
+    config.align_ms = 300;
+    assert!(matches!(
+        l.on_frame(&frame_bytes(0, Message::Config(config)), 0),
+        Event::Config(_)
+    ));
+    let Event::State(st) = l.on_frame(&sample_at(1, 0), 0) else {
+        panic!("a state")
+    };
+    let expected = -(0.02f64).asin() / 50.0;
+    assert!(
+        (st.theta_rad - expected).abs() < 1e-12,
+        "θ₀ {}",
+        st.theta_rad
+    );
+    assert!((expected + 4.0003e-4).abs() < 1e-8);
+    // Without an alignment there is no offset to take out.
+    config.align_ms = 0;
+    l.on_frame(&frame_bytes(2, Message::Config(config)), 0);
+    l.restart();
+    let Event::State(st) = l.on_frame(&sample_at(3, 0), 0) else {
+        panic!("a state")
+    };
+    assert_eq!(st.theta_rad, 0.0);
 }

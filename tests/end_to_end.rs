@@ -380,6 +380,15 @@ fn hardware_mode_runs_against_the_emulated_drive() {
     assert!(t["plant"]["cycles"].as_u64().unwrap() > 200);
     assert!(t["round_trip"]["count"].as_u64().unwrap() > 0);
     assert!(num(run, "final_error_rad").is_finite());
+    // The emulated drive's truth beside the measurement: the same run, the same figures
+    // to within the 20-bit encoder's quantum (6e-6 rad) and the velocity observer.
+    let truth = &run["truth"];
+    assert!(num(truth, "samples") >= num(run, "samples"), "{truth}");
+    let gap = num(truth, "final_error_rad") - num(run, "final_error_rad");
+    assert!(
+        gap.abs() < 2e-5,
+        "truth and measurement differ by {gap:e} rad: {run}"
+    );
     assert!(processes_with(&inst).is_empty());
 }
 

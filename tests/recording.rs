@@ -60,7 +60,7 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
     let topics = assert_finished(&mcap);
     let expected: Vec<String> = ["lyapunov", "proposed"]
         .iter()
-        .flat_map(|m| ["fault", "state", "stats"].map(|k| format!("/{m}/{k}")))
+        .flat_map(|m| ["fault", "setpoint", "state", "stats"].map(|k| format!("/{m}/{k}")))
         .collect();
     assert_eq!(topics, expected);
     let doc = read_json(&json);
@@ -87,6 +87,15 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
             states.len().to_string()
         );
         assert_eq!(meta[&format!("{method}.samples_lost")], "0");
+        // Every position-loop tick's setpoint, with the load (12) used: the known 0.01 N·m.
+        let (_, setpoints) = rec
+            .setpoints
+            .iter()
+            .find(|(m, _)| m == method)
+            .expect("setpoints");
+        assert_eq!(setpoints.len(), (states.len() - 1) / 10 + 1, "{method}");
+        assert!(setpoints.windows(2).all(|w| w[1].seq == w[0].seq + 1));
+        assert!(setpoints.iter().all(|s| s.load_estimate == 0.01));
     }
     // The plots: every figure as SVG and PNG, both methods named in the legend.
     for name in [

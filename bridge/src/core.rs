@@ -366,7 +366,7 @@ impl BridgeCore {
 mod tests {
     use super::*;
     use stepdrive_drive_protocol::units::default_config;
-    use stepdrive_drive_protocol::{frame_bytes, Message, Sample};
+    use stepdrive_drive_protocol::{frame_bytes, status, Message, Sample};
 
     const PERIOD: u64 = 50_000;
 
@@ -380,6 +380,7 @@ mod tests {
             calibration: EncoderCalibration {
                 offset_counts: Some(0),
                 reverse: false,
+                held_load: None,
             },
         });
         let mut stats = StatsReport::default();
@@ -392,9 +393,13 @@ mod tests {
         c
     }
 
-    /// A SAMPLE frame: wire seq `seq` (the drive's first is 100), reporting command frame
-    /// `applied` applied.
+    /// A SAMPLE frame of an enabled drive: wire seq `seq` (the drive's first is 100),
+    /// reporting command frame `applied` applied.
     fn sample(seq: u32, applied: u32) -> Vec<u8> {
+        sample_with(seq, applied, status::ENABLED)
+    }
+
+    fn sample_with(seq: u32, applied: u32, status: u16) -> Vec<u8> {
         frame_bytes(
             seq,
             Message::Sample(Sample {
@@ -406,9 +411,27 @@ mod tests {
                 duty_b: 0,
                 applied_command_seq: applied,
                 fault_bits: 0,
-                status: 0,
+                status,
             }),
         )
+    }
+
+    /// §7 step 5: samples the drive sent before it took the ENABLE (still in flight when
+    /// the stream started) are dropped and counted; k = 0 is the first with ENABLED set.
+    #[test]
+    fn the_run_starts_at_the_first_enabled_sample() {
+        let mut c = core(10);
+        let mut stats = StatsReport::default();
+        let aligning = [100, 101].map(|seq| sample_with(seq, 0, status::ALIGNING));
+        assert!(cycle(&mut c, &aligning, PERIOD, &mut stats).is_none());
+        assert_eq!(c.link().before_enable, 2);
+        let st = cycle(&mut c, &[sample(102, 0)], 2 * PERIOD, &mut stats).expect("a sample");
+        assert_eq!(st.seq, 0, "k = 0 is the first enabled sample");
+        assert_eq!(
+            c.link().lost_on_wire,
+            0,
+            "the dropped ones are not lost samples"
+        );
     }
 
     fn command(answers: u64, v: f64) -> DriveCommand {

@@ -67,7 +67,7 @@ impl SeqWindow {
 }
 
 /// Host-side encoder calibration, over what the drive's CONFIG says.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct EncoderCalibration {
     /// Encoder reading at θ = 0 (an absolute encoder's zero); `None` zeroes at the first
     /// sample.
@@ -75,6 +75,27 @@ pub struct EncoderCalibration {
     /// Counts increase for negative θ, whatever CONFIG's `encoder_direction` says (an
     /// encoder or motor wired the other way round).
     pub reverse: bool,
+    /// The load the host's model says the rotor carries, N·m, with its K_m (N·m/A) and N_r:
+    /// an aligned rotor rests short of the electrical zero by asin(τ_L / (K_m I_align)) / N_r,
+    /// and the host puts θ = 0 at the electrical zero, not where the load left the rotor.
+    pub held_load: Option<HeldLoad>,
+}
+
+/// What holds an aligned rotor away from its electrical zero (docs/drive-protocol.md §7).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct HeldLoad {
+    pub torque_nm: f64,
+    pub torque_constant_nm_per_a: f64,
+    pub rotor_teeth: f64,
+}
+
+impl HeldLoad {
+    /// Where the load holds a rotor aligned at `align_current_a` against phase A, rad from
+    /// the electrical zero (negative for a load opposing +θ).
+    pub fn rest_angle_rad(&self, align_current_a: f64) -> f64 {
+        let sin = self.torque_nm / (self.torque_constant_nm_per_a * align_current_a);
+        -sin.clamp(-1.0, 1.0).asin() / self.rotor_teeth
+    }
 }
 
 /// Drive frames ↔ SI, without sockets or clocks.
@@ -91,6 +112,14 @@ pub struct DriveLink {
     counts: i64,
     last_raw: Option<i32>,
     offset_counts: Option<i64>,
+    /// θ of the first sample when the encoder is zeroed there: where alignment left the
+    /// rotor, relative to the electrical zero (0 without alignment or a known load).
+    start_angle_rad: f64,
+    /// After [`Self::restart`]: samples the drive sent before it took the ENABLE (in
+    /// flight when it was sent) are not the run's; k = 0 is the first with ENABLED set.
+    awaiting_enable: bool,
+    /// Samples dropped that way.
+    pub before_enable: u64,
     tx_seq: u32,
     pub crc_errors: u64,
     pub bad_frames: u64,
@@ -126,6 +155,9 @@ impl DriveLink {
             counts: 0,
             last_raw: None,
             offset_counts: calibration.offset_counts,
+            start_angle_rad: 0.0,
+            awaiting_enable: false,
+            before_enable: 0,
             tx_seq: 1,
             crc_errors: 0,
             bad_frames: 0,
@@ -162,6 +194,8 @@ impl DriveLink {
         *self = Self {
             scaling,
             plan_capacity,
+            start_angle_rad: self.start_angle_rad,
+            awaiting_enable: true,
             other_version: self.other_version,
             tx_seq: self.tx_seq,
             ..Self::new(self.sample_hz, self.observer_hz, self.calibration)
@@ -203,6 +237,14 @@ impl DriveLink {
                     c.encoder_direction = if c.encoder_direction < 0 { 1 } else { -1 };
                 }
                 self.scaling = Some(Scaling::new(&c));
+                // An absolute zero is the electrical zero itself; an aligned one is where
+                // the load let the rotor rest.
+                self.start_angle_rad = match (self.calibration.held_load, self.offset_counts) {
+                    (Some(load), None) if c.align_ms > 0 && c.align_current_ma > 0 => {
+                        load.rest_angle_rad(f64::from(c.align_current_ma) * 1e-3)
+                    }
+                    _ => 0.0,
+                };
                 self.plan_capacity = c.plan_capacity.min(MAX_PLAN_ENTRIES as u16);
                 Event::Config(c)
             }
@@ -217,6 +259,13 @@ impl DriveLink {
                     self.bad_frames += 1;
                     return Event::Dropped;
                 };
+                // A faulted drive reports ENABLED clear too: that sample starts the run, so
+                // that its fault is seen.
+                if self.awaiting_enable && s.status & status::ENABLED == 0 && s.fault_bits == 0 {
+                    self.before_enable += 1;
+                    return Event::Dropped;
+                }
+                self.awaiting_enable = false;
                 let gap = match self.window.arrive(frame.seq) {
                     Arrival::Next { gap } => gap,
                     Arrival::Late => {
@@ -242,7 +291,7 @@ impl DriveLink {
                 self.last_raw = Some(s.encoder_counts);
                 self.counts += step;
                 let offset = *self.offset_counts.get_or_insert(self.counts);
-                let theta = scaling.theta(self.counts - offset);
+                let theta = scaling.theta(self.counts - offset) + self.start_angle_rad;
                 let omega = self.observer.update(theta, gap);
                 let bus = scaling.bus_volts(s.adc_bus);
                 let k = self.index_of(frame.seq);
@@ -437,6 +486,7 @@ mod tests {
         EncoderCalibration {
             offset_counts: Some(0),
             reverse: false,
+            held_load: None,
         }
     }
 
@@ -463,6 +513,7 @@ mod tests {
         let offset = |o: i64, reverse| EncoderCalibration {
             offset_counts: Some(o),
             reverse,
+            held_load: None,
         };
         let q = i64::from(quarter);
         assert!((theta_of(offset(q, false), &[2 * quarter]) - half_pi).abs() < 1e-12);

@@ -7,7 +7,7 @@ use crate::options::{seconds, DeployOpt, PlacementArgs, ProcessArgs, ScenarioOpt
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
-use stepdrive_bridge::link::EncoderCalibration;
+use stepdrive_bridge::link::{EncoderCalibration, HeldLoad};
 use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
 use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
 use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
@@ -163,6 +163,11 @@ pub fn plant(a: PlantArgs) -> Result<()> {
         calibration: EncoderCalibration {
             offset_counts: d.drive.encoder_offset_counts,
             reverse: d.drive.reverse_encoder,
+            held_load: Some(HeldLoad {
+                torque_nm: s.load.torque_nm,
+                torque_constant_nm_per_a: s.motor.torque_constant_nm_per_a,
+                rotor_teeth: s.motor.n_r(),
+            }),
         },
         look_for_answers: wait == WaitStrategy::Sleep,
     };
@@ -274,6 +279,11 @@ pub struct EmulateArgs {
     /// Stop after this many seconds (default: run until SIGINT/SIGTERM).
     #[arg(long, value_name = "S")]
     pub duration: Option<f64>,
+    /// Write the rotor's true state (the model's θ from the electrical zero, ω, i_a, i_b;
+    /// not the sensors') of every sample of each run to FILE as CSV. Only an emulated
+    /// drive knows it; `run --mode hardware` compares it with what the stack measured.
+    #[arg(long, value_name = "FILE")]
+    pub truth: Option<PathBuf>,
     #[command(flatten)]
     pub inject: InjectArgs,
     #[command(flatten)]
@@ -388,6 +398,7 @@ pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
             dropout_samples: i.dropout_samples,
         },
         duration,
+        truth: a.truth,
     })
     .context("emulated drive")?;
     Ok(())

@@ -36,9 +36,11 @@ pub struct CurrentLoopPorts {
 
 impl CurrentLoopPorts {
     pub fn open(f: &mut impl PortFactory, mode: Mode, event: bool) -> Result<Self, PortError> {
+        // Setpoints first: the plant starts once the states have their subscribers, and
+        // the first setpoint must find this loop listening.
         Ok(Self {
-            states: f.subscriber(LOOP_BUFFER)?,
             setpoints: f.subscriber(LOOP_BUFFER)?,
+            states: f.subscriber(LOOP_BUFFER)?,
             commands: f.publisher()?,
             plans: match mode {
                 Mode::Lockstep => None,

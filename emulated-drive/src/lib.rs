@@ -2,6 +2,8 @@
 //! wire protocol of `docs/drive-protocol.md`, with its own sample clock, in drive units
 //! (encoder counts, ADC counts, duties), a command watchdog, and fault injection for tests.
 
+pub mod truth;
+
 use std::net::SocketAddr;
 use std::time::Duration;
 use stepdrive_drive_protocol::transport::Wire;
@@ -108,6 +110,11 @@ pub struct DriveCore {
     /// The seq of the next SAMPLE (the sample index; CONFIG and FAULT_REPORT carry the
     /// last one sent).
     tx_seq: u32,
+    /// The run's first sample (the first after ENABLE) and the electrical zero nearest to
+    /// where the rotor was then: the truth's k and θ count from them.
+    run_start: Option<(u32, f64)>,
+    n_r: f64,
+    period_s: f64,
     pub counters: DriveCounters,
 }
 
@@ -142,8 +149,27 @@ impl DriveCore {
             holding: false,
             align_duty,
             tx_seq: 1,
+            run_start: None,
+            n_r: s.motor.n_r(),
+            period_s: s.sample_period_s(),
             counters: DriveCounters::default(),
         }
+    }
+
+    /// The rotor's true state at the sample about to be sent with wire seq `seq`, once a
+    /// run has started.
+    pub fn truth(&self, seq: u32) -> Option<truth::TruthRow> {
+        let (first, zero) = self.run_start?;
+        let k = u64::from(seq.wrapping_sub(first));
+        let x = self.sim.motor_state();
+        Some(truth::TruthRow {
+            k,
+            t_s: k as f64 * self.period_s,
+            theta_rad: x[0] - zero,
+            omega_rad_s: x[1],
+            i_a_a: x[2],
+            i_b_a: x[3],
+        })
     }
 
     pub fn latched_faults(&self) -> u16 {
@@ -215,14 +241,22 @@ impl DriveCore {
             }
             Message::Control(Action::Enable) => {
                 self.enabled = true;
-                // The plant's load profile (steps, ramps) counts from ENABLE, as a run does.
-                self.sim.restart_load_clock();
+                // A run starts at the first ENABLE after an ALIGN or DISABLE (an ENABLE
+                // after a RESET mid-run continues it): the plant's load profile and the
+                // truth count from there.
+                if self.run_start.is_none() {
+                    self.sim.restart_load_clock();
+                    let pitch = std::f64::consts::TAU / self.n_r;
+                    let zero = (self.sim.motor_state()[0] / pitch).round() * pitch;
+                    self.run_start = Some((self.tx_seq, zero));
+                }
                 self.armed = false;
                 self.since_command = 0;
                 None
             }
             Message::Control(Action::Disable) => {
                 self.enabled = false;
+                self.run_start = None;
                 self.armed = false;
                 self.stop_aligning();
                 None
@@ -239,6 +273,7 @@ impl DriveCore {
                 // (N_r θ ≡ 0 mod 2π), where the host's encoder zero then commutates right.
                 self.enabled = false;
                 self.armed = false;
+                self.run_start = None;
                 self.pending = None;
                 self.plan = None;
                 let periods =
@@ -420,6 +455,8 @@ pub struct EmulatorOptions {
     pub inject: FaultInjection,
     /// Stop after this long (None: until SIGTERM/SIGINT).
     pub duration: Option<Duration>,
+    /// Write the rotor's true state of every sample of a run to this CSV file.
+    pub truth: Option<std::path::PathBuf>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -432,6 +469,12 @@ pub enum EmulatorError {
     },
     #[error(transparent)]
     Rt(#[from] stepdrive_runtime::rt::RtError),
+    #[error("cannot write the truth file {path}")]
+    Truth {
+        path: std::path::PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 /// Phase A's duty for `current_ma` in the steady state (R·I), within the bus.
@@ -461,6 +504,14 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
             what: format!("UDP socket on {}", o.listen),
             source,
         })?,
+    };
+    let truth_error = |path: &std::path::Path| {
+        let path = path.to_path_buf();
+        move |source| EmulatorError::Truth { path, source }
+    };
+    let mut truth = match &o.truth {
+        Some(p) => Some(truth::TruthWriter::create(p).map_err(truth_error(p))?),
+        None => None,
     };
     o.rt.apply()?;
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
@@ -539,6 +590,9 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
             continue;
         }
         let frame = core.sample_frame(monotonic_ns());
+        if let (Some(w), Some(row)) = (truth.as_mut(), core.truth(frame.seq)) {
+            w.push(row);
+        }
         let k = u64::from(sample_seq) + 1;
         let mut silent = o.inject.stop_after_s.is_some_and(|s| t_s >= s);
         if o.inject.dropout_at_s.is_some_and(|s| t_s >= s) {
@@ -596,6 +650,11 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     }
     let c = core.counters;
     tracing::info!(?c, faults = core.latched_faults(), "emulated drive stopped");
+    if let Some(w) = truth {
+        let (path, dropped) = (w.path().to_path_buf(), w.dropped);
+        let rows = w.finish().map_err(truth_error(&path))?;
+        tracing::info!(rows, dropped, path = %path.display(), "truth written");
+    }
     eprintln!(
         "drive: frames ok {}, CRC errors {}, bad {}, stale {}, commands applied {}, periods without their command {} (PLAN entry applied in {}), latched faults {:#06x}",
         c.frames_ok, c.crc_errors, c.bad_frames, c.stale_frames, c.commands_applied, c.periods_held, c.periods_planned, core.latched_faults()

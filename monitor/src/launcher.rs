@@ -5,7 +5,7 @@
 //! and reaped on any exit path (drop guard), children die with us (PR_SET_PDEATHSIG), and
 //! dead nodes' shared memory is removed.
 
-use crate::metrics::{Metrics, RunReport};
+use crate::metrics::{Metrics, RunReport, TruthReport};
 use crate::outcome::Outcome;
 use crate::recording::Recording;
 use crate::timing::{rss_kib, Resources, Rss, TimingReport};
@@ -16,11 +16,12 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use stepdrive_emulated_drive::truth::TruthRow;
 use stepdrive_runtime::deploy::{Deployment, Process};
 use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, IpcSubscriber, Stamp};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::Subscribe;
-use stepdrive_shared::messages::{state_flags, DriveState};
+use stepdrive_shared::messages::{state_flags, DriveState, TorqueSetpoint};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::stats::{roles, StatsReport};
@@ -309,12 +310,28 @@ pub fn run_stack(
         .context("cannot attach the monitor to the stack's services")?;
     let mut states = bus.subscriber_of::<DriveState>(MONITOR_BUFFER)?;
     let mut stats_sub = bus.subscriber_of::<StatsReport>(4)?;
+    // Recording: the setpoints too, from the first. The plant still waits for the current
+    // loop's subscription before its first sample, so the position loop (which starts
+    // once any setpoint subscriber is there) has nothing to answer before it.
+    let setpoints = match recording {
+        Some(_) => Some(bus.subscriber_of::<TorqueSetpoint>(MONITOR_BUFFER)?),
+        None => None,
+    };
 
     let mut children = Vec::with_capacity(4);
+    // Only an emulated drive knows where the rotor really is; it writes that beside the
+    // run so that the report can set the truth against what the sensors said.
+    let truth_path = emulated.then(|| {
+        std::env::temp_dir().join(format!(
+            "stepdrive-truth-{}-{}.csv",
+            std::process::id(),
+            opts.instance
+        ))
+    });
     if let (true, Some(addr)) = (emulated, &d.drive.address) {
         // The drive stands for separate hardware: it keeps the plant's CPU. The bridge shares
         // the current loop's CPU, one priority below it (see the README's hardware section).
-        let args = [
+        let mut args = vec![
             "--listen".to_string(),
             addr.clone(),
             "--scenario".to_string(),
@@ -322,6 +339,9 @@ pub fn run_stack(
             "--deploy".to_string(),
             path_arg(&files.deployment()),
         ];
+        if let Some(p) = &truth_path {
+            args.extend(["--truth".to_string(), path_arg(p)]);
+        }
         children.push(Supervised::spawn("emulate-drive", &args)?);
     }
     let with = |extra: &[&str]| -> Vec<String> {
@@ -353,6 +373,7 @@ pub fn run_stack(
     };
     let mut watch = Watch {
         recording,
+        setpoints,
         metrics: Metrics::new(s),
         rss_start: Vec::new(),
         rss_end: Vec::new(),
@@ -397,6 +418,7 @@ pub fn run_stack(
     if let Some(r) = watch.recording.as_deref_mut() {
         r.lost(watch.monitor_lost);
     }
+    watch.setpoints = None;
     drop(stats_sub);
     drop(children);
     drop(states);
@@ -419,6 +441,16 @@ pub fn run_stack(
             metrics.finish_early(method, mode.as_str(), wall, outcome, because)
         }
     };
+    if let Some(path) = truth_path {
+        let rows = read_truth(&path);
+        let _ = std::fs::remove_file(&path);
+        report.truth = truth_report(s, method, &rows);
+        if let (Some(r), false) = (watch.recording.as_deref_mut(), rows.is_empty()) {
+            if let Err(e) = r.truth(&rows) {
+                tracing::error!("{e:#}; the true rotor state goes unrecorded");
+            }
+        }
+    }
     if realtime {
         let mut timing = stats.timing(s, watch.monitor_lost, mode);
         timing.resources = Resources {
@@ -439,10 +471,47 @@ pub fn run_stack(
     Ok(report)
 }
 
+/// The emulated drive's true rotor state over the run (none, said once, when the drive
+/// left no usable file: the run's own figures stand).
+fn read_truth(path: &std::path::Path) -> Vec<TruthRow> {
+    stepdrive_emulated_drive::truth::read(path).unwrap_or_else(|e| {
+        tracing::warn!("no true rotor state from the emulated drive: {e}");
+        Vec::new()
+    })
+}
+
+/// The run's figures from the true rotor state.
+fn truth_report(s: &Scenario, method: Method, rows: &[TruthRow]) -> Option<TruthReport> {
+    if rows.is_empty() {
+        return None;
+    }
+    let mut m = Metrics::new(s);
+    for r in rows {
+        m.push(&DriveState {
+            seq: r.k,
+            sample_time_s: r.t_s,
+            theta_rad: r.theta_rad,
+            omega_rad_s: r.omega_rad_s,
+            i_a_a: r.i_a_a,
+            i_b_a: r.i_b_a,
+            ..Default::default()
+        });
+    }
+    let t = m.finish(method, "truth", 0.0);
+    Some(TruthReport {
+        samples: t.samples,
+        cruise_max_abs_error_rad: t.cruise_max_abs_error_rad,
+        max_abs_error_rad: t.max_abs_error_rad,
+        final_error_rad: t.final_error_rad,
+    })
+}
+
 /// What the monitor gathers from the state stream, and the processes' resources.
 struct Watch<'r> {
     /// Where every sample and report also goes, if the run is recorded.
     recording: Option<&'r mut Recording>,
+    /// Recording: the position loop's setpoints (torque, load estimate).
+    setpoints: Option<IpcSubscriber<TorqueSetpoint>>,
     metrics: Metrics,
     /// (process, pid, RSS at the first sample in KiB) of every child and the monitor.
     rss_start: Vec<(&'static str, u32, u64)>,
@@ -465,6 +534,21 @@ impl Watch<'_> {
                 self.recording = None;
             }
         }
+    }
+
+    /// Records the setpoints that arrived; a recording that fails is given up.
+    fn record_setpoints(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
+        let (Some(sub), Some(r)) = (self.setpoints.as_mut(), self.recording.as_deref_mut()) else {
+            return Ok(());
+        };
+        while let Some(sp) = sub.receive()? {
+            if let Err(e) = r.setpoint(&sp) {
+                tracing::error!("{e:#}; the rest of the run goes unrecorded");
+                self.recording = None;
+                break;
+            }
+        }
+        Ok(())
     }
 
     fn read_rss_end(&mut self) {
@@ -610,14 +694,17 @@ fn supervise(
                 w.metrics.push(&state);
                 w.record(&state);
                 if state.flags & state_flags::LAST != 0 {
+                    w.record_setpoints()?;
                     return Ok(Ending::Last);
                 }
             }
+            w.record_setpoints()?;
             if got {
                 if !files_removed {
                     // A sample means every child is up, with its files read.
                     files.remove();
                     files_removed = true;
+
                     let me = std::process::id();
                     w.rss_start = children
                         .iter()

@@ -57,6 +57,19 @@ pub struct RunReport {
     /// With a load step in `[plant.load]`: what the first one did.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub load_step: Option<LoadStepReport>,
+    /// Against an emulated drive: the same figures from the rotor's true state (the
+    /// model's, from the electrical zero), where the ones above come from its sensors.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub truth: Option<TruthReport>,
+}
+
+/// A run's figures from the true rotor state.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct TruthReport {
+    pub samples: u64,
+    pub cruise_max_abs_error_rad: f64,
+    pub max_abs_error_rad: f64,
+    pub final_error_rad: f64,
 }
 
 /// The error after the plant's first load step, over [step, end of the cruise window] (or
@@ -346,6 +359,7 @@ impl Metrics {
             fault_samples: self.faults,
             timing: None,
             load_step: self.step.map(|w| w.report(self.period)),
+            truth: None,
         }
     }
 }

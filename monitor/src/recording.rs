@@ -20,8 +20,9 @@ use std::collections::BTreeMap;
 use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
+use stepdrive_emulated_drive::truth::TruthRow;
 use stepdrive_shared::frames::dq_currents;
-use stepdrive_shared::messages::DriveState;
+use stepdrive_shared::messages::{DriveState, TorqueSetpoint};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::trajectory::Trapezoid;
 use stepdrive_shared::{Method, Scenario};
@@ -136,6 +137,42 @@ pub struct FaultRecord {
 
 const FAULT_FIELDS: [&str; 3] = ["t", "seq", "fault"];
 
+/// A position-loop setpoint as recorded: the torque (12) asked for and the load it used.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct SetpointRecord {
+    pub t: f64,
+    pub seq: u64,
+    pub theta_d: f64,
+    pub omega_d: f64,
+    pub alpha_d: f64,
+    pub torque: f64,
+    pub load_estimate: f64,
+}
+
+const SETPOINT_FIELDS: [&str; 7] = [
+    "t",
+    "seq",
+    "theta_d",
+    "omega_d",
+    "alpha_d",
+    "torque",
+    "load_estimate",
+];
+
+/// The emulated drive's true rotor state, beside the measured one.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct TruthRecord {
+    pub t: f64,
+    pub seq: u64,
+    pub theta: f64,
+    pub error: f64,
+    pub omega: f64,
+    pub i_a: f64,
+    pub i_b: f64,
+}
+
+const TRUTH_FIELDS: [&str; 7] = ["t", "seq", "theta", "error", "omega", "i_a", "i_b"];
+
 /// A JSON Schema of an object whose fields are all numbers (but `role`).
 fn schema(title: &str, fields: &[&str]) -> String {
     let props: Vec<String> = fields
@@ -161,6 +198,9 @@ struct Channels {
     state: u16,
     stats: u16,
     fault: u16,
+    setpoint: u16,
+    /// Made when the first truth arrives (only an emulated drive has one).
+    truth: Option<u16>,
     written: u64,
     lost: u64,
     last_fault: u32,
@@ -172,7 +212,7 @@ struct Channels {
 pub struct Recording {
     writer: Option<mcap::Writer<BufWriter<File>>>,
     path: PathBuf,
-    schemas: [u16; 3],
+    schemas: [u16; 5],
     channels: Vec<Channels>,
     trajectory: Trapezoid,
     n_r: f64,
@@ -230,6 +270,20 @@ impl Recording {
                     schema("stepdrive.Fault", &FAULT_FIELDS).as_bytes(),
                 )
                 .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.Setpoint",
+                    "jsonschema",
+                    schema("stepdrive.Setpoint", &SETPOINT_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.Truth",
+                    "jsonschema",
+                    schema("stepdrive.Truth", &TRUTH_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
         ];
         let toml = s.to_toml_string().unwrap_or_default();
         writer
@@ -271,11 +325,16 @@ impl Recording {
         let fault = w
             .add_channel(self.schemas[2], &topic(method, "fault"), "json", &none)
             .map_err(wrap)?;
+        let setpoint = w
+            .add_channel(self.schemas[3], &topic(method, "setpoint"), "json", &none)
+            .map_err(wrap)?;
         self.channels.push(Channels {
             method,
             state,
             stats,
             fault,
+            setpoint,
+            truth: None,
             written: 0,
             lost: 0,
             last_fault: 0,
@@ -344,6 +403,55 @@ impl Recording {
             ch.written += 1;
             ch.last_fault = st.fault;
             ch.last_t = t;
+        }
+        Ok(())
+    }
+
+    /// A setpoint of the current method's run, at its sample's time.
+    pub fn setpoint(&mut self, sp: &TorqueSetpoint) -> Result<(), RecordError> {
+        let Some(ch) = self.channels.last() else {
+            return Ok(());
+        };
+        let rec = SetpointRecord {
+            t: sp.sample_time_s,
+            seq: sp.seq,
+            theta_d: sp.theta_d_rad,
+            omega_d: sp.omega_d_rad_s,
+            alpha_d: sp.alpha_d_rad_s2,
+            torque: sp.torque_nm,
+            load_estimate: sp.load_estimate_nm,
+        };
+        self.put(ch.setpoint, sp.sample_time_s, &rec)
+    }
+
+    /// The emulated drive's true rotor state over the current method's run.
+    pub fn truth(&mut self, rows: &[TruthRow]) -> Result<(), RecordError> {
+        let wrap = write_error(&self.path);
+        let (Some(ch), Some(w)) = (self.channels.last_mut(), self.writer.as_mut()) else {
+            return Ok(());
+        };
+        let channel = match ch.truth {
+            Some(c) => c,
+            None => {
+                let name = topic(ch.method, "truth");
+                let c = w
+                    .add_channel(self.schemas[4], &name, "json", &BTreeMap::new())
+                    .map_err(wrap)?;
+                ch.truth = Some(c);
+                c
+            }
+        };
+        for r in rows {
+            let rec = TruthRecord {
+                t: r.t_s,
+                seq: r.k,
+                theta: r.theta_rad,
+                error: self.trajectory.at(r.t_s).theta - r.theta_rad,
+                omega: r.omega_rad_s,
+                i_a: r.i_a_a,
+                i_b: r.i_b_a,
+            };
+            self.put(channel, r.t_s, &rec)?;
         }
         Ok(())
     }
@@ -420,6 +528,8 @@ pub struct Recorded {
     pub runs: Vec<(String, Vec<StateRecord>)>,
     pub stats: Vec<(String, Vec<StatsRecord>)>,
     pub faults: Vec<(String, Vec<FaultRecord>)>,
+    pub setpoints: Vec<(String, Vec<SetpointRecord>)>,
+    pub truth: Vec<(String, Vec<TruthRecord>)>,
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
 }
 
@@ -458,6 +568,16 @@ impl Recorded {
                 ),
                 "fault" => push(
                     &mut out.faults,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "setpoint" => push(
+                    &mut out.setpoints,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "truth" => push(
+                    &mut out.truth,
                     method,
                     serde_json::from_slice(&m.data).map_err(bad)?,
                 ),
@@ -550,6 +670,28 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
             format!("{},{},{}", s.t, s.seq, s.fault)
         })?;
         written.push((p, faults.len()));
+    }
+    for (method, setpoints) in &rec.setpoints {
+        let p = dir.join(format!("{method}_setpoint.csv"));
+        let header = "t [s],seq,theta_d [rad],omega_d [rad/s],alpha_d [rad/s²],torque [N·m],load_estimate [N·m]";
+        write_csv(&p, header, setpoints, |s| {
+            format!(
+                "{},{},{},{},{},{},{}",
+                s.t, s.seq, s.theta_d, s.omega_d, s.alpha_d, s.torque, s.load_estimate
+            )
+        })?;
+        written.push((p, setpoints.len()));
+    }
+    for (method, truth) in &rec.truth {
+        let p = dir.join(format!("{method}_truth.csv"));
+        let header = "t [s],seq,theta [rad],error [rad],omega [rad/s],i_a [A],i_b [A]";
+        write_csv(&p, header, truth, |s| {
+            format!(
+                "{},{},{},{},{},{},{}",
+                s.t, s.seq, s.theta, s.error, s.omega, s.i_a, s.i_b
+            )
+        })?;
+        written.push((p, truth.len()));
     }
     Ok(written)
 }

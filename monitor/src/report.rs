@@ -118,9 +118,29 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             }
         }),
     ];
+    let truth_rows: [Row; 3] = [
+        ("true cruise max |e| [rad]", |r| {
+            r.truth
+                .as_ref()
+                .map_or("n/a".into(), |t| sci(t.cruise_max_abs_error_rad))
+        }),
+        ("true max |e|, whole run [rad]", |r| {
+            r.truth
+                .as_ref()
+                .map_or("n/a".into(), |t| sci(t.max_abs_error_rad))
+        }),
+        ("true final error [rad]", |r| {
+            r.truth
+                .as_ref()
+                .map_or("n/a".into(), |t| sci(t.final_error_rad))
+        }),
+    ];
     let mut rows = rows.to_vec();
     if runs.iter().any(|r| r.load_step.is_some()) {
         rows.splice(5..5, step_rows);
+    }
+    if runs.iter().any(|r| r.truth.is_some()) {
+        rows.splice(5..5, truth_rows);
     }
     let label_w = rows
         .iter()

@@ -182,7 +182,7 @@ pub struct ResetRequest {
 /// holds until the next tick.
 #[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
 #[repr(C)]
-#[type_name("stepdrive.TorqueSetpoint.v1")]
+#[type_name("stepdrive.TorqueSetpoint.v2")]
 pub struct TorqueSetpoint {
     /// Tick counter of the position loop.
     pub seq: u64,

@@ -142,3 +142,55 @@ fn the_robustness_command_writes_every_cell_and_names_the_rows() {
     );
     assert_eq!(cell("nominal", "pi")["outcome"], "ok");
 }
+
+#[test]
+fn identify_writes_a_scenario_the_stack_runs_and_stops_at_a_bound() {
+    let dir = TempDir::new("identify");
+    let out_toml = dir.path("motor.toml");
+    let bench = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scenarios/identify-bench.toml"
+    );
+    let out = stepdrive(&[
+        "identify",
+        "--scenario",
+        bench,
+        "--out",
+        out_toml.to_str().unwrap(),
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{text}");
+    for name in ["R ", "L ", "K_m", "J ", "B ", "τ_L"] {
+        assert!(text.contains(name), "{name}: {text}");
+    }
+    // The file is a scenario: checked by the stack's own loader, and it runs.
+    let check = stepdrive(&["scenario", "--check", out_toml.to_str().unwrap()]);
+    assert!(
+        check.status.success(),
+        "{}",
+        String::from_utf8_lossy(&check.stderr)
+    );
+    let written = std::fs::read_to_string(&out_toml).expect("written");
+    assert!(written.contains("[plant.motor]") && written.contains("(identified)"));
+
+    // A current bound below what the sequence asks: exit 3, a headline, no file.
+    let refused = dir.path("refused.toml");
+    let out = stepdrive(&[
+        "identify",
+        "--max-current",
+        "0.05",
+        "--out",
+        refused.to_str().unwrap(),
+    ]);
+    let all = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(out.status.code(), Some(3), "{all}");
+    assert!(
+        all.contains("IDENTIFICATION STOPPED") && all.contains("outputs"),
+        "{all}"
+    );
+    assert!(!refused.exists());
+}

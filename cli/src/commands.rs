@@ -572,3 +572,93 @@ pub fn robustness(a: RobustnessArgs) -> Result<()> {
     }
     Ok(())
 }
+
+#[derive(Args, Debug)]
+pub struct IdentifyArgs {
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// Write the scenario with the identified [motor] and [load] to FILE (the rest, its
+    /// [plant] section included, as given): `run --scenario FILE` then uses them.
+    #[arg(long, value_name = "FILE", default_value = "motor.toml")]
+    out: PathBuf,
+    /// Also write the estimates as JSON to FILE.
+    #[arg(long, value_name = "FILE")]
+    json: Option<PathBuf>,
+    /// Phase current the sequence must never exceed, A (it asks for 60 % of it).
+    #[arg(long, value_name = "A", default_value_t = 1.0, value_parser = positive)]
+    max_current: f64,
+    /// Phase voltage the sequence never commands beyond, V.
+    #[arg(long, value_name = "V", default_value_t = 20.0, value_parser = positive)]
+    max_voltage: f64,
+    /// Speed the sequence must never exceed, rad/s (it spins at up to 80 % of it; default
+    /// 1.25 × the scenario's cruise speed, so B and the load are measured at the speeds the
+    /// motor will run at).
+    #[arg(long, value_name = "RAD_S", value_parser = positive)]
+    max_speed: Option<f64>,
+    /// Travel from the start the sequence must never exceed, rad.
+    #[arg(long, value_name = "RAD", default_value_t = 30.0, value_parser = positive)]
+    max_travel: f64,
+}
+
+fn positive(s: &str) -> Result<f64, String> {
+    s.parse::<f64>()
+        .ok()
+        .filter(|v| v.is_finite() && *v > 0.0)
+        .ok_or_else(|| format!("`{s}` must be a positive number"))
+}
+
+/// The identification sequence against the simulated plant (lockstep): table, scenario
+/// file, JSON. A bound hit stops it with the outputs off and exits 3.
+pub fn identify(a: IdentifyArgs) -> Result<()> {
+    use stepdrive_controller::identify::Bounds;
+    use stepdrive_monitor::identify::{
+        default_max_speed, identified_scenario, identify_simulated, table, IdentifyError,
+    };
+    let s = a.scenario.load()?;
+    if a.max_voltage > s.drive.bus_voltage_v {
+        anyhow::bail!(
+            "--max-voltage {} V exceeds the bus ({} V): the drive cannot apply it",
+            a.max_voltage,
+            s.drive.bus_voltage_v
+        );
+    }
+    let bounds = Bounds {
+        current_a: a.max_current,
+        voltage_v: a.max_voltage,
+        speed_rad_s: a.max_speed.unwrap_or_else(|| default_max_speed(&s)),
+        travel_rad: a.max_travel,
+    };
+    let found = match identify_simulated(&s, bounds) {
+        Ok(f) => f,
+        Err(IdentifyError::Bound { hit, .. }) => {
+            return Err(Exit {
+                code: Outcome::Fault.exit_code(),
+                headline: format!(
+                    "IDENTIFICATION STOPPED (exit {}): {hit}; the outputs were turned off and nothing was written",
+                    Outcome::Fault.exit_code()
+                ),
+            }
+            .into())
+        }
+        Err(e) => return Err(e).context("identification failed"),
+    };
+    println!(
+        "identified on scenario {} (simulated plant, lockstep)",
+        s.name
+    );
+    print!("{}", table(&found.rows));
+    let out = identified_scenario(&s, &found.estimates);
+    std::fs::write(&a.out, out.to_toml_string()?)
+        .with_context(|| format!("cannot write {}", a.out.display()))?;
+    println!(
+        "scenario written to {} (run --scenario {} uses it)",
+        a.out.display(),
+        a.out.display()
+    );
+    if let Some(path) = &a.json {
+        std::fs::write(path, serde_json::to_string_pretty(&found)? + "\n")
+            .with_context(|| format!("cannot write {}", path.display()))?;
+        println!("estimates written to {}", path.display());
+    }
+    Ok(())
+}

@@ -40,6 +40,9 @@ enum Cmd {
     /// Each method against plants that are not its model (R, L, K_m, J, B ±20 %, an unknown
     /// load, a load step, detent torque, all at once): lockstep, markdown tables, JSON.
     Robustness(commands::RobustnessArgs),
+    /// Measure the motor's R, L, K_m, J, B and load through the stack with a bounded
+    /// sequence (DC levels, steps, an open-loop spin) and write a scenario that uses them.
+    Identify(commands::IdentifyArgs),
     /// The plant process: motor model eq. (1), publishes drive/state, applies drive/command;
     /// in hardware mode a bridge to a drive.
     Plant(roles::PlantArgs),
@@ -107,6 +110,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::Run(a) => commands::run(a),
         Cmd::Simulate(a) => commands::simulate(a),
         Cmd::Robustness(a) => commands::robustness(a),
+        Cmd::Identify(a) => commands::identify(a),
         Cmd::Plant(a) => roles::plant(a),
         Cmd::CurrentLoop(a) => roles::current_loop(a),
         Cmd::PositionLoop(a) => roles::position_loop(a),

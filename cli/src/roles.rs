@@ -133,6 +133,7 @@ pub fn plant(a: PlantArgs) -> Result<()> {
         let settings = PlantSettings {
             mode,
             wait_subscribers,
+            wait_position_loop: true,
             watchdog_periods: d.watchdog_periods,
             start_delay_ns: PLANT_START_DELAY_NS,
         };

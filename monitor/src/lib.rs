@@ -6,6 +6,7 @@
 
 pub mod attach;
 pub mod histfile;
+pub mod identify;
 pub mod latency;
 pub mod launcher;
 pub mod metrics;

@@ -95,6 +95,7 @@ fn run_in_memory(
         PlantSettings {
             mode,
             wait_subscribers: 3,
+            wait_position_loop: true,
             watchdog_periods,
             start_delay_ns: 0,
         },

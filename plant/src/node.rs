@@ -60,6 +60,9 @@ pub struct PlantSettings {
     /// State subscribers to wait for before the first sample: the current and position
     /// loops, and the monitor when one is attached.
     pub wait_subscribers: usize,
+    /// Wait for a position loop (a setpoint publisher) too; false for a tool that drives the
+    /// plant alone (the identification sequence).
+    pub wait_position_loop: bool,
     /// Realtime: misses in a row after which the outputs go off and a fault latches.
     pub watchdog_periods: u32,
     /// Realtime: the first deadline this long after start-up, so every process is in its
@@ -375,7 +378,7 @@ impl Node for PlantNode {
         }
         self.peers = Some(peers);
         let ready = peers.command_publishers >= 1
-            && peers.setpoint_publishers >= 1
+            && (peers.setpoint_publishers >= 1 || !self.settings.wait_position_loop)
             && peers.state_subscribers >= self.settings.wait_subscribers;
         self.started = ready;
         Ok(match (ready, self.settings.mode) {

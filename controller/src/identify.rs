@@ -1,0 +1,526 @@
+//! Identification of a motor's R, L, K_m, J, B and load from a scripted, bounded sequence
+//! of phase voltages and the states it produces. Pure: the sequence maps a state to the
+//! voltages for the next period; the fits map the recorded states to estimates.
+//!
+//! The sequence (`docs`: README, "Identifying a motor"):
+//! 1. **R and L, phase a**, rotor held by phase a's own field: four DC voltage levels, each
+//!    held long enough to settle. R is the slope of V against I over the settled ends of
+//!    the levels (an offset in either cancels); L is the time constant of the steps between
+//!    them, from a least-squares fit of the exact sampled response i_k = a i_{k−1} + b v_k + c
+//!    (a = e^{−RT/L}).
+//! 2. **R and L, phase b**, the same (the rotor first turns a quarter electrical period to
+//!    phase b's field; that part is skipped).
+//! 3. **K_m, J, B, load**: open-loop microstepping along a speed profile (forward at two
+//!    speeds, with accelerations, then backward). K_m from the back-EMF in each phase's
+//!    sampled electrical equation with the R and L just found; J, B, the constant load and
+//!    Coulomb friction from the torque balance K_m ∫ i_q dt = J Δω + B ∫ ω dt + τ_L Δt +
+//!    τ_c ∫ sign ω dt over 10 ms windows.
+//!
+//! Every period is checked against the bounds (current, voltage, speed, travel): one
+//! beyond them aborts with the outputs off.
+
+use nalgebra::{DMatrix, DVector};
+use stepdrive_shared::messages::DriveState;
+use stepdrive_shared::scenario::MotorParams;
+
+/// What the sequence may do to the motor.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Bounds {
+    /// |i_a|, |i_b| at most, A.
+    pub current_a: f64,
+    /// |v_a|, |v_b| the sequence commands at most, V.
+    pub voltage_v: f64,
+    /// |ω| at most, rad/s.
+    pub speed_rad_s: f64,
+    /// |θ − θ_start| at most, rad.
+    pub travel_rad: f64,
+}
+
+impl Default for Bounds {
+    fn default() -> Self {
+        Self {
+            current_a: 1.0,
+            voltage_v: 20.0,
+            speed_rad_s: 12.0,
+            travel_rad: 30.0,
+        }
+    }
+}
+
+/// A bound the motor reached: the sequence stops with the outputs off.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum BoundHit {
+    #[error("phase current {value:.3} A beyond the bound of {limit} A at t = {t:.4} s")]
+    Current { value: f64, limit: f64, t: f64 },
+    #[error("speed {value:.3} rad/s beyond the bound of {limit} rad/s at t = {t:.4} s")]
+    Speed { value: f64, limit: f64, t: f64 },
+    #[error("travel {value:.3} rad beyond the bound of {limit} rad at t = {t:.4} s")]
+    Travel { value: f64, limit: f64, t: f64 },
+    #[error("a non-finite measurement at t = {t:.4} s")]
+    NotFinite { t: f64 },
+}
+
+impl BoundHit {
+    /// When it was hit, s.
+    pub fn time_s(&self) -> f64 {
+        match *self {
+            BoundHit::Current { t, .. }
+            | BoundHit::Speed { t, .. }
+            | BoundHit::Travel { t, .. }
+            | BoundHit::NotFinite { t } => t,
+        }
+    }
+}
+
+/// Segment lengths, s.
+const LEVEL_S: f64 = 0.08;
+const LEVELS: usize = 4;
+/// The rotor turning to phase b's field at the start of phase 2: not used for phase b.
+const TURN_S: f64 = 0.1;
+/// The speed profile of step 3: (duration, speed at its end as a share of the top speed);
+/// speed ramps linearly within a segment.
+const PROFILE: [(f64, f64); 9] = [
+    (0.15, 0.5),
+    (0.25, 0.5),
+    (0.1, 1.0),
+    (0.25, 1.0),
+    (0.15, 0.2),
+    (0.1, 0.2),
+    (0.2, -0.6),
+    (0.25, -0.6),
+    (0.15, 0.0),
+];
+
+/// Which part of the sequence a sample belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Part {
+    PhaseA,
+    Turn,
+    PhaseB,
+    Spin,
+    Done,
+}
+
+/// The script: the voltages for each period, from the nominal model (only to choose the
+/// levels: more current than the bound allows is never asked for).
+#[derive(Debug, Clone)]
+pub struct Sequence {
+    bounds: Bounds,
+    period: f64,
+    n_r: f64,
+    /// Phase voltage of the top DC level, V.
+    dc_v: f64,
+    /// Microstepping: nominal R, K_m, the current amplitude and the top speed.
+    r: f64,
+    k_m: f64,
+    spin_a: f64,
+    top_speed: f64,
+    start_theta: Option<f64>,
+    /// Spin: the field angle so far (integrated, so the profile's speed is exact).
+    field: f64,
+}
+
+impl Sequence {
+    pub fn new(nominal: &MotorParams, bounds: Bounds, period_s: f64) -> Self {
+        let r = nominal.resistance_ohm;
+        // 60 % of the current bound at the top level, on the nominal R.
+        let dc_v = (0.6 * bounds.current_a * r).min(bounds.voltage_v);
+        Self {
+            bounds,
+            period: period_s,
+            n_r: nominal.n_r(),
+            dc_v,
+            r,
+            k_m: nominal.torque_constant_nm_per_a,
+            spin_a: 0.5 * bounds.current_a,
+            top_speed: 0.8 * bounds.speed_rad_s,
+            start_theta: None,
+            field: std::f64::consts::FRAC_PI_2,
+        }
+    }
+
+    /// The sequence's length, s.
+    pub fn duration_s() -> f64 {
+        2.0 * LEVELS as f64 * LEVEL_S + TURN_S + PROFILE.iter().map(|p| p.0).sum::<f64>()
+    }
+
+    /// Where time `t` falls.
+    pub fn part(t: f64) -> Part {
+        let dc = LEVELS as f64 * LEVEL_S;
+        if t < dc {
+            Part::PhaseA
+        } else if t < dc + TURN_S {
+            Part::Turn
+        } else if t < 2.0 * dc + TURN_S {
+            Part::PhaseB
+        } else if t < Self::duration_s() {
+            Part::Spin
+        } else {
+            Part::Done
+        }
+    }
+
+    /// The DC level at time `t` within a phase's part (1..=LEVELS of the top level).
+    fn level(&self, t_in: f64) -> f64 {
+        let n = ((t_in / LEVEL_S).floor() as usize).min(LEVELS - 1) + 1;
+        self.dc_v * n as f64 / LEVELS as f64
+    }
+
+    /// The profile's speed at `t_in` into the spin, rad/s.
+    fn speed(&self, t_in: f64) -> f64 {
+        let (mut t0, mut w0) = (0.0, 0.0);
+        for (d, share) in PROFILE {
+            let w1 = share * self.top_speed;
+            if t_in < t0 + d {
+                return w0 + (w1 - w0) * (t_in - t0) / d;
+            }
+            t0 += d;
+            w0 = w1;
+        }
+        0.0
+    }
+
+    /// The voltages for the period after `state`'s (the bounds checked first).
+    pub fn next(&mut self, state: &DriveState) -> Result<[f64; 2], BoundHit> {
+        let t = state.sample_time_s;
+        self.check(state)?;
+        let dc = LEVELS as f64 * LEVEL_S;
+        let v = match Self::part(t) {
+            Part::PhaseA => [self.level(t), 0.0],
+            Part::Turn => [0.0, self.dc_v * 0.5],
+            Part::PhaseB => [0.0, self.level(t - dc - TURN_S)],
+            Part::Spin => {
+                let w = self.speed(t - 2.0 * dc - TURN_S);
+                self.field += self.n_r * w * self.period;
+                // Eq. (2) with the nominal back-EMF added, so the current stays near its
+                // amplitude at every speed.
+                let amplitude = self.r * self.spin_a + self.k_m * w.abs();
+                let (s, c) = self.field.sin_cos();
+                [amplitude * c, amplitude * s]
+            }
+            Part::Done => [0.0, 0.0],
+        };
+        let lim = self.bounds.voltage_v;
+        Ok(v.map(|x| x.clamp(-lim, lim)))
+    }
+
+    fn check(&mut self, s: &DriveState) -> Result<(), BoundHit> {
+        let t = s.sample_time_s;
+        let values = [s.theta_rad, s.omega_rad_s, s.i_a_a, s.i_b_a];
+        if !values.iter().all(|v| v.is_finite()) {
+            return Err(BoundHit::NotFinite { t });
+        }
+        let b = self.bounds;
+        let i = s.i_a_a.abs().max(s.i_b_a.abs());
+        if i > b.current_a {
+            return Err(BoundHit::Current {
+                value: i,
+                limit: b.current_a,
+                t,
+            });
+        }
+        if s.omega_rad_s.abs() > b.speed_rad_s {
+            return Err(BoundHit::Speed {
+                value: s.omega_rad_s,
+                limit: b.speed_rad_s,
+                t,
+            });
+        }
+        let start = *self.start_theta.get_or_insert(s.theta_rad);
+        let travel = (s.theta_rad - start).abs();
+        if travel > b.travel_rad {
+            return Err(BoundHit::Travel {
+                value: travel,
+                limit: b.travel_rad,
+                t,
+            });
+        }
+        Ok(())
+    }
+}
+
+/// One estimate with its standard error (from the fit's residuals).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct Estimate {
+    pub value: f64,
+    pub std_error: f64,
+}
+
+/// What the identification found.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+pub struct Estimates {
+    pub resistance_ohm: Estimate,
+    pub inductance_h: Estimate,
+    pub torque_constant_nm_per_a: Estimate,
+    pub inertia_kg_m2: Estimate,
+    pub viscous_friction_nm_s_per_rad: Estimate,
+    pub load_nm: Estimate,
+    pub coulomb_nm: Estimate,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum FitError {
+    #[error("the {what} fit is singular: the sequence did not excite it (too few samples?)")]
+    Singular { what: &'static str },
+    #[error("the {what} fit gave a non-physical value {value:e}")]
+    NonPhysical { what: &'static str, value: f64 },
+}
+
+/// Least squares y ≈ X β: β and the standard error of each coefficient.
+fn least_squares(
+    what: &'static str,
+    rows: &[Vec<f64>],
+    y: &[f64],
+) -> Result<(Vec<f64>, Vec<f64>), FitError> {
+    let n = rows.len();
+    let p = rows.first().map_or(0, Vec::len);
+    if n <= p || p == 0 {
+        return Err(FitError::Singular { what });
+    }
+    let x = DMatrix::from_fn(n, p, |i, j| rows[i][j]);
+    let yv = DVector::from_column_slice(y);
+    let xtx = x.transpose() * &x;
+    let inv = xtx.try_inverse().ok_or(FitError::Singular { what })?;
+    let beta = &inv * x.transpose() * &yv;
+    let residual = &yv - &x * &beta;
+    let sigma2 = residual.norm_squared() / (n - p) as f64;
+    let se = (0..p)
+        .map(|j| (sigma2 * inv[(j, j)]).max(0.0).sqrt())
+        .collect();
+    Ok((beta.iter().copied().collect(), se))
+}
+
+/// R and L of one phase (`phase` 0 = a, 1 = b) from the samples of its DC part.
+fn resistance_and_inductance(
+    states: &[DriveState],
+    phase: usize,
+    start: f64,
+    period: f64,
+    n_r: f64,
+) -> Result<(Estimate, Estimate), FitError> {
+    let i_of = |s: &DriveState| if phase == 0 { s.i_a_a } else { s.i_b_a };
+    let v_of = |s: &DriveState| if phase == 0 { s.v_a_v } else { s.v_b_v };
+    // R: the settled second half of each level, V against I.
+    let (mut rows, mut y) = (Vec::new(), Vec::new());
+    for n in 0..LEVELS {
+        let from = start + (n as f64 + 0.5) * LEVEL_S;
+        let to = start + (n as f64 + 1.0) * LEVEL_S;
+        let level: Vec<&DriveState> = states
+            .iter()
+            .filter(|s| s.sample_time_s >= from && s.sample_time_s < to)
+            .collect();
+        let m = level.len() as f64;
+        if m == 0.0 {
+            return Err(FitError::Singular { what: "resistance" });
+        }
+        let i = level.iter().map(|s| i_of(s)).sum::<f64>() / m;
+        let v = level.iter().map(|s| v_of(s)).sum::<f64>() / m;
+        rows.push(vec![i, 1.0]);
+        y.push(v);
+    }
+    let (beta, se) = least_squares("resistance", &rows, &y)?;
+    let r = Estimate {
+        value: beta[0],
+        std_error: se[0],
+    };
+    if r.value.is_nan() || r.value <= 0.0 {
+        return Err(FitError::NonPhysical {
+            what: "resistance",
+            value: r.value,
+        });
+    }
+    // L: i_k = a i_{k−1} + b v_k + g ē_k + c over the whole part (the steps excite it).
+    // ē is the interval's mean of ω sin(N_r θ) (−ω cos for b): a load holds the rotor
+    // off the phase's axis, so each current step swings it and its back-EMF would
+    // otherwise bias a (by 0.2 % in L with a 0.012 N·m load at 0.1 A).
+    let part: Vec<&DriveState> = states
+        .iter()
+        .filter(|s| s.sample_time_s >= start && s.sample_time_s < start + LEVELS as f64 * LEVEL_S)
+        .collect();
+    let emf = |s: &DriveState| {
+        let (sn, cs) = (n_r * s.theta_rad).sin_cos();
+        if phase == 0 {
+            s.omega_rad_s * sn
+        } else {
+            -s.omega_rad_s * cs
+        }
+    };
+    let (mut rows, mut y) = (Vec::new(), Vec::new());
+    for w in part.windows(2) {
+        if w[1].seq != w[0].seq + 1 {
+            continue;
+        }
+        let e = 0.5 * (emf(w[0]) + emf(w[1]));
+        rows.push(vec![i_of(w[0]), v_of(w[1]), e, 1.0]);
+        y.push(i_of(w[1]));
+    }
+    let (beta, se) = least_squares("inductance", &rows, &y)?;
+    let a = beta[0];
+    if a.is_nan() || a <= 0.0 || a >= 1.0 {
+        return Err(FitError::NonPhysical {
+            what: "inductance",
+            value: a,
+        });
+    }
+    // τ = −T / ln a, L = R τ; the error of a carried through d(τ)/da = T / (a ln² a).
+    let tau = -period / a.ln();
+    let l = r.value * tau;
+    let l_se = l
+        * ((se[0] * period / (a * a.ln().powi(2)) / tau).powi(2) + (r.std_error / r.value).powi(2))
+            .sqrt();
+    Ok((
+        r,
+        Estimate {
+            value: l,
+            std_error: l_se,
+        },
+    ))
+}
+
+/// Everything from the states of one run of the sequence (sample k at k·`period_s`).
+pub fn fit(states: &[DriveState], n_r: f64, period_s: f64) -> Result<Estimates, FitError> {
+    let dc = LEVELS as f64 * LEVEL_S;
+    let (r_a, l_a) = resistance_and_inductance(states, 0, 0.0, period_s, n_r)?;
+    let (r_b, l_b) = resistance_and_inductance(states, 1, dc + TURN_S, period_s, n_r)?;
+    let mean = |x: Estimate, y: Estimate| Estimate {
+        value: 0.5 * (x.value + y.value),
+        std_error: 0.5 * x.std_error.hypot(y.std_error),
+    };
+    let (r, l) = (mean(r_a, r_b), mean(l_a, l_b));
+
+    // K_m: i_k − a i_{k−1} − b v_k = b K_m ē, ē the mean of ω sin(N_r θ) (phase a, −ω cos
+    // for b) over the interval, with each phase's own a and b.
+    let spin_from = 2.0 * dc + TURN_S;
+    let spin: Vec<&DriveState> = states
+        .iter()
+        .filter(|s| s.sample_time_s >= spin_from)
+        .collect();
+    let coefficients = |rr: f64, ll: f64| {
+        let a = (-rr * period_s / ll).exp();
+        (a, (1.0 - a) / rr)
+    };
+    let phases = [
+        coefficients(r_a.value, l_a.value),
+        coefficients(r_b.value, l_b.value),
+    ];
+    let (mut rows, mut y) = (Vec::new(), Vec::new());
+    for w in spin.windows(2) {
+        let (p, q) = (w[0], w[1]);
+        if q.seq != p.seq + 1 || p.omega_rad_s.abs() < 0.5 {
+            continue;
+        }
+        let emf = |s: &DriveState| {
+            let (sn, cs) = (n_r * s.theta_rad).sin_cos();
+            [s.omega_rad_s * sn, -s.omega_rad_s * cs]
+        };
+        let (ep, eq) = (emf(p), emf(q));
+        for (ph, &(a, b)) in phases.iter().enumerate() {
+            let (i0, i1, v) = match ph {
+                0 => (p.i_a_a, q.i_a_a, q.v_a_v),
+                _ => (p.i_b_a, q.i_b_a, q.v_b_v),
+            };
+            rows.push(vec![b * 0.5 * (ep[ph] + eq[ph])]);
+            y.push(i1 - a * i0 - b * v);
+        }
+    }
+    let (beta, se) = least_squares("torque constant", &rows, &y)?;
+    let k_m = Estimate {
+        value: beta[0],
+        std_error: se[0],
+    };
+    if k_m.value.is_nan() || k_m.value <= 0.0 {
+        return Err(FitError::NonPhysical {
+            what: "torque constant",
+            value: k_m.value,
+        });
+    }
+
+    // J, B, τ_L, τ_c: the torque balance integrated over 10 ms windows.
+    let window = (0.01 / period_s).round().max(2.0) as usize;
+    let (mut rows, mut y) = (Vec::new(), Vec::new());
+    for chunk in spin.chunks(window) {
+        if chunk.len() < window || chunk.windows(2).any(|w| w[1].seq != w[0].seq + 1) {
+            continue;
+        }
+        let (mut torque, mut speed, mut sign, mut dt) = (0.0, 0.0, 0.0, 0.0);
+        for w in chunk.windows(2) {
+            let iq = |s: &DriveState| {
+                let (sn, cs) = (n_r * s.theta_rad).sin_cos();
+                -sn * s.i_a_a + cs * s.i_b_a
+            };
+            let h = w[1].sample_time_s - w[0].sample_time_s;
+            torque += 0.5 * h * k_m.value * (iq(w[0]) + iq(w[1]));
+            speed += 0.5 * h * (w[0].omega_rad_s + w[1].omega_rad_s);
+            sign += 0.5 * h * (smooth_sign(w[0].omega_rad_s) + smooth_sign(w[1].omega_rad_s));
+            dt += h;
+        }
+        let dw = chunk[chunk.len() - 1].omega_rad_s - chunk[0].omega_rad_s;
+        rows.push(vec![dw, speed, dt, sign]);
+        y.push(torque);
+    }
+    let (beta, se) = least_squares("inertia and friction", &rows, &y)?;
+    let est = |n: usize| Estimate {
+        value: beta[n],
+        std_error: se[n],
+    };
+    if beta[0].is_nan() || beta[0] <= 0.0 {
+        return Err(FitError::NonPhysical {
+            what: "inertia",
+            value: beta[0],
+        });
+    }
+    Ok(Estimates {
+        resistance_ohm: r,
+        inductance_h: l,
+        torque_constant_nm_per_a: k_m,
+        inertia_kg_m2: est(0),
+        viscous_friction_nm_s_per_rad: est(1),
+        load_nm: est(2),
+        coulomb_nm: est(3),
+    })
+}
+
+/// The sign of ω, smoothed over ±0.05 rad/s (a rotor at rest has no friction direction).
+fn smooth_sign(omega: f64) -> f64 {
+    (omega / 0.05).tanh()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each part takes its time and the voltages stay within the bound.
+    #[test]
+    fn the_sequence_is_bounded_in_voltage_and_ends_with_outputs_off() {
+        let bounds = Bounds::default();
+        let mut seq = Sequence::new(&MotorParams::default(), bounds, 50e-6);
+        let end = Sequence::duration_s();
+        assert!((2.0..4.0).contains(&end), "{end} s");
+        let mut k = 0u64;
+        loop {
+            let t = k as f64 * 50e-6;
+            let state = DriveState {
+                seq: k,
+                sample_time_s: t,
+                ..Default::default()
+            };
+            let v = seq.next(&state).expect("within bounds");
+            assert!(v.iter().all(|x| x.abs() <= bounds.voltage_v));
+            if t > end {
+                assert_eq!(v, [0.0, 0.0]);
+                break;
+            }
+            k += 1;
+        }
+    }
+
+    #[test]
+    fn a_current_beyond_the_bound_stops_the_sequence() {
+        let mut seq = Sequence::new(&MotorParams::default(), Bounds::default(), 50e-6);
+        let state = DriveState {
+            i_a_a: 1.2,
+            ..Default::default()
+        };
+        assert!(matches!(seq.next(&state), Err(BoundHit::Current { .. })));
+    }
+}

@@ -1,0 +1,132 @@
+//! The identification sequence as a node of the runner, in the current loop's place: it
+//! answers every state with the sequence's voltages (lockstep), keeps the states for the
+//! fits (pre-allocated for the whole sequence), and on a bound turns the outputs off for
+//! the rest of the run.
+
+use crate::identify::{BoundHit, Bounds, Sequence};
+use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
+use stepdrive_runtime::port::{PortError, PortFactory, Presence, Publish, Subscribe};
+use stepdrive_runtime::RunError;
+use stepdrive_shared::messages::{state_flags, DriveCommand, DriveState};
+use stepdrive_shared::services::{Topic, LOOP_BUFFER};
+use stepdrive_shared::Scenario;
+
+pub struct IdentifyPorts {
+    pub states: Box<dyn Subscribe<DriveState>>,
+    pub commands: Box<dyn Publish<DriveCommand>>,
+    pub presence: Box<dyn Presence>,
+}
+
+impl IdentifyPorts {
+    pub fn open(f: &mut impl PortFactory) -> Result<Self, PortError> {
+        Ok(Self {
+            states: f.subscriber(LOOP_BUFFER)?,
+            commands: f.publisher()?,
+            presence: f.presence()?,
+        })
+    }
+}
+
+pub struct IdentifyNode {
+    sequence: Sequence,
+    rate_hz: f64,
+    state: Option<DriveState>,
+    next_seq: u64,
+    /// Every state of the run, in order.
+    pub recorded: Vec<DriveState>,
+    /// The bound that stopped the sequence, if one did.
+    pub stopped: Option<BoundHit>,
+}
+
+impl IdentifyNode {
+    /// `s`'s `[motor]` is the nominal model (it only sizes the levels); its run must last
+    /// [`Sequence::duration_s`].
+    pub fn new(s: &Scenario, bounds: Bounds) -> Self {
+        Self {
+            sequence: Sequence::new(&s.motor, bounds, s.sample_period_s()),
+            rate_hz: s.rates.current_loop_hz,
+            state: None,
+            next_seq: 0,
+            recorded: Vec::with_capacity(s.sample_count() as usize),
+            stopped: None,
+        }
+    }
+}
+
+impl Node for IdentifyNode {
+    type Ports = IdentifyPorts;
+
+    fn role(&self) -> Role {
+        Role::Tool("identify")
+    }
+
+    fn pace(&self) -> Pace {
+        Pace::Input
+    }
+
+    fn rate_hz(&self) -> f64 {
+        self.rate_hz
+    }
+
+    fn awaiting(&self) -> String {
+        "drive/state from the plant".to_string()
+    }
+
+    fn start(&mut self, ports: &mut IdentifyPorts, _cx: &mut Cx) -> Result<Start, RunError> {
+        let ready = ports.presence.subscribers(Topic::Command) >= 1;
+        Ok(if ready { Start::NOW } else { Start::Waiting })
+    }
+
+    fn connect(&mut self, ports: &mut IdentifyPorts) -> Result<(), RunError> {
+        ports.commands.connect()?;
+        Ok(())
+    }
+
+    fn poll(&mut self, ports: &mut IdentifyPorts, _cx: &mut Cx) -> Result<Poll, RunError> {
+        if self.state.is_some() {
+            return Ok(Poll::READY);
+        }
+        let Some(s) = ports.states.receive()? else {
+            return Ok(Poll::Pending);
+        };
+        self.state = Some(s);
+        Ok(Poll::READY)
+    }
+
+    fn step(&mut self, ports: &mut IdentifyPorts, cx: &mut Cx) -> Result<Flow, RunError> {
+        let Some(state) = self.state.take() else {
+            return Ok(Flow::Continue);
+        };
+        if self.recorded.len() < self.recorded.capacity() {
+            self.recorded.push(state);
+        }
+        let v = match self.stopped {
+            Some(_) => [0.0, 0.0],
+            None => match self.sequence.next(&state) {
+                Ok(v) => v,
+                Err(hit) => {
+                    tracing::error!("identification stopped, outputs off: {hit}");
+                    self.stopped = Some(hit);
+                    [0.0, 0.0]
+                }
+            },
+        };
+        let command = DriveCommand {
+            seq: self.next_seq,
+            answers_seq: state.seq,
+            sample_time_s: state.sample_time_s,
+            state_publish_time_ns: state.publish_time_ns,
+            publish_time_ns: cx.now(),
+            v_a_v: v[0],
+            v_b_v: v[1],
+            ..Default::default()
+        };
+        self.next_seq += 1;
+        ports.commands.publish(&command)?;
+        Ok(if state.flags & state_flags::LAST != 0 {
+            Flow::Last
+        } else {
+            Flow::Continue
+        })
+    }
+}

@@ -60,7 +60,9 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
     let topics = assert_finished(&mcap);
     let expected: Vec<String> = ["lyapunov", "proposed"]
         .iter()
-        .flat_map(|m| ["fault", "setpoint", "state", "stats"].map(|k| format!("/{m}/{k}")))
+        .flat_map(|m| {
+            ["command", "fault", "setpoint", "state", "stats"].map(|k| format!("/{m}/{k}"))
+        })
         .collect();
     assert_eq!(topics, expected);
     let doc = read_json(&json);
@@ -96,6 +98,27 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
         assert_eq!(setpoints.len(), (states.len() - 1) / 10 + 1, "{method}");
         assert!(setpoints.windows(2).all(|w| w[1].seq == w[0].seq + 1));
         assert!(setpoints.iter().all(|s| s.load_estimate == 0.01));
+        // A command answering every sample (the last too), with its voltage the one the plant
+        // reports applied over (t_{k+1}, t_{k+2}] (one period of compute delay).
+        let (_, commands) = rec
+            .commands
+            .iter()
+            .find(|(m, _)| m == method)
+            .expect("commands");
+        assert_eq!(commands.len(), states.len(), "{method}");
+        for c in commands
+            .iter()
+            .step_by(97)
+            .filter(|c| c.answers_seq + 2 < states.len() as u64)
+        {
+            let applied = &states[c.answers_seq as usize + 2];
+            assert_eq!(
+                (applied.v_a, applied.v_b),
+                (c.v_a, c.v_b),
+                "{method} {}",
+                c.seq
+            );
+        }
     }
     // The plots: every figure as SVG and PNG, both methods named in the legend.
     for name in [
@@ -103,11 +126,15 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
         "error",
         "error_log",
         "currents",
+        "currents_cruise",
         "dq_currents",
         "voltages",
         "torque",
     ] {
         let svg = std::fs::read_to_string(figs.join(format!("{name}.svg"))).expect(name);
+        if name == "currents_cruise" {
+            assert!(svg.contains("i_a reference"), "the references are drawn");
+        }
         assert!(
             svg.starts_with("<svg") && svg.trim_end().ends_with("</svg>"),
             "{name}"

@@ -244,7 +244,10 @@ impl CurrentLoop {
                         relative,
                     ))
                 });
-                (v, reference, seed)
+                // Reported for the first sample this voltage reaches, as the others do.
+                let ahead = setpoint.theta_d_at(t + period * (d + 1) as f64);
+                let reported = microstep_currents(ahead, self.v_max, self.r, n_r);
+                (v, reported, seed)
             }
         };
         // Keep what the drive will apply, for the next cycle's prediction.

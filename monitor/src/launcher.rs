@@ -21,7 +21,7 @@ use stepdrive_runtime::deploy::{Deployment, Process};
 use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, IpcSubscriber, Stamp};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::Subscribe;
-use stepdrive_shared::messages::{state_flags, DriveState, TorqueSetpoint};
+use stepdrive_shared::messages::{state_flags, DriveCommand, DriveState, TorqueSetpoint};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::stats::{roles, StatsReport};
@@ -313,9 +313,12 @@ pub fn run_stack(
     // Recording: the setpoints too, from the first. The plant still waits for the current
     // loop's subscription before its first sample, so the position loop (which starts
     // once any setpoint subscriber is there) has nothing to answer before it.
-    let setpoints = match recording {
-        Some(_) => Some(bus.subscriber_of::<TorqueSetpoint>(MONITOR_BUFFER)?),
-        None => None,
+    let (setpoints, commands) = match recording {
+        Some(_) => (
+            Some(bus.subscriber_of::<TorqueSetpoint>(MONITOR_BUFFER)?),
+            Some(bus.subscriber_of::<DriveCommand>(MONITOR_BUFFER)?),
+        ),
+        None => (None, None),
     };
 
     let mut children = Vec::with_capacity(4);
@@ -374,6 +377,7 @@ pub fn run_stack(
     let mut watch = Watch {
         recording,
         setpoints,
+        commands,
         metrics: Metrics::new(s),
         rss_start: Vec::new(),
         rss_end: Vec::new(),
@@ -419,6 +423,7 @@ pub fn run_stack(
         r.lost(watch.monitor_lost);
     }
     watch.setpoints = None;
+    watch.commands = None;
     drop(stats_sub);
     drop(children);
     drop(states);
@@ -510,8 +515,10 @@ fn truth_report(s: &Scenario, method: Method, rows: &[TruthRow]) -> Option<Truth
 struct Watch<'r> {
     /// Where every sample and report also goes, if the run is recorded.
     recording: Option<&'r mut Recording>,
-    /// Recording: the position loop's setpoints (torque, load estimate).
+    /// Recording: the position loop's setpoints (torque, load estimate) and the current
+    /// loop's commands (voltages, current references).
     setpoints: Option<IpcSubscriber<TorqueSetpoint>>,
+    commands: Option<IpcSubscriber<DriveCommand>>,
     metrics: Metrics,
     /// (process, pid, RSS at the first sample in KiB) of every child and the monitor.
     rss_start: Vec<(&'static str, u32, u64)>,
@@ -536,17 +543,31 @@ impl Watch<'_> {
         }
     }
 
-    /// Records the setpoints that arrived; a recording that fails is given up.
-    fn record_setpoints(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
-        let (Some(sub), Some(r)) = (self.setpoints.as_mut(), self.recording.as_deref_mut()) else {
+    /// Records the setpoints and commands that arrived; a recording that fails is given up.
+    fn record_controls(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
+        let Some(r) = self.recording.as_deref_mut() else {
             return Ok(());
         };
-        while let Some(sp) = sub.receive()? {
-            if let Err(e) = r.setpoint(&sp) {
-                tracing::error!("{e:#}; the rest of the run goes unrecorded");
-                self.recording = None;
-                break;
+        let mut failed = None;
+        if let Some(sub) = self.setpoints.as_mut() {
+            while let Some(sp) = sub.receive()? {
+                if let Err(e) = r.setpoint(&sp) {
+                    failed = Some(e);
+                    break;
+                }
             }
+        }
+        if let (Some(sub), None) = (self.commands.as_mut(), &failed) {
+            while let Some(c) = sub.receive()? {
+                if let Err(e) = r.command(&c) {
+                    failed = Some(e);
+                    break;
+                }
+            }
+        }
+        if let Some(e) = failed {
+            tracing::error!("{e:#}; the rest of the run goes unrecorded");
+            self.recording = None;
         }
         Ok(())
     }
@@ -694,11 +715,11 @@ fn supervise(
                 w.metrics.push(&state);
                 w.record(&state);
                 if state.flags & state_flags::LAST != 0 {
-                    w.record_setpoints()?;
+                    w.record_controls()?;
                     return Ok(Ending::Last);
                 }
             }
-            w.record_setpoints()?;
+            w.record_controls()?;
             if got {
                 if !files_removed {
                     // A sample means every child is up, with its files read.

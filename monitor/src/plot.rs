@@ -173,6 +173,44 @@ fn charts(rec: &Recorded, s: Option<&Scenario>) -> Vec<Chart> {
             line(runs, i, "i_b", |r| r.i_b, light(c), true),
         ]
     });
+    // 20 ms of cruise, where the currents and their references (from the commands, when
+    // the recording has them) can be told apart: two electrical periods at 13 rad/s.
+    let zoom_from = s.map_or(0.0, |s| s.metrics.cruise_start_s);
+    let zoom = zoom_from..zoom_from + 0.02;
+    let in_zoom = |t: f64| zoom.contains(&t);
+    let currents_zoom = per_run(&|i, c| {
+        let (method, states) = &runs[i];
+        let named = |label: &str| {
+            if runs.len() > 1 {
+                format!("{label} ({method})")
+            } else {
+                label.to_string()
+            }
+        };
+        let mut out = vec![Series {
+            name: named("i_a"),
+            points: states
+                .iter()
+                .filter(|r| in_zoom(r.t))
+                .map(|r| (r.t, r.i_a))
+                .collect(),
+            color: c,
+            dashed: false,
+        }];
+        if let Some((_, commands)) = rec.commands.iter().find(|(m, _)| m == method) {
+            out.push(Series {
+                name: named("i_a reference"),
+                points: commands
+                    .iter()
+                    .filter(|c| in_zoom(c.t_ref))
+                    .map(|c| (c.t_ref, c.i_a_ref))
+                    .collect(),
+                color: light(c),
+                dashed: true,
+            });
+        }
+        out
+    });
     let dq = per_run(&|i, c| {
         vec![
             line(runs, i, "i_d", |r| r.i_d, light(c), true),
@@ -222,6 +260,18 @@ fn charts(rec: &Recorded, s: Option<&Scenario>) -> Vec<Chart> {
             true,
         ),
         chart("currents", "Phase currents", "current [A]", currents, false),
+        Chart {
+            file: "currents_cruise",
+            title: format!(
+                "Phase a current and its reference, {:.2}–{:.2} s",
+                zoom_from,
+                zoom_from + 0.02
+            ),
+            y_label: "current [A]",
+            series: currents_zoom,
+            marks: Vec::new(),
+            log: false,
+        },
         chart("dq_currents", "i_d and i_q", "current [A]", dq, false),
         chart(
             "voltages",

@@ -22,7 +22,7 @@ use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use stepdrive_emulated_drive::truth::TruthRow;
 use stepdrive_shared::frames::dq_currents;
-use stepdrive_shared::messages::{DriveState, TorqueSetpoint};
+use stepdrive_shared::messages::{DriveCommand, DriveState, TorqueSetpoint};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::trajectory::Trapezoid;
 use stepdrive_shared::{Method, Scenario};
@@ -159,6 +159,32 @@ const SETPOINT_FIELDS: [&str; 7] = [
     "load_estimate",
 ];
 
+/// A current-loop command as recorded: the voltages it asked for and its current
+/// references (what the phase-current plot draws the currents against).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct CommandRecord {
+    pub t: f64,
+    /// The instant the references are for: the first sample the voltage reaches.
+    pub t_ref: f64,
+    pub seq: u64,
+    pub answers_seq: u64,
+    pub v_a: f64,
+    pub v_b: f64,
+    pub i_a_ref: f64,
+    pub i_b_ref: f64,
+}
+
+const COMMAND_FIELDS: [&str; 8] = [
+    "t",
+    "t_ref",
+    "seq",
+    "answers_seq",
+    "v_a",
+    "v_b",
+    "i_a_ref",
+    "i_b_ref",
+];
+
 /// The emulated drive's true rotor state, beside the measured one.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct TruthRecord {
@@ -199,6 +225,7 @@ struct Channels {
     stats: u16,
     fault: u16,
     setpoint: u16,
+    command: u16,
     /// Made when the first truth arrives (only an emulated drive has one).
     truth: Option<u16>,
     written: u64,
@@ -212,11 +239,13 @@ struct Channels {
 pub struct Recording {
     writer: Option<mcap::Writer<BufWriter<File>>>,
     path: PathBuf,
-    schemas: [u16; 5],
+    schemas: [u16; 6],
     channels: Vec<Channels>,
     trajectory: Trapezoid,
     n_r: f64,
     k_m: f64,
+    /// (compute delay + 1) periods: how far ahead of its sample a command's references are.
+    ref_lead_s: f64,
     sequence: u32,
     buf: Vec<u8>,
 }
@@ -284,6 +313,13 @@ impl Recording {
                     schema("stepdrive.Truth", &TRUTH_FIELDS).as_bytes(),
                 )
                 .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.Command",
+                    "jsonschema",
+                    schema("stepdrive.Command", &COMMAND_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
         ];
         let toml = s.to_toml_string().unwrap_or_default();
         writer
@@ -299,7 +335,8 @@ impl Recording {
             channels: Vec::new(),
             trajectory: Trapezoid::new(&s.trajectory),
             n_r: f64::from(s.motor.rotor_teeth),
-            k_m: s.motor.torque_constant_nm_per_a,
+            k_m: s.plant_motor().torque_constant_nm_per_a,
+            ref_lead_s: f64::from(s.rates.compute_delay_periods + 1) * s.sample_period_s(),
             sequence: 0,
             buf: Vec::with_capacity(512),
         })
@@ -328,12 +365,16 @@ impl Recording {
         let setpoint = w
             .add_channel(self.schemas[3], &topic(method, "setpoint"), "json", &none)
             .map_err(wrap)?;
+        let command = w
+            .add_channel(self.schemas[5], &topic(method, "command"), "json", &none)
+            .map_err(wrap)?;
         self.channels.push(Channels {
             method,
             state,
             stats,
             fault,
             setpoint,
+            command,
             truth: None,
             written: 0,
             lost: 0,
@@ -422,6 +463,24 @@ impl Recording {
             load_estimate: sp.load_estimate_nm,
         };
         self.put(ch.setpoint, sp.sample_time_s, &rec)
+    }
+
+    /// A command of the current method's run, at the time of the sample it answers.
+    pub fn command(&mut self, c: &DriveCommand) -> Result<(), RecordError> {
+        let Some(ch) = self.channels.last() else {
+            return Ok(());
+        };
+        let rec = CommandRecord {
+            t: c.sample_time_s,
+            t_ref: c.sample_time_s + self.ref_lead_s,
+            seq: c.seq,
+            answers_seq: c.answers_seq,
+            v_a: c.v_a_v,
+            v_b: c.v_b_v,
+            i_a_ref: c.i_a_ref_a,
+            i_b_ref: c.i_b_ref_a,
+        };
+        self.put(ch.command, c.sample_time_s, &rec)
     }
 
     /// The emulated drive's true rotor state over the current method's run.
@@ -529,6 +588,7 @@ pub struct Recorded {
     pub stats: Vec<(String, Vec<StatsRecord>)>,
     pub faults: Vec<(String, Vec<FaultRecord>)>,
     pub setpoints: Vec<(String, Vec<SetpointRecord>)>,
+    pub commands: Vec<(String, Vec<CommandRecord>)>,
     pub truth: Vec<(String, Vec<TruthRecord>)>,
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
 }
@@ -573,6 +633,11 @@ impl Recorded {
                 ),
                 "setpoint" => push(
                     &mut out.setpoints,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "command" => push(
+                    &mut out.commands,
                     method,
                     serde_json::from_slice(&m.data).map_err(bad)?,
                 ),
@@ -681,6 +746,17 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
             )
         })?;
         written.push((p, setpoints.len()));
+    }
+    for (method, commands) in &rec.commands {
+        let p = dir.join(format!("{method}_command.csv"));
+        let header = "t [s],t_ref [s],seq,answers_seq,v_a [V],v_b [V],i_a_ref [A],i_b_ref [A]";
+        write_csv(&p, header, commands, |c| {
+            format!(
+                "{},{},{},{},{},{},{},{}",
+                c.t, c.t_ref, c.seq, c.answers_seq, c.v_a, c.v_b, c.i_a_ref, c.i_b_ref
+            )
+        })?;
+        written.push((p, commands.len()));
     }
     for (method, truth) in &rec.truth {
         let p = dir.join(format!("{method}_truth.csv"));

@@ -85,7 +85,8 @@ pub struct DriveCommand {
     pub publish_time_ns: u64,
     pub v_a_v: f64,
     pub v_b_v: f64,
-    /// Reference currents the loop is steering to (for monitoring).
+    /// Reference currents the loop is steering to (for monitoring): those of sample
+    /// `answers_seq` + compute delay + 1, the first the command's voltage can reach.
     pub i_a_ref_a: f64,
     pub i_b_ref_a: f64,
 }

@@ -419,6 +419,8 @@ pub fn run_stack(
         }
     }
     stats.drain(&mut stats_sub, watch.recording.as_deref_mut())?;
+    // The answer to the last sample comes after it: the loops have exited by now.
+    watch.record_controls()?;
     if let Some(r) = watch.recording.as_deref_mut() {
         r.lost(watch.monitor_lost);
     }

@@ -145,6 +145,7 @@ fn the_robustness_command_writes_every_cell_and_names_the_rows() {
 
 #[test]
 fn identify_writes_a_scenario_the_stack_runs_and_stops_at_a_bound() {
+    let _turn = one_stack_at_a_time();
     let dir = TempDir::new("identify");
     let out_toml = dir.path("motor.toml");
     let bench = concat!(
@@ -172,6 +173,37 @@ fn identify_writes_a_scenario_the_stack_runs_and_stops_at_a_bound() {
     );
     let written = std::fs::read_to_string(&out_toml).expect("written");
     assert!(written.contains("[plant.motor]") && written.contains("(identified)"));
+
+    // The same sequence as a process beside the plant process, on the wall clock: the same
+    // figures (the plant's time pauses through host stalls).
+    let json = dir.path("realtime.json");
+    let inst = instance("identify");
+    let out = stepdrive(&[
+        "identify",
+        "--scenario",
+        bench,
+        "--mode",
+        "realtime",
+        "--instance",
+        &inst,
+        "--out",
+        dir.path("rt.toml").to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc = read_json(&json);
+    for row in doc["rows"].as_array().expect("rows") {
+        let Some(err) = row["error_pct"].as_f64() else {
+            continue;
+        };
+        assert!(err.abs() < 2.0, "{row}");
+    }
+    assert!(processes_with(&inst).is_empty());
 
     // A current bound below what the sequence asks: exit 3, a headline, no file.
     let refused = dir.path("refused.toml");

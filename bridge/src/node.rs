@@ -117,6 +117,9 @@ pub struct BridgeSettings {
     pub drive: DriveAddr,
     /// State subscribers to wait for before enabling the drive (the loops, a monitor).
     pub wait_subscribers: usize,
+    /// Wait for a position loop (a setpoint publisher) too; false for a tool that drives
+    /// the motor alone.
+    pub wait_position_loop: bool,
     pub silence_periods: u32,
     pub plan_every: u32,
     pub observer_hz: f64,
@@ -375,7 +378,7 @@ impl Node for BridgeNode {
         if self.phase == Phase::Joining {
             let p = &ports.presence;
             let ready = p.publishers(Topic::Command) >= 1
-                && p.publishers(Topic::Setpoint) >= 1
+                && (p.publishers(Topic::Setpoint) >= 1 || !self.settings.wait_position_loop)
                 && p.subscribers(Topic::State) >= self.settings.wait_subscribers;
             if !ready {
                 return Ok(Start::Waiting);

@@ -590,14 +590,25 @@ pub struct IdentifyArgs {
     /// Phase voltage the sequence never commands beyond, V.
     #[arg(long, value_name = "V", default_value_t = 20.0, value_parser = positive)]
     max_voltage: f64,
-    /// Speed the sequence must never exceed, rad/s (it spins at up to 80 % of it; default
-    /// 1.25 × the scenario's cruise speed, so B and the load are measured at the speeds the
+    /// Speed the sequence must never exceed, rad/s (it spins at up to two thirds of it; default
+    /// 1.5 × the scenario's cruise speed, so B and the load are measured at the speeds the
     /// motor will run at).
     #[arg(long, value_name = "RAD_S", value_parser = positive)]
     max_speed: Option<f64>,
     /// Travel from the start the sequence must never exceed, rad.
     #[arg(long, value_name = "RAD", default_value_t = 30.0, value_parser = positive)]
     max_travel: f64,
+    /// lockstep: in one process on virtual time, deterministic. realtime: the plant and the
+    /// sequence as processes on the wall clock. hardware: against a drive (--drive, or an
+    /// emulated one started for it), through the bridge.
+    #[arg(long, value_enum, default_value_t = Mode::Lockstep)]
+    mode: Mode,
+    /// Hardware mode: the drive, host:port on UDP or a serial line's path.
+    #[arg(long, value_name = "HOST:PORT|PATH")]
+    drive: Option<String>,
+    /// The stack's instance name (realtime and hardware).
+    #[arg(long, default_value = "identify")]
+    instance: String,
 }
 
 fn positive(s: &str) -> Result<f64, String> {
@@ -611,9 +622,7 @@ fn positive(s: &str) -> Result<f64, String> {
 /// file, JSON. A bound hit stops it with the outputs off and exits 3.
 pub fn identify(a: IdentifyArgs) -> Result<()> {
     use stepdrive_controller::identify::Bounds;
-    use stepdrive_monitor::identify::{
-        default_max_speed, identified_scenario, identify_simulated, table, IdentifyError,
-    };
+    use stepdrive_monitor::identify::{default_max_speed, identified_scenario, table};
     let s = a.scenario.load()?;
     if a.max_voltage > s.drive.bus_voltage_v {
         anyhow::bail!(
@@ -628,23 +637,41 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
         speed_rad_s: a.max_speed.unwrap_or_else(|| default_max_speed(&s)),
         travel_rad: a.max_travel,
     };
-    let found = match identify_simulated(&s, bounds) {
-        Ok(f) => f,
-        Err(IdentifyError::Bound { hit, .. }) => {
-            return Err(Exit {
-                code: Outcome::Fault.exit_code(),
-                headline: format!(
-                    "IDENTIFICATION STOPPED (exit {}): {hit}; the outputs were turned off and nothing was written",
-                    Outcome::Fault.exit_code()
-                ),
-            }
-            .into())
+    let stopped = |hit: String| -> anyhow::Error {
+        Exit {
+            code: Outcome::Fault.exit_code(),
+            headline: format!(
+                "IDENTIFICATION STOPPED (exit {}): {hit}; the outputs were turned off and nothing was written",
+                Outcome::Fault.exit_code()
+            ),
         }
-        Err(e) => return Err(e).context("identification failed"),
+        .into()
+    };
+    let found = if a.mode == Mode::Lockstep {
+        identify_lockstep(&s, bounds, &stopped)?
+    } else {
+        let mut run = s.clone();
+        run.run.duration_s = Some(stepdrive_controller::identify::Sequence::duration_s());
+        let mut deployment = Deployment::default();
+        if let Some(addr) = &a.drive {
+            deployment.drive.address = Some(addr.clone());
+        }
+        let opts = stepdrive_monitor::launcher::LaunchOptions {
+            instance: a.instance.clone(),
+            mode: a.mode,
+            deployment,
+        };
+        use stepdrive_monitor::identify::{identified, NodeResult};
+        match stepdrive_monitor::launcher::run_identify(&run, &bounds, &opts)? {
+            NodeResult::Estimates(e) => identified(&s, e),
+            NodeResult::Stopped { hit, .. } => return Err(stopped(hit)),
+            NodeResult::Failed(why) => anyhow::bail!("identification failed: {why}"),
+        }
     };
     println!(
-        "identified on scenario {} (simulated plant, lockstep)",
-        s.name
+        "identified on scenario {} ({} mode)",
+        s.name,
+        a.mode.as_str()
     );
     print!("{}", table(&found.rows));
     let out = identified_scenario(&s, &found.estimates);
@@ -661,4 +688,17 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
         println!("estimates written to {}", path.display());
     }
     Ok(())
+}
+
+fn identify_lockstep(
+    s: &Scenario,
+    bounds: stepdrive_controller::identify::Bounds,
+    stopped: &dyn Fn(String) -> anyhow::Error,
+) -> Result<stepdrive_monitor::identify::Identified> {
+    use stepdrive_monitor::identify::{identify_simulated, IdentifyError};
+    match identify_simulated(s, bounds) {
+        Ok(f) => Ok(f),
+        Err(IdentifyError::Bound { hit, .. }) => Err(stopped(hit.to_string())),
+        Err(e) => Err(e).context("identification failed"),
+    }
 }

@@ -86,6 +86,10 @@ enum Cmd {
     /// like the current loop).
     #[command(hide = true)]
     Pingpong(roles::PingpongArgs),
+    /// The identification sequence as a process (`identify --mode realtime|hardware` starts
+    /// one).
+    #[command(hide = true)]
+    IdentifyNode(roles::IdentifyNodeArgs),
     /// Lifts RT throttling and restores it when its stdin closes (`run` starts one).
     #[command(hide = true)]
     RtThrottlingGuard,
@@ -111,6 +115,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::Simulate(a) => commands::simulate(a),
         Cmd::Robustness(a) => commands::robustness(a),
         Cmd::Identify(a) => commands::identify(a),
+        Cmd::IdentifyNode(a) => roles::identify_node(a),
         Cmd::Plant(a) => roles::plant(a),
         Cmd::CurrentLoop(a) => roles::current_loop(a),
         Cmd::PositionLoop(a) => roles::position_loop(a),

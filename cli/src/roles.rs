@@ -37,6 +37,9 @@ pub struct PlantArgs {
     /// position loops; 3 adds a monitor.
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
     pub wait_subscribers: u32,
+    /// Start without a position loop: a tool drives the plant alone (`stepdrive identify`).
+    #[arg(long)]
+    pub no_position_loop: bool,
     #[command(flatten)]
     pub drive: DriveLinkArgs,
 }
@@ -133,7 +136,7 @@ pub fn plant(a: PlantArgs) -> Result<()> {
         let settings = PlantSettings {
             mode,
             wait_subscribers,
-            wait_position_loop: true,
+            wait_position_loop: !a.no_position_loop,
             watchdog_periods: d.watchdog_periods,
             start_delay_ns: PLANT_START_DELAY_NS,
         };
@@ -158,6 +161,7 @@ pub fn plant(a: PlantArgs) -> Result<()> {
     let settings = BridgeSettings {
         drive,
         wait_subscribers,
+        wait_position_loop: !a.no_position_loop,
         silence_periods: d.drive.silence_periods,
         plan_every: d.drive.plan_every,
         observer_hz: d.drive.observer_hz,
@@ -458,4 +462,67 @@ pub fn pingpong(a: PingpongArgs) -> Result<()> {
         rt: d.rt(process, Mode::Realtime),
         out: a.out,
     })
+}
+
+/// `stepdrive identify`'s sequence as a process of the stack, in the current loop's place.
+#[derive(Args, Debug)]
+pub struct IdentifyNodeArgs {
+    #[command(flatten)]
+    pub common: ProcessArgs,
+    #[arg(long, value_name = "A")]
+    pub max_current: f64,
+    #[arg(long, value_name = "V")]
+    pub max_voltage: f64,
+    #[arg(long, value_name = "RAD_S")]
+    pub max_speed: f64,
+    #[arg(long, value_name = "RAD")]
+    pub max_travel: f64,
+    /// Where the estimates (or why there are none) go, as JSON.
+    #[arg(long, value_name = "FILE")]
+    pub result: PathBuf,
+}
+
+pub fn identify_node(a: IdentifyNodeArgs) -> Result<()> {
+    use stepdrive_controller::identify::Bounds;
+    use stepdrive_controller::identify_node::{IdentifyNode, IdentifyPorts};
+    use stepdrive_monitor::identify::{conclude, IdentifyError, NodeResult};
+    let s = a.common.scenario.load()?;
+    let d = a.common.deployment(Process::CurrentLoop)?;
+    let mode = a.common.mode;
+    let event = d.wait(Process::CurrentLoop, mode) == WaitStrategy::Event;
+    if event && mode != Mode::Hardware {
+        bail!(
+            "--wait event needs a plant that raises state-ready: only the bridge does \
+             (--mode hardware)"
+        );
+    }
+    let bounds = Bounds {
+        current_a: a.max_current,
+        voltage_v: a.max_voltage,
+        speed_rad_s: a.max_speed,
+        travel_rad: a.max_travel,
+    };
+    let finished = run_process(
+        &spec(&a.common, Process::CurrentLoop, "current-loop", &d, &s),
+        |bus| {
+            Ok((
+                IdentifyNode::new(&s, bounds, mode),
+                IdentifyPorts::open(bus, event)?,
+            ))
+        },
+    )?;
+    let result = match conclude(&s, &finished.node, s.sample_period_s()) {
+        Ok(found) => NodeResult::Estimates(found.estimates),
+        Err(IdentifyError::Bound {
+            hit,
+            applied_after_v,
+        }) => NodeResult::Stopped {
+            hit: hit.to_string(),
+            applied_after_v,
+        },
+        Err(e) => NodeResult::Failed(e.to_string()),
+    };
+    std::fs::write(&a.result, serde_json::to_string(&result)?)
+        .with_context(|| format!("cannot write {}", a.result.display()))?;
+    Ok(())
 }

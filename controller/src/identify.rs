@@ -133,7 +133,9 @@ impl Sequence {
             r,
             k_m: nominal.torque_constant_nm_per_a,
             spin_a: 0.5 * bounds.current_a,
-            top_speed: 0.8 * bounds.speed_rad_s,
+            // Two thirds: an open-loop rotor overshoots its field's speed (by 25 % seen through a
+            // drive's velocity observer), and the bound is on what is measured.
+            top_speed: bounds.speed_rad_s / 1.5,
             start_theta: None,
             field: std::f64::consts::FRAC_PI_2,
         }
@@ -240,14 +242,14 @@ impl Sequence {
 }
 
 /// One estimate with its standard error (from the fit's residuals).
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Estimate {
     pub value: f64,
     pub std_error: f64,
 }
 
 /// What the identification found.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Estimates {
     pub resistance_ohm: Estimate,
     pub inductance_h: Estimate,
@@ -435,14 +437,28 @@ pub fn fit(states: &[DriveState], n_r: f64, period_s: f64) -> Result<Estimates, 
         });
     }
 
-    // J, B, τ_L, τ_c: the torque balance integrated over 10 ms windows.
+    // J, B, τ_L, τ_c: the torque balance integrated over 10 ms windows. Speed comes from
+    // the encoder, not from the velocity estimate (a drive's observer lags): ∫ω dt is
+    // the change of θ, and ω at a window's ends a central difference over ±M samples.
+    const M: usize = 4;
     let window = (0.01 / period_s).round().max(2.0) as usize;
+    let consecutive =
+        |from: usize, to: usize| spin[from..=to].windows(2).all(|w| w[1].seq == w[0].seq + 1);
+    let speed_at = |k: usize| {
+        let (a, b) = (spin[k - M], spin[k + M]);
+        (b.theta_rad - a.theta_rad) / (b.sample_time_s - a.sample_time_s)
+    };
     let (mut rows, mut y) = (Vec::new(), Vec::new());
-    for chunk in spin.chunks(window) {
-        if chunk.len() < window || chunk.windows(2).any(|w| w[1].seq != w[0].seq + 1) {
+    let mut start = M;
+    while start + window + M < spin.len() {
+        let end = start + window;
+        let first = start;
+        start = end;
+        if !consecutive(first - M, end + M) {
             continue;
         }
-        let (mut torque, mut speed, mut sign, mut dt) = (0.0, 0.0, 0.0, 0.0);
+        let chunk = &spin[first..=end];
+        let (mut torque, mut sign, mut dt) = (0.0, 0.0, 0.0);
         for w in chunk.windows(2) {
             let iq = |s: &DriveState| {
                 let (sn, cs) = (n_r * s.theta_rad).sin_cos();
@@ -450,12 +466,12 @@ pub fn fit(states: &[DriveState], n_r: f64, period_s: f64) -> Result<Estimates, 
             };
             let h = w[1].sample_time_s - w[0].sample_time_s;
             torque += 0.5 * h * k_m.value * (iq(w[0]) + iq(w[1]));
-            speed += 0.5 * h * (w[0].omega_rad_s + w[1].omega_rad_s);
             sign += 0.5 * h * (smooth_sign(w[0].omega_rad_s) + smooth_sign(w[1].omega_rad_s));
             dt += h;
         }
-        let dw = chunk[chunk.len() - 1].omega_rad_s - chunk[0].omega_rad_s;
-        rows.push(vec![dw, speed, dt, sign]);
+        let travel = spin[end].theta_rad - spin[first].theta_rad;
+        let dw = speed_at(end) - speed_at(first);
+        rows.push(vec![dw, travel, dt, sign]);
         y.push(torque);
     }
     let (beta, se) = least_squares("inertia and friction", &rows, &y)?;

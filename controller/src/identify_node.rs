@@ -5,9 +5,10 @@
 
 use crate::identify::{BoundHit, Bounds, Sequence};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
-use stepdrive_runtime::port::{PortError, PortFactory, Presence, Publish, Subscribe};
+use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{state_flags, DriveCommand, DriveState};
+use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 use stepdrive_shared::Scenario;
 
@@ -15,21 +16,28 @@ pub struct IdentifyPorts {
     pub states: Box<dyn Subscribe<DriveState>>,
     pub commands: Box<dyn Publish<DriveCommand>>,
     pub presence: Box<dyn Presence>,
+    /// `event` wait (hardware mode): the bridge's state-ready event, as the current loop.
+    pub state_ready: Option<Box<dyn Listen>>,
 }
 
 impl IdentifyPorts {
-    pub fn open(f: &mut impl PortFactory) -> Result<Self, PortError> {
+    pub fn open(f: &mut impl PortFactory, event: bool) -> Result<Self, PortError> {
         Ok(Self {
             states: f.subscriber(LOOP_BUFFER)?,
             commands: f.publisher()?,
             presence: f.presence()?,
+            state_ready: if event { Some(f.listener()?) } else { None },
         })
     }
 }
 
 pub struct IdentifyNode {
     sequence: Sequence,
+    lockstep: bool,
     rate_hz: f64,
+    period_ns: u64,
+    /// Realtime: when the next state is due (the runner sleeps until just before it).
+    due_ns: Option<u64>,
     state: Option<DriveState>,
     next_seq: u64,
     /// Every state of the run, in order.
@@ -41,9 +49,12 @@ pub struct IdentifyNode {
 impl IdentifyNode {
     /// `s`'s `[motor]` is the nominal model (it only sizes the levels); its run must last
     /// [`Sequence::duration_s`].
-    pub fn new(s: &Scenario, bounds: Bounds) -> Self {
+    pub fn new(s: &Scenario, bounds: Bounds, mode: Mode) -> Self {
         Self {
             sequence: Sequence::new(&s.motor, bounds, s.sample_period_s()),
+            lockstep: mode == Mode::Lockstep,
+            period_ns: s.sample_period_ns(),
+            due_ns: None,
             rate_hz: s.rates.current_loop_hz,
             state: None,
             next_seq: 0,
@@ -72,6 +83,23 @@ impl Node for IdentifyNode {
         "drive/state from the plant".to_string()
     }
 
+    fn due_ns(&self) -> Option<u64> {
+        self.due_ns
+    }
+
+    fn block(
+        &mut self,
+        ports: &mut IdentifyPorts,
+        _now_ns: u64,
+        _until_ns: u64,
+    ) -> Result<bool, RunError> {
+        let Some(ready) = &mut ports.state_ready else {
+            return Ok(false);
+        };
+        ready.wait(std::time::Duration::from_millis(1))?;
+        Ok(true)
+    }
+
     fn start(&mut self, ports: &mut IdentifyPorts, _cx: &mut Cx) -> Result<Start, RunError> {
         let ready = ports.presence.subscribers(Topic::Command) >= 1;
         Ok(if ready { Start::NOW } else { Start::Waiting })
@@ -86,7 +114,13 @@ impl Node for IdentifyNode {
         if self.state.is_some() {
             return Ok(Poll::READY);
         }
-        let Some(s) = ports.states.receive()? else {
+        // Realtime: the newest state only (an older one is stale); the fits skip the gaps.
+        let next = if self.lockstep {
+            ports.states.receive()?
+        } else {
+            ports.states.newest()?
+        };
+        let Some(s) = next else {
             return Ok(Poll::Pending);
         };
         self.state = Some(s);
@@ -97,6 +131,9 @@ impl Node for IdentifyNode {
         let Some(state) = self.state.take() else {
             return Ok(Flow::Continue);
         };
+        if !self.lockstep {
+            self.due_ns = Some(state.deadline_ns + self.period_ns);
+        }
         if self.recorded.len() < self.recorded.capacity() {
             self.recorded.push(state);
         }

@@ -46,11 +46,11 @@ pub struct Identified {
     pub rows: Vec<Row>,
 }
 
-/// The speed bound when none is given: 1.25 × the scenario's cruise speed, so that the
-/// spin (to 80 % of the bound) covers the speeds the motor will be driven at: B and τ_L
+/// The speed bound when none is given: 1.5 × the scenario's cruise speed, so that the
+/// spin (to two thirds of the bound) covers the speeds the motor will be driven at: B and τ_L
 /// are then measured where (12) uses them, not extrapolated.
 pub fn default_max_speed(s: &Scenario) -> f64 {
-    1.25 * s.trajectory.cruise_velocity_rad_s.abs().max(1.0)
+    1.5 * s.trajectory.cruise_velocity_rad_s.abs().max(1.0)
 }
 
 /// Virtual time has no timeouts worth the name.
@@ -80,20 +80,28 @@ pub fn identify_simulated(s: &Scenario, bounds: Bounds) -> Result<Identified, Id
         None,
     );
     let mut node = Runner::new(
-        IdentifyNode::new(&run, bounds),
-        IdentifyPorts::open(&mut bus).map_err(RunError::from)?,
+        IdentifyNode::new(&run, bounds, mode),
+        IdentifyPorts::open(&mut bus, false).map_err(RunError::from)?,
         settings,
         None,
     );
     simulation::run(&mut [&mut plant, &mut node], &[])?;
-    let node = node.node();
+    conclude(s, node.node(), s.sample_period_s())
+}
+
+/// The fits of a finished sequence, or why there are none.
+pub fn conclude(
+    s: &Scenario,
+    node: &IdentifyNode,
+    period_s: f64,
+) -> Result<Identified, IdentifyError> {
     if let Some(hit) = node.stopped {
         let t = hit.time_s();
         // The command answering the hit's sample applies from the period after it.
         let applied_after_v = node
             .recorded
             .iter()
-            .filter(|st| st.sample_time_s > t + 1.5 * s.sample_period_s())
+            .filter(|st| st.sample_time_s > t + 1.5 * period_s)
             .map(|st| st.v_a_v.abs().max(st.v_b_v.abs()))
             .fold(0.0, f64::max);
         return Err(IdentifyError::Bound {
@@ -101,16 +109,30 @@ pub fn identify_simulated(s: &Scenario, bounds: Bounds) -> Result<Identified, Id
             applied_after_v,
         });
     }
-    let estimates = fit(&node.recorded, s.motor.n_r(), s.sample_period_s())?;
+    let estimates = fit(&node.recorded, s.motor.n_r(), period_s)?;
+    Ok(identified(s, estimates))
+}
+
+/// The table's rows for `estimates`, against the scenario's `[plant]` (its truth when the
+/// plant is simulated).
+pub fn identified(s: &Scenario, estimates: Estimates) -> Identified {
     let truth = s.plant_motor();
-    let true_load = s.disturbance();
-    Ok(Identified {
+    let load = s.disturbance();
+    Identified {
         rows: rows(
             &estimates,
-            Some((&truth, true_load.constant_nm, true_load.coulomb_nm)),
+            Some((&truth, load.constant_nm, load.coulomb_nm)),
         ),
         estimates,
-    })
+    }
+}
+
+/// What the identification process hands back to `stepdrive identify`.
+#[derive(Debug, Serialize, serde::Deserialize)]
+pub enum NodeResult {
+    Estimates(Estimates),
+    Stopped { hit: String, applied_after_v: f64 },
+    Failed(String),
 }
 
 fn rows(e: &Estimates, truth: Option<(&MotorParams, f64, f64)>) -> Vec<Row> {

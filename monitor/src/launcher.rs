@@ -823,3 +823,100 @@ fn free_loopback_port() -> Result<std::net::SocketAddr> {
     let probe = std::net::UdpSocket::bind("127.0.0.1:0").context("cannot find a free UDP port")?;
     Ok(probe.local_addr()?)
 }
+
+/// `stepdrive identify` through the stack's processes in `opts.mode`: the plant (or the
+/// bridge, and an emulated drive when no drive is given) and the identification process in
+/// the current loop's place; no position loop, no monitor. `s` must last the sequence.
+/// Returns what the identification process found.
+pub fn run_identify(
+    s: &Scenario,
+    bounds: &stepdrive_controller::identify::Bounds,
+    opts: &LaunchOptions,
+) -> Result<crate::identify::NodeResult> {
+    let mode = opts.mode;
+    let mut d = opts.deployment.clone();
+    cleanup_dead_nodes();
+    let emulated = mode == Mode::Hardware && d.drive.address.is_none();
+    if emulated {
+        d.drive.address = Some(free_loopback_port()?.to_string());
+    }
+    let files = RunFiles::write(s, &d.resolved(mode), &opts.instance)?;
+    let result = files.dir.join("identify.json");
+    let common = [
+        "--mode".to_string(),
+        mode.as_str().to_string(),
+        "--instance".to_string(),
+        opts.instance.clone(),
+        "--scenario".to_string(),
+        path_arg(&files.scenario()),
+        "--deploy".to_string(),
+        path_arg(&files.deployment()),
+    ];
+    let mut drive = None;
+    if let (true, Some(addr)) = (emulated, &d.drive.address) {
+        let args = [
+            "--listen".to_string(),
+            addr.clone(),
+            "--scenario".to_string(),
+            path_arg(&files.scenario()),
+            "--deploy".to_string(),
+            path_arg(&files.deployment()),
+        ];
+        drive = Some(Supervised::spawn("emulate-drive", &args)?);
+    }
+    let with = |extra: &[String]| -> Vec<String> { common.iter().chain(extra).cloned().collect() };
+    let mut plant = Supervised::spawn(
+        "plant",
+        &with(&["--wait-subscribers", "1", "--no-position-loop"].map(String::from)),
+    )?;
+    let extra = [
+        "--max-current".to_string(),
+        bounds.current_a.to_string(),
+        "--max-voltage".to_string(),
+        bounds.voltage_v.to_string(),
+        "--max-speed".to_string(),
+        bounds.speed_rad_s.to_string(),
+        "--max-travel".to_string(),
+        bounds.travel_rad.to_string(),
+        "--result".to_string(),
+        path_arg(&result),
+    ];
+    let mut node = Supervised::spawn("identify-node", &with(&extra))?;
+    let limit =
+        d.startup_timeout() + Duration::from_secs_f64(s.duration_s()) + Duration::from_secs(10);
+    let started = Instant::now();
+    let status = loop {
+        if let Some(status) = node.poll_exit()? {
+            break status;
+        }
+        if let Some(status) = plant.poll_exit()? {
+            if !status.success() {
+                anyhow::bail!("{}", plant.describe_failure(status));
+            }
+        }
+        if termination_requested() {
+            anyhow::bail!("interrupted (SIGINT/SIGTERM); all processes were stopped");
+        }
+        if started.elapsed() > limit {
+            anyhow::bail!(
+                "the identification did not finish within {:.0} s",
+                limit.as_secs_f64()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(5));
+    };
+    let plant_status = plant.finish(Duration::from_secs(10));
+    if let Some(mut drive) = drive {
+        drive.signal(libc::SIGTERM);
+        drive.finish(Duration::from_secs(5));
+    }
+    if !status.success() {
+        anyhow::bail!("{}", node.describe_failure(status));
+    }
+    if !plant_status.success() {
+        anyhow::bail!("{}", plant.describe_failure(plant_status));
+    }
+    let text = std::fs::read_to_string(&result)
+        .with_context(|| format!("the identification left no result in {}", result.display()))?;
+    serde_json::from_str(&text).context("the identification's result is not readable")
+}

@@ -66,26 +66,11 @@ fn three_processes_track_and_reproduce_the_reference_simulation() {
 
     // The processes, talking only through iceoryx2, reproduce the single-process reference
     // simulation bit for bit (all figures but wall time).
-    let out = stepdrive(&[
-        "simulate",
-        "--scenario",
+    assert_reproduces_the_simulation(
+        &doc,
         scenario.to_str().unwrap(),
-        "--method",
         "proposed,lyapunov",
-        "--json",
-        sim_json.to_str().unwrap(),
-    ]);
-    assert!(out.status.success());
-    let mut sim = read_json(&sim_json);
-    let mut ipc = doc.clone();
-    for d in [&mut sim, &mut ipc] {
-        for r in d["runs"].as_array_mut().unwrap() {
-            r["wall_time_s"] = Value::Null;
-        }
-    }
-    assert_eq!(
-        ipc, sim,
-        "multi-process run differs from the in-process reference"
+        &sim_json,
     );
 }
 

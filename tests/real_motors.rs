@@ -6,7 +6,6 @@
 mod common;
 
 use common::*;
-use serde_json::Value;
 
 /// A short move with the plant 20 % off in R and K_m, an unknown load, a step and detent.
 const REAL_MOTOR: &str = r#"
@@ -74,27 +73,7 @@ fn processes_reproduce_the_reference_on_a_plant_that_is_not_the_model() {
     assert_eq!(doc["scenario"]["plant"]["motor"]["resistance_ohm"], 17.76);
     assert_eq!(doc["scenario"]["control"]["load_compensation"], "observer");
 
-    let out = stepdrive(&[
-        "simulate",
-        "--scenario",
-        scenario,
-        "--method",
-        "proposed,pi",
-        "--json",
-        sim_json.to_str().unwrap(),
-    ]);
-    assert!(out.status.success());
-    let mut sim = read_json(&sim_json);
-    let mut ipc = doc.clone();
-    for d in [&mut sim, &mut ipc] {
-        for r in d["runs"].as_array_mut().unwrap() {
-            r["wall_time_s"] = Value::Null;
-        }
-    }
-    assert_eq!(
-        ipc, sim,
-        "multi-process run differs from the in-process reference"
-    );
+    assert_reproduces_the_simulation(&doc, scenario, "proposed,pi", &sim_json);
 }
 
 #[test]

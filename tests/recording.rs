@@ -61,7 +61,8 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
     let expected: Vec<String> = ["lyapunov", "proposed"]
         .iter()
         .flat_map(|m| {
-            ["command", "fault", "setpoint", "state", "stats"].map(|k| format!("/{m}/{k}"))
+            // The plan channel stays empty in lockstep.
+            ["command", "fault", "plan", "setpoint", "state", "stats"].map(|k| format!("/{m}/{k}"))
         })
         .collect();
     assert_eq!(topics, expected);
@@ -325,4 +326,50 @@ fn a_scope_attached_to_a_lockstep_run_changes_nothing() {
     assert!(status.success(), "the scope left cleanly: {status:?}");
     assert!(screen.contains("stepdrive scope"), "{screen}");
     assert_eq!(figures(&read_json(&watched)), figures(&read_json(&plain)));
+}
+
+/// Realtime recordings have the voltage plans too (a lockstep plant never needs one):
+/// their first entries, one plan every 10th command at least.
+#[test]
+fn a_realtime_recording_has_the_commands_and_the_plans() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("recordrt");
+    let scenario = dir.file("short.toml", SHORT);
+    let mcap = dir.path("rt.mcap");
+    let inst = instance("recordrt");
+    let mut args = vec!["run", "--mode", "realtime", "--method", "proposed"];
+    args.extend(realtime_test_args(&scenario, &inst, "0.5"));
+    args.extend(["--record", mcap.to_str().unwrap()]);
+    let out = stepdrive(&args);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rec = Recorded::read(&mcap).expect("read back");
+    let states = &rec.runs[0].1;
+    let plans = &rec
+        .plans
+        .iter()
+        .find(|(m, _)| m == "proposed")
+        .expect("plans")
+        .1;
+    let commands = &rec
+        .commands
+        .iter()
+        .find(|(m, _)| m == "proposed")
+        .expect("commands")
+        .1;
+    assert!(
+        plans.len() * 10 >= states.len() / 2,
+        "{} plans for {} states",
+        plans.len(),
+        states.len()
+    );
+    assert!(plans.iter().all(|p| p.len == 1000 && p.v_a_0.is_finite()));
+    assert!(
+        commands.len() >= states.len() / 2,
+        "{} commands",
+        commands.len()
+    );
 }

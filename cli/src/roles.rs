@@ -212,10 +212,9 @@ pub struct CurrentLoopArgs {
     pub method: Method,
 }
 
-pub fn current_loop(a: CurrentLoopArgs) -> Result<()> {
-    let s = a.common.scenario.load()?;
-    let d = a.common.deployment(Process::CurrentLoop)?;
-    let mode = a.common.mode;
+/// Whether the current loop's process sleeps on the bridge's state-ready event (`--wait
+/// event`), which only a bridge raises.
+fn waits_on_event(d: &Deployment, mode: Mode) -> Result<bool> {
     let event = d.wait(Process::CurrentLoop, mode) == WaitStrategy::Event;
     if event && mode != Mode::Hardware {
         bail!(
@@ -223,6 +222,14 @@ pub fn current_loop(a: CurrentLoopArgs) -> Result<()> {
              (--mode hardware)"
         );
     }
+    Ok(event)
+}
+
+pub fn current_loop(a: CurrentLoopArgs) -> Result<()> {
+    let s = a.common.scenario.load()?;
+    let d = a.common.deployment(Process::CurrentLoop)?;
+    let mode = a.common.mode;
+    let event = waits_on_event(&d, mode)?;
     run_process(
         &spec(&a.common, Process::CurrentLoop, "current-loop", &d, &s),
         |bus| {
@@ -489,13 +496,7 @@ pub fn identify_node(a: IdentifyNodeArgs) -> Result<()> {
     let s = a.common.scenario.load()?;
     let d = a.common.deployment(Process::CurrentLoop)?;
     let mode = a.common.mode;
-    let event = d.wait(Process::CurrentLoop, mode) == WaitStrategy::Event;
-    if event && mode != Mode::Hardware {
-        bail!(
-            "--wait event needs a plant that raises state-ready: only the bridge does \
-             (--mode hardware)"
-        );
-    }
+    let event = waits_on_event(&d, mode)?;
     let bounds = Bounds {
         current_a: a.max_current,
         voltage_v: a.max_voltage,

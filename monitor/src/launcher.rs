@@ -21,9 +21,11 @@ use stepdrive_runtime::deploy::{Deployment, Process};
 use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, IpcSubscriber, Stamp};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::Subscribe;
-use stepdrive_shared::messages::{state_flags, DriveCommand, DriveState, TorqueSetpoint};
+use stepdrive_shared::messages::{
+    state_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint,
+};
 use stepdrive_shared::scenario::Mode;
-use stepdrive_shared::services::MONITOR_BUFFER;
+use stepdrive_shared::services::{LOOP_BUFFER, MONITOR_BUFFER};
 use stepdrive_shared::stats::{roles, StatsReport};
 use stepdrive_shared::{Method, Scenario};
 
@@ -247,6 +249,24 @@ impl Drop for RunFiles {
     }
 }
 
+/// An emulated drive on `addr` for a run's files. It stands for separate hardware: it
+/// keeps the plant's CPU; the bridge shares the current loop's, one priority below it (see
+/// the README's hardware section). With `truth`, it writes the true rotor state there.
+fn spawn_emulated_drive(addr: &str, files: &RunFiles, truth: Option<&Path>) -> Result<Supervised> {
+    let mut args = vec![
+        "--listen".to_string(),
+        addr.to_string(),
+        "--scenario".to_string(),
+        path_arg(&files.scenario()),
+        "--deploy".to_string(),
+        path_arg(&files.deployment()),
+    ];
+    if let Some(p) = truth {
+        args.extend(["--truth".to_string(), path_arg(p)]);
+    }
+    Supervised::spawn("emulate-drive", &args)
+}
+
 fn path_arg(p: &Path) -> String {
     p.display().to_string()
 }
@@ -320,6 +340,11 @@ pub fn run_stack(
         ),
         None => (None, None),
     };
+    // Plans exist in realtime and hardware only (a lockstep plant never misses a command).
+    let plans = match (&recording, realtime) {
+        (Some(_), true) => Some(bus.subscriber_of::<DrivePlan>(LOOP_BUFFER)?),
+        _ => None,
+    };
 
     let mut children = Vec::with_capacity(4);
     // Only an emulated drive knows where the rotor really is; it writes that beside the
@@ -332,20 +357,7 @@ pub fn run_stack(
         ))
     });
     if let (true, Some(addr)) = (emulated, &d.drive.address) {
-        // The drive stands for separate hardware: it keeps the plant's CPU. The bridge shares
-        // the current loop's CPU, one priority below it (see the README's hardware section).
-        let mut args = vec![
-            "--listen".to_string(),
-            addr.clone(),
-            "--scenario".to_string(),
-            path_arg(&files.scenario()),
-            "--deploy".to_string(),
-            path_arg(&files.deployment()),
-        ];
-        if let Some(p) = &truth_path {
-            args.extend(["--truth".to_string(), path_arg(p)]);
-        }
-        children.push(Supervised::spawn("emulate-drive", &args)?);
+        children.push(spawn_emulated_drive(addr, &files, truth_path.as_deref())?);
     }
     let with = |extra: &[&str]| -> Vec<String> {
         common
@@ -378,6 +390,7 @@ pub fn run_stack(
         recording,
         setpoints,
         commands,
+        plans,
         metrics: Metrics::new(s),
         rss_start: Vec::new(),
         rss_end: Vec::new(),
@@ -426,6 +439,7 @@ pub fn run_stack(
     }
     watch.setpoints = None;
     watch.commands = None;
+    watch.plans = None;
     drop(stats_sub);
     drop(children);
     drop(states);
@@ -521,6 +535,9 @@ struct Watch<'r> {
     /// loop's commands (voltages, current references).
     setpoints: Option<IpcSubscriber<TorqueSetpoint>>,
     commands: Option<IpcSubscriber<DriveCommand>>,
+    /// Realtime and hardware: the voltage plans (their first entries); the topic keeps a
+    /// short queue, so a monitor that falls behind loses some (they are not counted).
+    plans: Option<IpcSubscriber<DrivePlan>>,
     metrics: Metrics,
     /// (process, pid, RSS at the first sample in KiB) of every child and the monitor.
     rss_start: Vec<(&'static str, u32, u64)>,
@@ -562,6 +579,14 @@ impl Watch<'_> {
         if let (Some(sub), None) = (self.commands.as_mut(), &failed) {
             while let Some(c) = sub.receive()? {
                 if let Err(e) = r.command(&c) {
+                    failed = Some(e);
+                    break;
+                }
+            }
+        }
+        if let (Some(sub), None) = (self.plans.as_mut(), &failed) {
+            while let Some(p) = sub.receive()? {
+                if let Err(e) = r.plan(&p) {
                     failed = Some(e);
                     break;
                 }
@@ -854,15 +879,7 @@ pub fn run_identify(
     ];
     let mut drive = None;
     if let (true, Some(addr)) = (emulated, &d.drive.address) {
-        let args = [
-            "--listen".to_string(),
-            addr.clone(),
-            "--scenario".to_string(),
-            path_arg(&files.scenario()),
-            "--deploy".to_string(),
-            path_arg(&files.deployment()),
-        ];
-        drive = Some(Supervised::spawn("emulate-drive", &args)?);
+        drive = Some(spawn_emulated_drive(addr, &files, None)?);
     }
     let with = |extra: &[String]| -> Vec<String> { common.iter().chain(extra).cloned().collect() };
     let mut plant = Supervised::spawn(

@@ -22,7 +22,7 @@ use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use stepdrive_emulated_drive::truth::TruthRow;
 use stepdrive_shared::frames::dq_currents;
-use stepdrive_shared::messages::{DriveCommand, DriveState, TorqueSetpoint};
+use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::trajectory::Trapezoid;
 use stepdrive_shared::{Method, Scenario};
@@ -185,6 +185,39 @@ const COMMAND_FIELDS: [&str; 8] = [
     "i_b_ref",
 ];
 
+/// A voltage plan as recorded: its first entries (entry j is for the period that ends at
+/// sample answers_seq + compute delay + 2 + j).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct PlanRecord {
+    pub t: f64,
+    pub command_seq: u64,
+    pub answers_seq: u64,
+    pub len: u32,
+    pub v_a_0: f64,
+    pub v_b_0: f64,
+    pub v_a_1: f64,
+    pub v_b_1: f64,
+    pub v_a_2: f64,
+    pub v_b_2: f64,
+    pub v_a_3: f64,
+    pub v_b_3: f64,
+}
+
+const PLAN_FIELDS: [&str; 12] = [
+    "t",
+    "command_seq",
+    "answers_seq",
+    "len",
+    "v_a_0",
+    "v_b_0",
+    "v_a_1",
+    "v_b_1",
+    "v_a_2",
+    "v_b_2",
+    "v_a_3",
+    "v_b_3",
+];
+
 /// The emulated drive's true rotor state, beside the measured one.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct TruthRecord {
@@ -226,6 +259,7 @@ struct Channels {
     fault: u16,
     setpoint: u16,
     command: u16,
+    plan: u16,
     /// Made when the first truth arrives (only an emulated drive has one).
     truth: Option<u16>,
     written: u64,
@@ -239,13 +273,14 @@ struct Channels {
 pub struct Recording {
     writer: Option<mcap::Writer<BufWriter<File>>>,
     path: PathBuf,
-    schemas: [u16; 6],
+    schemas: [u16; 7],
     channels: Vec<Channels>,
     trajectory: Trapezoid,
     n_r: f64,
     k_m: f64,
     /// (compute delay + 1) periods: how far ahead of its sample a command's references are.
     ref_lead_s: f64,
+    period_s: f64,
     sequence: u32,
     buf: Vec<u8>,
 }
@@ -320,6 +355,13 @@ impl Recording {
                     schema("stepdrive.Command", &COMMAND_FIELDS).as_bytes(),
                 )
                 .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.Plan",
+                    "jsonschema",
+                    schema("stepdrive.Plan", &PLAN_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
         ];
         let toml = s.to_toml_string().unwrap_or_default();
         writer
@@ -337,6 +379,7 @@ impl Recording {
             n_r: f64::from(s.motor.rotor_teeth),
             k_m: s.plant_motor().torque_constant_nm_per_a,
             ref_lead_s: f64::from(s.rates.compute_delay_periods + 1) * s.sample_period_s(),
+            period_s: s.sample_period_s(),
             sequence: 0,
             buf: Vec::with_capacity(512),
         })
@@ -368,6 +411,9 @@ impl Recording {
         let command = w
             .add_channel(self.schemas[5], &topic(method, "command"), "json", &none)
             .map_err(wrap)?;
+        let plan = w
+            .add_channel(self.schemas[6], &topic(method, "plan"), "json", &none)
+            .map_err(wrap)?;
         self.channels.push(Channels {
             method,
             state,
@@ -375,6 +421,7 @@ impl Recording {
             fault,
             setpoint,
             command,
+            plan,
             truth: None,
             written: 0,
             lost: 0,
@@ -483,6 +530,32 @@ impl Recording {
         self.put(ch.command, c.sample_time_s, &rec)
     }
 
+    /// A voltage plan of the current method's run (its first four entries), at the time of
+    /// the sample its command answers.
+    pub fn plan(&mut self, p: &DrivePlan) -> Result<(), RecordError> {
+        let Some(ch) = self.channels.last() else {
+            return Ok(());
+        };
+        let t = p.answers_seq as f64 * self.period_s;
+        let e =
+            |j: usize, phase: usize| p.entries().get(j).map_or(f64::NAN, |v| f64::from(v[phase]));
+        let rec = PlanRecord {
+            t,
+            command_seq: p.command_seq,
+            answers_seq: p.answers_seq,
+            len: p.len,
+            v_a_0: e(0, 0),
+            v_b_0: e(0, 1),
+            v_a_1: e(1, 0),
+            v_b_1: e(1, 1),
+            v_a_2: e(2, 0),
+            v_b_2: e(2, 1),
+            v_a_3: e(3, 0),
+            v_b_3: e(3, 1),
+        };
+        self.put(ch.plan, t, &rec)
+    }
+
     /// The emulated drive's true rotor state over the current method's run.
     pub fn truth(&mut self, rows: &[TruthRow]) -> Result<(), RecordError> {
         let wrap = write_error(&self.path);
@@ -589,6 +662,7 @@ pub struct Recorded {
     pub faults: Vec<(String, Vec<FaultRecord>)>,
     pub setpoints: Vec<(String, Vec<SetpointRecord>)>,
     pub commands: Vec<(String, Vec<CommandRecord>)>,
+    pub plans: Vec<(String, Vec<PlanRecord>)>,
     pub truth: Vec<(String, Vec<TruthRecord>)>,
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
 }
@@ -633,6 +707,11 @@ impl Recorded {
                 ),
                 "setpoint" => push(
                     &mut out.setpoints,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "plan" => push(
+                    &mut out.plans,
                     method,
                     serde_json::from_slice(&m.data).map_err(bad)?,
                 ),
@@ -757,6 +836,28 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
             )
         })?;
         written.push((p, commands.len()));
+    }
+    for (method, plans) in &rec.plans {
+        let p = dir.join(format!("{method}_plan.csv"));
+        let header = "t [s],command_seq,answers_seq,len,v_a_0 [V],v_b_0 [V],v_a_1 [V],v_b_1 [V],v_a_2 [V],v_b_2 [V],v_a_3 [V],v_b_3 [V]";
+        write_csv(&p, header, plans, |r| {
+            format!(
+                "{},{},{},{},{},{},{},{},{},{},{},{}",
+                r.t,
+                r.command_seq,
+                r.answers_seq,
+                r.len,
+                r.v_a_0,
+                r.v_b_0,
+                r.v_a_1,
+                r.v_b_1,
+                r.v_a_2,
+                r.v_b_2,
+                r.v_a_3,
+                r.v_b_3
+            )
+        })?;
+        written.push((p, plans.len()));
     }
     for (method, truth) in &rec.truth {
         let p = dir.join(format!("{method}_truth.csv"));

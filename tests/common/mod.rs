@@ -356,3 +356,38 @@ pub fn hardware_run_against(
     );
     (out, drive_log)
 }
+
+/// Runs `simulate` on `scenario` for `methods` and asserts that a multi-process run's JSON
+/// document `ipc` equals it bit for bit, all figures but wall time.
+pub fn assert_reproduces_the_simulation(
+    ipc: &serde_json::Value,
+    scenario: &str,
+    methods: &str,
+    sim_json: &Path,
+) {
+    let out = stepdrive(&[
+        "simulate",
+        "--scenario",
+        scenario,
+        "--method",
+        methods,
+        "--json",
+        sim_json.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let mut sim = read_json(sim_json);
+    let mut ipc = ipc.clone();
+    for d in [&mut sim, &mut ipc] {
+        for r in d["runs"].as_array_mut().unwrap() {
+            r["wall_time_s"] = serde_json::Value::Null;
+        }
+    }
+    assert_eq!(
+        ipc, sim,
+        "multi-process run differs from the in-process reference"
+    );
+}

@@ -35,6 +35,7 @@ impl PositionLoop {
                 delay_s,
                 s.observer_bandwidth_rad_s(),
             )
+            .starting_at(s.load.torque_nm)
         });
         Self {
             law: TorqueModulation {

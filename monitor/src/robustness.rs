@@ -352,6 +352,10 @@ mod tests {
         let r = run(&none, Method::Proposed);
         let offset = 0.01 / (1.0 + 0.01 * 0.01);
         assert!((r.final_error_rad - offset).abs() < 1e-3 * offset, "{r:?}");
+        // Started from the model's load, the observer costs nothing at the start either:
+        // the whole run's peak is the known-load method's (1.5e-4 rad, the acceleration).
+        let r = run(&observed(Scenario::default()), Method::Proposed);
+        assert!(r.max_abs_error_rad < 1.6e-4, "{r:?}");
         for c in all.iter().filter(|c| c.name.contains("20 %")) {
             let r = run(&observed(c.scenario.clone()), Method::Proposed);
             assert_eq!(r.outcome, Outcome::Ok, "{}", c.name);

@@ -62,6 +62,13 @@ impl LoadObserver {
         }
     }
 
+    /// Starts from `prior` (the model's load, N·m) instead of 0: the first ticks, before
+    /// the estimate has anything to go on, then cost nothing when the model is right.
+    pub fn starting_at(mut self, prior: f64) -> Self {
+        self.estimate = prior;
+        self
+    }
+
     /// The newest estimate d̂, N·m.
     pub fn estimate(&self) -> f64 {
         self.estimate

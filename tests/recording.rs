@@ -373,3 +373,50 @@ fn a_realtime_recording_has_the_commands_and_the_plans() {
         commands.len()
     );
 }
+
+/// `stepdrive record --instance` attached to a running realtime stack records what
+/// `run --record` does: states, setpoints, commands and the plans.
+#[test]
+fn record_attached_to_a_running_stack_takes_every_topic() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("recordattach");
+    // The run's length in the file, so that the recorder's scenario is the stack's.
+    let scenario = dir.file("short.toml", &format!("{SHORT}\n[run]\nduration_s = 3.0\n"));
+    let mcap = dir.path("attached.mcap");
+    let inst = instance("recordattach");
+    let mut args = vec!["run", "--mode", "realtime", "--method", "proposed"];
+    args.extend(realtime_test_args(&scenario, &inst, "3.0"));
+    let mut run = spawn_run(&args);
+    assert!(
+        wait_until(Duration::from_secs(30), || pid_of_role(
+            &inst,
+            "current-loop"
+        )
+        .is_some()),
+        "the stack did not come up"
+    );
+    let out = stepdrive(&[
+        "record",
+        mcap.to_str().unwrap(),
+        "--instance",
+        &inst,
+        "--scenario",
+        scenario.to_str().unwrap(),
+    ]);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(60));
+    assert!(status.success(), "{}", stdout_of(&mut run));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let rec = Recorded::read(&mcap).expect("read back");
+    let sizes = |name: &str, n: usize| (name.to_string(), n);
+    let got = [
+        sizes("states", rec.runs.iter().map(|r| r.1.len()).sum()),
+        sizes("setpoints", rec.setpoints.iter().map(|r| r.1.len()).sum()),
+        sizes("commands", rec.commands.iter().map(|r| r.1.len()).sum()),
+        sizes("plans", rec.plans.iter().map(|r| r.1.len()).sum()),
+    ];
+    assert!(got.iter().all(|(_, n)| *n > 100), "{got:?}");
+}

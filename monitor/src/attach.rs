@@ -15,7 +15,10 @@ use stepdrive_runtime::clock::monotonic_ns;
 use stepdrive_runtime::ipc::{IpcBus, Stamp};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::{PortFactory, Publish, Subscribe};
-use stepdrive_shared::messages::{state_flags, DriveState, ResetRequest};
+use stepdrive_shared::messages::{
+    state_flags, DriveCommand, DrivePlan, DriveState, ResetRequest, TorqueSetpoint,
+};
+use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER, MONITOR_BUFFER};
 use stepdrive_shared::{Method, Scenario};
 
@@ -105,6 +108,50 @@ pub fn attach_reader(instance: &str, role: &str, scenario: &Scenario) -> Result<
 /// sample, the stack going silent for `peer_timeout`, or Ctrl-C. `scenario` must be the
 /// stack's (its fingerprint is checked); `method` labels the report. With `recording`,
 /// every sample seen goes to the file, and those missed are counted.
+/// What a recorder takes besides the states: setpoints, commands and (realtime) plans.
+struct Controls {
+    setpoints: Box<dyn Subscribe<TorqueSetpoint>>,
+    commands: Box<dyn Subscribe<DriveCommand>>,
+    plans: Option<Box<dyn Subscribe<DrivePlan>>>,
+}
+
+impl Controls {
+    fn open(bus: &mut IpcBus, mode: Mode) -> Result<Self> {
+        // The plan topic has room for the plant and one reader: a stack recorded by `run`
+        // already has it, and is recorded here without its plans.
+        let plans = match mode {
+            Mode::Lockstep => None,
+            _ => match bus.subscriber::<DrivePlan>(LOOP_BUFFER) {
+                Ok(p) => Some(p),
+                Err(e) => {
+                    tracing::warn!("recording without the voltage plans: {e}");
+                    None
+                }
+            },
+        };
+        Ok(Self {
+            setpoints: bus.subscriber::<TorqueSetpoint>(MONITOR_BUFFER)?,
+            commands: bus.subscriber::<DriveCommand>(MONITOR_BUFFER)?,
+            plans,
+        })
+    }
+
+    fn record(&mut self, r: &mut Recording) -> Result<()> {
+        while let Some(sp) = self.setpoints.receive()? {
+            r.setpoint(&sp)?;
+        }
+        while let Some(c) = self.commands.receive()? {
+            r.command(&c)?;
+        }
+        if let Some(plans) = self.plans.as_mut() {
+            while let Some(p) = plans.receive()? {
+                r.plan(&p)?;
+            }
+        }
+        Ok(())
+    }
+}
+
 pub fn watch(
     instance: &str,
     scenario: &Scenario,
@@ -116,8 +163,10 @@ pub fn watch(
     let mode = bus.mode();
     let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let mut metrics = Metrics::new(scenario);
+    let mut controls = None;
     if let Some(r) = recording.as_deref_mut() {
         r.begin(method)?;
+        controls = Some(Controls::open(&mut bus, mode)?);
     }
     let mut last_seq: Option<u64> = None;
     let mut last_heard = Instant::now();
@@ -140,7 +189,15 @@ pub fn watch(
             last_heard = Instant::now();
             last |= s.flags & state_flags::LAST != 0;
         }
+        if let (Some(c), Some(r)) = (controls.as_mut(), recording.as_deref_mut()) {
+            c.record(r)?;
+        }
         if last {
+            // The answer to the last sample comes after it.
+            std::thread::sleep(Duration::from_millis(50));
+            if let (Some(c), Some(r)) = (controls.as_mut(), recording.as_deref_mut()) {
+                c.record(r)?;
+            }
             break None;
         }
         if termination_requested() {

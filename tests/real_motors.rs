@@ -184,6 +184,41 @@ fn identify_writes_a_scenario_the_stack_runs_and_stops_at_a_bound() {
     }
     assert!(processes_with(&inst).is_empty());
 
+    // Through the bridge and the emulated drive's quantised sensors: within 5 % (J and B
+    // within 10 %), the bounds for hardware.
+    let json = dir.path("hardware.json");
+    let out = stepdrive(&[
+        "identify",
+        "--scenario",
+        bench,
+        "--mode",
+        "hardware",
+        "--instance",
+        &inst,
+        "--out",
+        dir.path("hw.toml").to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc = read_json(&json);
+    for row in doc["rows"].as_array().expect("rows") {
+        let Some(err) = row["error_pct"].as_f64() else {
+            continue;
+        };
+        let bound = if matches!(row["name"].as_str(), Some("J" | "B")) {
+            10.0
+        } else {
+            5.0
+        };
+        assert!(err.abs() < bound, "{row}");
+    }
+    assert!(processes_with(&inst).is_empty());
+
     // A current bound below what the sequence asks: exit 3, a headline, no file.
     let refused = dir.path("refused.toml");
     let out = stepdrive(&[

@@ -596,3 +596,48 @@ fn a_run_shorter_than_the_profile_reports_what_it_reached() {
     assert_eq!(r["cruise_max_abs_error_rad"], Value::Null, "{r}");
     assert_eq!(num(r, "samples"), 4001.0);
 }
+
+/// A drive whose ALIGN is broken (docs/drive-protocol.md §7) never gives a run that
+/// reports success: one that never finishes aligning is named by the bridge and the run
+/// exits 5; one that aligned the wrong way (the rotor half an electrical period from the
+/// zero the host assumes) commutates backwards, the rotor runs away and the run exits 4.
+#[test]
+fn a_broken_alignment_is_loud() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("hwalign");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    for (fault, code, says) in [
+        ("stuck", 5, "did not finish its alignment"),
+        ("reversed", 4, "STEPPED OUT"),
+    ] {
+        let json = dir.path(&format!("{fault}.json"));
+        let inst = instance(&format!("hwalign{fault}"));
+        let listen = format!("127.0.0.1:{}", free_udp_port());
+        let mut drive = spawn_logged(
+            &[
+                &[
+                    "emulate-drive",
+                    "--listen",
+                    &listen,
+                    "--scenario",
+                    scenario.to_str().unwrap(),
+                    "--align-fault",
+                    fault,
+                ][..],
+                &ORDINARY_SCHEDULING[..],
+            ]
+            .concat(),
+        );
+        let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
+        signal(drive.id(), libc::SIGTERM);
+        let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
+        let all = format!(
+            "{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert_eq!(out.status.code(), Some(code), "{fault}: {all}");
+        assert!(all.contains(says), "{fault}: {all}");
+        assert!(processes_with(&inst).is_empty());
+    }
+}

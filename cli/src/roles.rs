@@ -11,7 +11,7 @@ use stepdrive_bridge::link::{EncoderCalibration, HeldLoad};
 use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
 use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
 use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
-use stepdrive_emulated_drive::{run_emulator, EmulatorOptions, FaultInjection};
+use stepdrive_emulated_drive::{run_emulator, AlignFault, EmulatorOptions, FaultInjection};
 use stepdrive_monitor::outcome::{fault_names, Outcome, LATCHED};
 use stepdrive_monitor::pingpong::{PingPongOptions, Transport};
 use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
@@ -348,6 +348,17 @@ pub struct InjectArgs {
     pub dropout_at: Option<f64>,
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub dropout_samples: u64,
+    /// Fault injection: break the ALIGN (§7). stuck: ALIGNING never clears; reversed:
+    /// phase A is energized the wrong way, leaving the rotor half an electrical period off.
+    #[arg(long, value_enum, default_value_t = AlignInjection::None)]
+    pub align_fault: AlignInjection,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+pub enum AlignInjection {
+    None,
+    Stuck,
+    Reversed,
 }
 
 fn percent(s: &str) -> Result<f64, String> {
@@ -408,6 +419,11 @@ pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
             corrupt_fraction: i.corrupt_pct / 100.0,
             dropout_at_s: i.dropout_at,
             dropout_samples: i.dropout_samples,
+            align: match i.align_fault {
+                AlignInjection::None => AlignFault::None,
+                AlignInjection::Stuck => AlignFault::Stuck,
+                AlignInjection::Reversed => AlignFault::Reversed,
+            },
         },
         duration,
         truth: a.truth,

@@ -49,6 +49,20 @@ pub struct FaultInjection {
     /// Drop `dropout_samples` SAMPLEs in a row from this many seconds on (a link outage).
     pub dropout_at_s: Option<f64>,
     pub dropout_samples: u64,
+    /// A broken alignment (§7): never finishing, or aligning the wrong way.
+    pub align: AlignFault,
+}
+
+/// How an ALIGN can go wrong on a real board.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum AlignFault {
+    #[default]
+    None,
+    /// ALIGNING stays set: the alignment never ends.
+    Stuck,
+    /// Phase A energized the wrong way: the rotor rests half an electrical period from
+    /// the zero the host then assumes.
+    Reversed,
 }
 
 /// A xorshift64* generator: the injected losses are the same in every run.
@@ -113,6 +127,7 @@ pub struct DriveCore {
     /// The run's first sample (the first after ENABLE) and the electrical zero nearest to
     /// where the rotor was then: the truth's k and θ count from them.
     run_start: Option<(u32, f64)>,
+    align_fault: AlignFault,
     n_r: f64,
     period_s: f64,
     pub counters: DriveCounters,
@@ -150,6 +165,7 @@ impl DriveCore {
             align_duty,
             tx_seq: 1,
             run_start: None,
+            align_fault: AlignFault::None,
             n_r: s.motor.n_r(),
             period_s: s.sample_period_s(),
             counters: DriveCounters::default(),
@@ -186,6 +202,11 @@ impl DriveCore {
         self.config.align_current_ma = current_ma;
         self.config.align_ms = ms;
         self.align_duty = align_duty(s, current_ma);
+    }
+
+    /// Breaks its alignment as `fault` says (fault injection).
+    pub fn set_align_fault(&mut self, fault: AlignFault) {
+        self.align_fault = fault;
     }
 
     /// The seq a CONFIG or FAULT_REPORT carries: the last SAMPLE's (0 before the first).
@@ -362,7 +383,9 @@ impl DriveCore {
         self.planned = false;
         let wanted = sample_seq.wrapping_sub(1);
         if self.aligning > 0 && self.latched == 0 {
-            self.aligning -= 1;
+            if self.align_fault != AlignFault::Stuck {
+                self.aligning -= 1;
+            }
             self.pending = None;
             return self.apply(self.align_duty_now(), 0, before, sample_seq);
         }
@@ -409,7 +432,10 @@ impl DriveCore {
     }
 
     fn align_duty_now(&self) -> (i16, i16) {
-        (self.align_duty, 0)
+        match self.align_fault {
+            AlignFault::Reversed => (-self.align_duty, 0),
+            _ => (self.align_duty, 0),
+        }
     }
 
     /// Applies `duty` (reported in the next SAMPLE with `seq`) over the period and
@@ -516,6 +542,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     o.rt.apply()?;
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
     core.set_alignment(&o.scenario, o.align_ma, o.align_ms);
+    core.set_align_fault(o.inject.align);
     let period_ns = o.scenario.sample_period_ns();
     let mut buf = [0u8; MAX_FRAME];
     let mut rx = [0u8; 2048];

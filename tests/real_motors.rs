@@ -155,69 +155,18 @@ fn identify_writes_a_scenario_the_stack_runs_and_stops_at_a_bound() {
 
     // The same sequence as a process beside the plant process, on the wall clock: the same
     // figures (the plant's time pauses through host stalls).
-    let json = dir.path("realtime.json");
     let inst = instance("identify");
-    let out = stepdrive(&[
-        "identify",
-        "--scenario",
-        bench,
-        "--mode",
-        "realtime",
-        "--instance",
-        &inst,
-        "--out",
-        dir.path("rt.toml").to_str().unwrap(),
-        "--json",
-        json.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let doc = read_json(&json);
-    for row in doc["rows"].as_array().expect("rows") {
-        let Some(err) = row["error_pct"].as_f64() else {
-            continue;
-        };
-        assert!(err.abs() < 2.0, "{row}");
-    }
-    assert!(processes_with(&inst).is_empty());
+    identified_within(&dir, bench, "realtime", &inst, |_| 2.0);
 
     // Through the bridge and the emulated drive's quantised sensors: within 5 % (J and B
     // within 10 %), the bounds for hardware.
-    let json = dir.path("hardware.json");
-    let out = stepdrive(&[
-        "identify",
-        "--scenario",
-        bench,
-        "--mode",
-        "hardware",
-        "--instance",
-        &inst,
-        "--out",
-        dir.path("hw.toml").to_str().unwrap(),
-        "--json",
-        json.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let doc = read_json(&json);
-    for row in doc["rows"].as_array().expect("rows") {
-        let Some(err) = row["error_pct"].as_f64() else {
-            continue;
-        };
-        let bound = if matches!(row["name"].as_str(), Some("J" | "B")) {
+    identified_within(&dir, bench, "hardware", &inst, |name| {
+        if matches!(name, "J" | "B") {
             10.0
         } else {
             5.0
-        };
-        assert!(err.abs() < bound, "{row}");
-    }
-    assert!(processes_with(&inst).is_empty());
+        }
+    });
 
     // A current bound below what the sequence asks: exit 3, a headline, no file.
     let refused = dir.path("refused.toml");
@@ -239,4 +188,37 @@ fn identify_writes_a_scenario_the_stack_runs_and_stops_at_a_bound() {
         "{all}"
     );
     assert!(!refused.exists());
+}
+
+/// `identify --mode MODE` on `bench`: every parameter with a true value within
+/// `bound(name)` %, and no process left behind.
+fn identified_within(dir: &TempDir, bench: &str, mode: &str, inst: &str, bound: fn(&str) -> f64) {
+    let json = dir.path(&format!("{mode}.json"));
+    let out = stepdrive(&[
+        "identify",
+        "--scenario",
+        bench,
+        "--mode",
+        mode,
+        "--instance",
+        inst,
+        "--out",
+        dir.path(&format!("{mode}.toml")).to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    assert!(
+        out.status.success(),
+        "{mode}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc = read_json(&json);
+    for row in doc["rows"].as_array().expect("rows") {
+        let Some(err) = row["error_pct"].as_f64() else {
+            continue;
+        };
+        let name = row["name"].as_str().unwrap_or_default();
+        assert!(err.abs() < bound(name), "{mode}: {row}");
+    }
+    assert!(processes_with(inst).is_empty());
 }

@@ -292,10 +292,16 @@ impl Node for CurrentLoopNode {
         _now_ns: u64,
         _until_ns: u64,
     ) -> Result<bool, RunError> {
-        let Some(ready) = &mut ports.state_ready else {
-            return Ok(false);
-        };
-        ready.wait(std::time::Duration::from_millis(1))?;
-        Ok(true)
+        wait_state_ready(&mut ports.state_ready)
     }
+}
+
+/// `event` wait: asleep on the bridge's state-ready event for at most 1 ms; false without
+/// one (the runner then sleeps). The current loop and the identification share it.
+pub(crate) fn wait_state_ready(ready: &mut Option<Box<dyn Listen>>) -> Result<bool, RunError> {
+    let Some(ready) = ready else {
+        return Ok(false);
+    };
+    ready.wait(std::time::Duration::from_millis(1))?;
+    Ok(true)
 }

@@ -20,6 +20,7 @@
 //! beyond them aborts with the outputs off.
 
 use nalgebra::{DMatrix, DVector};
+use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::DriveState;
 use stepdrive_shared::scenario::MotorParams;
 
@@ -292,6 +293,42 @@ fn least_squares(
     Ok((beta.iter().copied().collect(), se))
 }
 
+/// The means of `f` over the settled second half of each DC level of the part starting at
+/// `start`, s.
+fn settled_means(
+    states: &[DriveState],
+    start: f64,
+    what: &'static str,
+    f: impl Fn(&DriveState) -> [f64; 2],
+) -> Result<Vec<[f64; 2]>, FitError> {
+    (0..LEVELS)
+        .map(|n| {
+            let from = start + (n as f64 + 0.5) * LEVEL_S;
+            let to = start + (n as f64 + 1.0) * LEVEL_S;
+            let (mut sum, mut m) = ([0.0; 2], 0.0);
+            for s in states
+                .iter()
+                .filter(|s| s.sample_time_s >= from && s.sample_time_s < to)
+            {
+                let v = f(s);
+                sum = [sum[0] + v[0], sum[1] + v[1]];
+                m += 1.0;
+            }
+            if m == 0.0 {
+                return Err(FitError::Singular { what });
+            }
+            Ok([sum[0] / m, sum[1] / m])
+        })
+        .collect()
+}
+
+/// The back-EMF's shape in each phase's equation, ω sin(N_r θ) and −ω cos(N_r θ) (times
+/// K_m it is the voltage the rotor induces, eq. (1)).
+fn back_emf(s: &DriveState, n_r: f64) -> [f64; 2] {
+    let (sn, cs) = (n_r * s.theta_rad).sin_cos();
+    [s.omega_rad_s * sn, -s.omega_rad_s * cs]
+}
+
 /// R and L of one phase (`phase` 0 = a, 1 = b) from the samples of its DC part.
 fn resistance_and_inductance(
     states: &[DriveState],
@@ -303,23 +340,9 @@ fn resistance_and_inductance(
     let i_of = |s: &DriveState| if phase == 0 { s.i_a_a } else { s.i_b_a };
     let v_of = |s: &DriveState| if phase == 0 { s.v_a_v } else { s.v_b_v };
     // R: the settled second half of each level, V against I.
-    let (mut rows, mut y) = (Vec::new(), Vec::new());
-    for n in 0..LEVELS {
-        let from = start + (n as f64 + 0.5) * LEVEL_S;
-        let to = start + (n as f64 + 1.0) * LEVEL_S;
-        let level: Vec<&DriveState> = states
-            .iter()
-            .filter(|s| s.sample_time_s >= from && s.sample_time_s < to)
-            .collect();
-        let m = level.len() as f64;
-        if m == 0.0 {
-            return Err(FitError::Singular { what: "resistance" });
-        }
-        let i = level.iter().map(|s| i_of(s)).sum::<f64>() / m;
-        let v = level.iter().map(|s| v_of(s)).sum::<f64>() / m;
-        rows.push(vec![i, 1.0]);
-        y.push(v);
-    }
+    let means = settled_means(states, start, "resistance", |s| [i_of(s), v_of(s)])?;
+    let rows: Vec<Vec<f64>> = means.iter().map(|&[i, _]| vec![i, 1.0]).collect();
+    let y: Vec<f64> = means.iter().map(|&[_, v]| v).collect();
     let (beta, se) = least_squares("resistance", &rows, &y)?;
     let r = Estimate {
         value: beta[0],
@@ -339,14 +362,7 @@ fn resistance_and_inductance(
         .iter()
         .filter(|s| s.sample_time_s >= start && s.sample_time_s < start + LEVELS as f64 * LEVEL_S)
         .collect();
-    let emf = |s: &DriveState| {
-        let (sn, cs) = (n_r * s.theta_rad).sin_cos();
-        if phase == 0 {
-            s.omega_rad_s * sn
-        } else {
-            -s.omega_rad_s * cs
-        }
-    };
+    let emf = |s: &DriveState| back_emf(s, n_r)[phase];
     let (mut rows, mut y) = (Vec::new(), Vec::new());
     for w in part.windows(2) {
         if w[1].seq != w[0].seq + 1 {
@@ -388,24 +404,11 @@ fn resistance_and_inductance(
 /// Gauss-Newton steps from the small-angle solution. Left alone, 8e-5 rad of it (a bench
 /// motor's align current 15 % below the model's) biased the load by −7 % through a drive.
 fn zero_offset(states: &[DriveState], n_r: f64) -> Result<f64, FitError> {
-    let mut levels = Vec::with_capacity(LEVELS);
-    for n in 0..LEVELS {
-        let from = (n as f64 + 0.5) * LEVEL_S;
-        let to = (n as f64 + 1.0) * LEVEL_S;
-        let settled: Vec<&DriveState> = states
-            .iter()
-            .filter(|s| s.sample_time_s >= from && s.sample_time_s < to)
+    let levels: Vec<(f64, f64)> =
+        settled_means(states, 0.0, "electrical zero", |s| [s.i_a_a, s.theta_rad])?
+            .into_iter()
+            .map(|[i, theta]| (i, theta))
             .collect();
-        let m = settled.len() as f64;
-        if m == 0.0 {
-            return Err(FitError::Singular {
-                what: "electrical zero",
-            });
-        }
-        let theta = settled.iter().map(|s| s.theta_rad).sum::<f64>() / m;
-        let current = settled.iter().map(|s| s.i_a_a).sum::<f64>() / m;
-        levels.push((current, theta));
-    }
     // Small angles: θ_n = −(x / N_r) / I_n − offset, linear in 1/I_n.
     let rows: Vec<Vec<f64>> = levels.iter().map(|&(i, _)| vec![1.0 / i, 1.0]).collect();
     let y: Vec<f64> = levels.iter().map(|&(_, th)| th).collect();
@@ -475,11 +478,7 @@ pub fn fit(states: &[DriveState], n_r: f64, period_s: f64) -> Result<Estimates, 
         if q.seq != p.seq + 1 || p.omega_rad_s.abs() < 0.5 {
             continue;
         }
-        let emf = |s: &DriveState| {
-            let (sn, cs) = (n_r * s.theta_rad).sin_cos();
-            [s.omega_rad_s * sn, -s.omega_rad_s * cs]
-        };
-        let (ep, eq) = (emf(p), emf(q));
+        let (ep, eq) = (back_emf(p, n_r), back_emf(q, n_r));
         for (ph, &(a, b)) in phases.iter().enumerate() {
             let (i0, i1, v) = match ph {
                 0 => (p.i_a_a, q.i_a_a, q.v_a_v),
@@ -524,10 +523,7 @@ pub fn fit(states: &[DriveState], n_r: f64, period_s: f64) -> Result<Estimates, 
         let chunk = &spin[first..=end];
         let (mut torque, mut sign, mut dt) = (0.0, 0.0, 0.0);
         for w in chunk.windows(2) {
-            let iq = |s: &DriveState| {
-                let (sn, cs) = (n_r * s.theta_rad).sin_cos();
-                -sn * s.i_a_a + cs * s.i_b_a
-            };
+            let iq = |s: &DriveState| dq_currents(s.theta_rad, n_r, s.i_a_a, s.i_b_a).1;
             let h = w[1].sample_time_s - w[0].sample_time_s;
             torque += 0.5 * h * k_m.value * (iq(w[0]) + iq(w[1]));
             sign += 0.5 * h * (smooth_sign(w[0].omega_rad_s) + smooth_sign(w[1].omega_rad_s));

@@ -3,6 +3,7 @@
 //! fits (pre-allocated for the whole sequence), and on a bound turns the outputs off for
 //! the rest of the run.
 
+use crate::current_loop_node::wait_state_ready;
 use crate::identify::{BoundHit, Bounds, Sequence};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
@@ -93,11 +94,7 @@ impl Node for IdentifyNode {
         _now_ns: u64,
         _until_ns: u64,
     ) -> Result<bool, RunError> {
-        let Some(ready) = &mut ports.state_ready else {
-            return Ok(false);
-        };
-        ready.wait(std::time::Duration::from_millis(1))?;
-        Ok(true)
+        wait_state_ready(&mut ports.state_ready)
     }
 
     fn start(&mut self, ports: &mut IdentifyPorts, _cx: &mut Cx) -> Result<Start, RunError> {

@@ -213,6 +213,20 @@ impl RunFiles {
         self.dir.join("scenario.toml")
     }
 
+    /// What every process of the stack is started with: mode, instance and these files.
+    fn process_args(&self, mode: Mode, instance: &str) -> [String; 8] {
+        [
+            "--mode".to_string(),
+            mode.as_str().to_string(),
+            "--instance".to_string(),
+            instance.to_string(),
+            "--scenario".to_string(),
+            path_arg(&self.scenario()),
+            "--deploy".to_string(),
+            path_arg(&self.deployment()),
+        ]
+    }
+
     fn deployment(&self) -> PathBuf {
         self.dir.join("deploy.toml")
     }
@@ -314,16 +328,7 @@ pub fn run_stack(
         d.drive.address = Some(free_loopback_port()?.to_string());
     }
     let files = RunFiles::write(s, &d.resolved(mode), &opts.instance)?;
-    let common = [
-        "--mode".to_string(),
-        mode.as_str().to_string(),
-        "--instance".to_string(),
-        opts.instance.clone(),
-        "--scenario".to_string(),
-        path_arg(&files.scenario()),
-        "--deploy".to_string(),
-        path_arg(&files.deployment()),
-    ];
+    let common = files.process_args(mode, &opts.instance);
 
     // The monitor subscribes before the plant may start: the plant waits for 3 subscribers.
     let bus = IpcBus::open(&opts.instance, "monitor", &Stamp::new(mode, s))
@@ -867,16 +872,7 @@ pub fn run_identify(
     }
     let files = RunFiles::write(s, &d.resolved(mode), &opts.instance)?;
     let result = files.dir.join("identify.json");
-    let common = [
-        "--mode".to_string(),
-        mode.as_str().to_string(),
-        "--instance".to_string(),
-        opts.instance.clone(),
-        "--scenario".to_string(),
-        path_arg(&files.scenario()),
-        "--deploy".to_string(),
-        path_arg(&files.deployment()),
-    ];
+    let common = files.process_args(mode, &opts.instance);
     let mut drive = None;
     if let (true, Some(addr)) = (emulated, &d.drive.address) {
         drive = Some(spawn_emulated_drive(addr, &files, None)?);

@@ -4,6 +4,7 @@
 //! link (H1–H5). No clock, no sockets: frames in, frames out.
 
 use std::f64::consts::{FRAC_PI_2, TAU};
+use stepdrive_bridge::core::holds_phase_a;
 use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event, HeldLoad};
 use stepdrive_drive_protocol::{
     crc32, decode, encode, faults, frame_bytes, reseal, status, Action, Command, Config,
@@ -403,7 +404,7 @@ fn d10_the_newest_plan_covers_missing_commands_and_an_equal_one_replaces_it() {
     assert_eq!(period(&mut d).1.duty_a, 5000);
 }
 
-// ---- the host (H1–H7), against the bridge's link ----
+// ---- the host (H1–H8), against the bridge's link ----
 
 fn configured_link() -> DriveLink {
     let mut l = DriveLink::new(
@@ -629,4 +630,46 @@ fn h7_theta_zero_is_the_electrical_zero_after_an_alignment_under_load() {
         panic!("a state")
     };
     assert_eq!(st.theta_rad, 0.0);
+}
+
+#[test]
+fn h8_a_drive_that_does_not_hold_phase_a_at_its_align_current_is_refused() {
+    let mut l = configured_link();
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    let counts_per_amp = 1e6 / f64::from(config.current_ua_per_count);
+    let adc = |amps: f64| (f64::from(config.current_zero_count) + amps * counts_per_amp) as u16;
+    // The first sample with ALIGNING clear: aligned, not yet enabled, phase A holding.
+    let held = |seq: u32, i_a: f64, i_b: f64| {
+        frame_bytes(
+            seq,
+            Message::Sample(Sample {
+                encoder_counts: 0,
+                adc_a: adc(i_a),
+                adc_b: adc(i_b),
+                adc_bus: 2400,
+                duty_a: 2048,
+                duty_b: 0,
+                applied_command_seq: 0,
+                fault_bits: 0,
+                status: 0,
+            }),
+        )
+    };
+    let align_a = 1.0;
+    for (seq, i_a, i_b, accepted) in [
+        (1, -1.0, 0.0, false),
+        (2, 0.0, 1.0, false),
+        (3, 2.0, 0.0, false),
+        (4, 1.0, 0.0, true),
+    ] {
+        let Event::State(st) = l.on_frame(&held(seq, i_a, i_b), 0) else {
+            panic!("a state")
+        };
+        assert!((st.i_a_a - i_a).abs() < 1e-3 && (st.i_b_a - i_b).abs() < 1e-3);
+        assert_eq!(
+            holds_phase_a(st.i_a_a, st.i_b_a, align_a),
+            accepted,
+            "i_a {i_a} A, i_b {i_b} A"
+        );
+    }
 }

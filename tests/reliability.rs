@@ -599,8 +599,9 @@ fn a_run_shorter_than_the_profile_reports_what_it_reached() {
 
 /// A drive whose ALIGN is broken (docs/drive-protocol.md §7) never gives a run that
 /// reports success: one that never finishes aligning is named by the bridge and the run
-/// exits 5; one that aligned the wrong way (the rotor half an electrical period from the
-/// zero the host assumes) commutates backwards, the rotor runs away and the run exits 4.
+/// exits 5; one that aligned the wrong way (phase A reversed: the rotor half an electrical
+/// period from the zero the host assumes, which used to commutate backwards and run away)
+/// is refused before it is enabled, its held current named, exit 5.
 #[test]
 fn a_broken_alignment_is_loud() {
     let _turn = one_stack_at_a_time();
@@ -608,7 +609,7 @@ fn a_broken_alignment_is_loud() {
     let scenario = dir.file("slow.toml", &slow_scenario());
     for (fault, code, says) in [
         ("stuck", 5, "did not finish its alignment"),
-        ("reversed", 4, "STEPPED OUT"),
+        ("reversed", 5, "reports phase A at -1.0"),
     ] {
         let json = dir.path(&format!("{fault}.json"));
         let inst = instance(&format!("hwalign{fault}"));

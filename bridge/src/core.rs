@@ -360,6 +360,28 @@ impl BridgeCore {
     pub fn link(&self) -> &DriveLink {
         &self.link
     }
+
+    /// The newest sample read and not yet taken.
+    pub fn newest(&self) -> Option<&DriveState> {
+        self.newest.as_ref().map(|(st, _)| st)
+    }
+}
+
+/// After its ALIGN a drive holds phase A alone at `align_current_ma` (§7). Outside these
+/// bounds the currents it reports are not that: a phase wired the other way round, or a
+/// current sense of the wrong sign or scale. Either commutates the motor wrongly from the
+/// first command, so the host refuses the drive instead. The low bound leaves room for a
+/// voltage-mode drive whose winding is hotter (more resistive) than its align duty assumed.
+pub const HELD_CURRENT_MIN: f64 = 0.5;
+pub const HELD_CURRENT_MAX: f64 = 1.5;
+/// Phase B's current while phase A holds, at most, as a fraction of the align current.
+pub const HELD_CROSS_MAX: f64 = 0.25;
+
+/// Whether phase currents `(i_a, i_b)` are what a drive holding phase A at `align_a` (A)
+/// reports.
+pub fn holds_phase_a(i_a: f64, i_b: f64, align_a: f64) -> bool {
+    (HELD_CURRENT_MIN * align_a..=HELD_CURRENT_MAX * align_a).contains(&i_a)
+        && i_b.abs() <= HELD_CROSS_MAX * align_a
 }
 
 #[cfg(test)]
@@ -432,6 +454,18 @@ mod tests {
             0,
             "the dropped ones are not lost samples"
         );
+    }
+
+    /// §7 step 4: after an ALIGN at 1 A the drive holds phase A alone at about 1 A; a
+    /// reversed phase, a wrong-signed sense or one scaled 2× off is refused.
+    #[test]
+    fn an_aligned_drive_holds_phase_a_alone() {
+        assert!(holds_phase_a(1.0, 0.0, 1.0));
+        assert!(holds_phase_a(0.74, 0.02, 1.0), "a 35 % hotter winding");
+        assert!(!holds_phase_a(-1.0, 0.0, 1.0), "phase A reversed");
+        assert!(!holds_phase_a(2.0, 0.0, 1.0), "current sense 2× off");
+        assert!(!holds_phase_a(0.0, 1.0, 1.0), "phases swapped");
+        assert!(!holds_phase_a(0.0, 0.0, 1.0), "nothing energized");
     }
 
     fn command(answers: u64, v: f64) -> DriveCommand {

@@ -4,7 +4,7 @@
 //! while it waits it forwards the current loop's commands and plans, and watches for
 //! silence. The rules are [`BridgeCore`]'s; this module moves bytes.
 
-use crate::core::{BridgeCore, CoreSettings, Received};
+use crate::core::{holds_phase_a, BridgeCore, CoreSettings, Received};
 use crate::link::EncoderCalibration;
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::path::PathBuf;
@@ -109,6 +109,19 @@ pub enum BridgeError {
         align_ms: u16,
         waited_ms: u64,
     },
+    #[error(
+        "after its ALIGN the drive at {drive} reports phase A at {i_a_a:+.3} A and phase B at \
+         {i_b_a:+.3} A; holding the rotor it must drive phase A alone at its align current, \
+         {align_a:+.3} A (docs/drive-protocol.md §7): a phase wired the other way round, or \
+         a current sense of the wrong sign or scale (CONFIG current_zero_count, \
+         current_ua_per_count), would commutate the motor wrongly"
+    )]
+    HeldCurrent {
+        drive: DriveAddr,
+        i_a_a: f64,
+        i_b_a: f64,
+        align_a: f64,
+    },
 }
 
 /// The bridge's settings beside the scenario.
@@ -204,8 +217,9 @@ pub struct BridgeNode {
     period_ns: u64,
     phase: Phase,
     refused_since_ns: Option<u64>,
-    /// The drive's alignment time (CONFIG), ms.
+    /// The drive's alignment time and current (CONFIG), ms and mA.
     align_ms: u16,
+    align_current_ma: u16,
     /// A sample taken by `poll` for the coming cycle.
     taken: Option<(DriveState, u64)>,
     rx: [u8; 2048],
@@ -234,6 +248,7 @@ impl BridgeNode {
             phase: Phase::Handshake { next_hello_ns: 0 },
             refused_since_ns: None,
             align_ms: 0,
+            align_current_ma: 0,
             taken: None,
             rx: [0; 2048],
         })
@@ -274,6 +289,7 @@ impl BridgeNode {
                     if let Received::Config(c) = received {
                         tracing::info!(?c, "drive configuration");
                         self.align_ms = c.align_ms;
+                        self.align_current_ma = c.align_current_ma;
                         if f64::from(c.sample_rate_hz) != self.sample_hz.round() {
                             return Err(RunError::node(
                                 Role::Bridge,
@@ -297,6 +313,26 @@ impl BridgeNode {
                 Err(e) => return Err(self.gone(e)),
             }
         }
+    }
+
+    /// The drive has aligned: it must now hold phase A alone at its align current.
+    fn check_held_current(&self) -> Result<(), RunError> {
+        let (Some(st), true) = (self.core.newest(), self.align_ms > 0) else {
+            return Ok(());
+        };
+        let align_a = f64::from(self.align_current_ma) * 1e-3;
+        if holds_phase_a(st.i_a_a, st.i_b_a, align_a) {
+            return Ok(());
+        }
+        Err(RunError::node(
+            Role::Bridge,
+            BridgeError::HeldCurrent {
+                drive: self.settings.drive.clone(),
+                i_a_a: st.i_a_a,
+                i_b_a: st.i_b_a,
+                align_a,
+            },
+        ))
     }
 
     fn send(ports: &mut BridgePorts, frame: &Frame) {
@@ -414,6 +450,7 @@ impl Node for BridgeNode {
                 };
                 return Ok(Start::Waiting);
             }
+            self.check_held_current()?;
         }
         // Samples queued meanwhile are stale: drop them and start the stream (k = 0) with
         // the next one, then enable the drive.

@@ -511,7 +511,7 @@ fn h4_an_invalid_config_is_refused_naming_the_field() {
         ),
         (
             Config {
-                plan_capacity: 300,
+                plan_capacity: 1025,
                 ..good
             },
             "plan_capacity",

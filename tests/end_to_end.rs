@@ -403,6 +403,42 @@ fn the_drive_covers_a_frozen_current_loop_with_the_plan() {
     assert!(num(run, "max_abs_error_rad").is_finite());
 }
 
+/// A host stall at speed as long as most of the watchdog is covered too: the open-loop
+/// baseline, in cruise at 13 rad/s, with its current loop frozen for 300 ms (600 periods at
+/// 2 kHz, the default watchdog being 1000). The emulated drive keeps 1000 PLAN entries by
+/// default; with the 200 of before the plan ran out after 100 ms, the held duty braked the
+/// rotor and the run ended STEPPED OUT with the rotor 33 rad away.
+#[test]
+fn a_host_stall_at_speed_within_the_watchdog_is_covered_by_the_plan() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("hwstall");
+    let scenario = dir.file(
+        "cruise.toml",
+        &format!(
+            "{}\n[trajectory]\naccel_s = 0.1\ncruise_s = 3.0\ndecel_s = 0.1\nhold_s = 0.15\n\
+             [metrics]\ncruise_start_s = 0.3\ncruise_end_s = 3.0\nfinal_window_s = 0.05\n",
+            slow_scenario().replace(SHORT, "")
+        ),
+    );
+    let json = dir.path("hw.json");
+    let inst = instance("hwstall");
+    let mut args = hardware_args(&scenario, &inst, &json);
+    let method = args.iter().position(|a| *a == "proposed").expect("method");
+    args[method] = "lyapunov";
+    let doc = run_with_frozen_current_loop(
+        &args,
+        &inst,
+        &json,
+        Duration::from_millis(1200),
+        Duration::from_millis(300),
+    );
+    let run = run_of(&doc, "lyapunov");
+    assert_freeze_covered_by_plan(run, 300);
+    let expected = num(&doc, "microstepping_expected_cruise_error_rad");
+    let cruise = num(run, "cruise_max_abs_error_rad");
+    assert!(cruise < 1.5 * expected, "{run}");
+}
+
 #[test]
 fn corrupted_frames_are_counted_and_not_applied() {
     let _turn = one_stack_at_a_time();

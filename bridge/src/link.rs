@@ -98,6 +98,9 @@ impl HeldLoad {
     }
 }
 
+// A drive that keeps the protocol's most PLAN entries gets the current loop's whole plan.
+const _: () = assert!(MAX_PLAN_ENTRIES == stepdrive_shared::messages::MAX_PLAN);
+
 /// Drive frames ↔ SI, without sockets or clocks.
 pub struct DriveLink {
     scaling: Option<Scaling>,

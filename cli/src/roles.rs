@@ -277,8 +277,9 @@ pub struct EmulateArgs {
     pub watchdog_periods: Option<u16>,
     /// PLAN entries the drive keeps (announced in CONFIG): when a COMMAND is late it applies
     /// the plan's entry for that period instead of holding the last duty. 0: no plans
-    /// (default 200).
-    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(0..=256))]
+    /// (default 1000: as long as the default watchdog, so a late host is covered until the
+    /// watchdog trips; a serial line needs fewer, see docs/drive-protocol.md §4.7).
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u16).range(0..=1024))]
     pub plan_capacity: Option<u16>,
     /// ALIGN time, ms: phase A at --align-ma brings the rotor to an electrical zero before
     /// each run (docs/drive-protocol.md §7). 0: the drive does not align, as one with an

@@ -30,8 +30,10 @@ pub const MAGIC: u16 = 0x5344;
 pub const VERSION: u8 = 3;
 pub const HEADER_LEN: usize = 18;
 pub const CRC_LEN: usize = 4;
-/// Most entries one PLAN can carry (12.8 ms at 20 kHz).
-pub const MAX_PLAN_ENTRIES: usize = 256;
+/// Most entries one PLAN can carry: 51.2 ms at 20 kHz, longer than the default watchdog
+/// (1000 periods), so that a drive which keeps this many never holds a stale duty while a
+/// late host is still within its watchdog.
+pub const MAX_PLAN_ENTRIES: usize = 1024;
 /// PLAN payload: answers_sample, count, reserved, then 4 bytes an entry.
 const PLAN_HEADER: usize = 8;
 /// Largest frame of this version (a full PLAN).
@@ -201,7 +203,7 @@ impl Config {
                 "plan_capacity",
                 self.plan_capacity.into(),
                 usize::from(self.plan_capacity) <= MAX_PLAN_ENTRIES,
-                "must be 0 … 256",
+                "must be 0 … 1024",
             ),
             (
                 "align_current_ma",

@@ -545,7 +545,9 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     core.set_align_fault(o.inject.align);
     let period_ns = o.scenario.sample_period_ns();
     let mut buf = [0u8; MAX_FRAME];
-    let mut rx = [0u8; 2048];
+    // One byte more than the largest frame: a longer datagram arrives truncated to a length
+    // the decoder rejects, instead of fitting by accident.
+    let mut rx = [0u8; MAX_FRAME + 1];
     tracing::info!(listen = %o.listen, serial = ?o.serial, "emulated drive up; waiting for HELLO");
     // The host announces itself with HELLO; on UDP samples go to whoever sent the last one.
     let mut connected = false;

@@ -13,6 +13,7 @@ use crate::rt::RtOptions;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 use std::time::Duration;
+use stepdrive_shared::messages::MAX_PLAN;
 use stepdrive_shared::scenario::Mode;
 
 /// The processes a deployment places.
@@ -55,7 +56,7 @@ pub struct DriveLink {
     pub silence_periods: u32,
     /// Forward the current loop's voltage plan when it is this many samples newer than the
     /// last one sent. 1: every plan the loop publishes (it publishes one every 10th command
-    /// and after every lost sample, ~1.7 MB/s of 200-entry PLANs at 20 kHz), so the drive
+    /// and after every lost sample, ~8 MB/s of 1000-entry PLANs at 20 kHz), so the drive
     /// holds the very plan the loop predicts with; a larger value spares a slow link, and
     /// after a lost sample the drive may then hold an older plan than the loop assumes.
     pub plan_every: u32,
@@ -79,7 +80,7 @@ impl Default for DriveLink {
             observer_hz: 400.0,
             encoder_offset_counts: None,
             reverse_encoder: false,
-            emulated_plan_capacity: 200,
+            emulated_plan_capacity: 1000,
         }
     }
 }
@@ -220,10 +221,13 @@ impl Deployment {
                 format!("must be a positive number of Hz (got {})", link.observer_hz),
             ));
         }
-        if link.emulated_plan_capacity > 256 {
+        if usize::from(link.emulated_plan_capacity) > MAX_PLAN {
             return Err(invalid(
                 "drive.emulated_plan_capacity",
-                format!("must be 0..=256 (got {})", link.emulated_plan_capacity),
+                format!(
+                    "must be 0..={MAX_PLAN} (got {})",
+                    link.emulated_plan_capacity
+                ),
             ));
         }
         for (field, p) in [

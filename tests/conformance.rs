@@ -1,7 +1,7 @@
 //! Drive protocol conformance (docs/drive-protocol.md §8 and §9), written from the document:
 //! its test vectors are read from the file itself, and each numbered item of §9 is one
-//! scripted exchange, played against the emulated drive's core (D1–D10) or the bridge's
-//! link (H1–H5). No clock, no sockets: frames in, frames out.
+//! scripted exchange, played against the emulated drive's core (D1–D17) or the bridge's
+//! link (H1–H8). No clock, no sockets: frames in, frames out.
 
 use std::f64::consts::{FRAC_PI_2, TAU};
 use stepdrive_bridge::core::holds_phase_a;
@@ -100,7 +100,7 @@ fn the_documents_test_vectors_decode_to_what_the_document_says() {
     assert_eq!(st.applied_command_seq, 17);
 }
 
-// ---- the drive (D1–D10), against the emulated drive's core ----
+// ---- the drive (D1–D17), against the emulated drive's core ----
 
 const WATCHDOG: u16 = 20;
 
@@ -402,6 +402,207 @@ fn d10_the_newest_plan_covers_missing_commands_and_an_equal_one_replaces_it() {
     let (_, got) = period(&mut d); // s + 3: entry 1 runs
     assert_eq!((got.duty_a, got.status), (4000, planned));
     assert_eq!(period(&mut d).1.duty_a, 5000);
+}
+
+/// One period as [`period`] does, with the FAULT_REPORT it sends after S(k), if any.
+fn period_reporting(d: &mut DriveCore) -> (u32, Sample, Option<FaultReport>) {
+    let f = d.sample_frame(0);
+    let report = d.run_period(f.seq);
+    let Message::Sample(s) = f.message else {
+        panic!("a SAMPLE")
+    };
+    (f.seq, s, report)
+}
+
+/// An enabled drive following C(k, 1000) for a few periods; returns the host.
+fn following(d: &mut DriveCore) -> Host {
+    let mut h = Host(0);
+    hello(&mut h, d);
+    h.control(d, Action::Enable);
+    for _ in 0..5 {
+        let (k, _) = period(d);
+        h.command(d, k, 1000);
+    }
+    h
+}
+
+#[test]
+fn d11_a_sample_shows_state_changes_then_duties_one_period_later() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    // A −32768 duty received between S(k − 1) and S(k).
+    h.command(&mut d, 0, i16::MIN);
+    let (k, s, report) = period_reporting(&mut d);
+    assert_ne!(
+        s.fault_bits & faults::BAD_COMMAND,
+        0,
+        "S(k) has the fault bit"
+    );
+    assert_eq!(s.status & status::ENABLED, 0, "and ENABLED clear");
+    assert_eq!(s.duty_a, 1000, "with period k − 1's duties");
+    assert_eq!(
+        report.map(|r| r.at_sample),
+        Some(k),
+        "period k is the first off"
+    );
+    let (_, s, _) = period_reporting(&mut d);
+    assert_eq!(
+        (s.duty_a, s.applied_command_seq),
+        (0, 0),
+        "S(k + 1): duties 0"
+    );
+    // An ENABLE received between S(j − 1) and S(j): S(j) has ENABLED set.
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    period(&mut d);
+    h.control(&mut d, Action::Enable);
+    assert_ne!(period(&mut d).1.status & status::ENABLED, 0);
+}
+
+#[test]
+fn d12_the_watchdog_latches_at_the_start_of_its_nth_period_without_a_command() {
+    let mut d = drive();
+    following(&mut d);
+    // Period p had the last COMMAND; periods p + 1 … are without one.
+    let (p, _) = period(&mut d);
+    let mut held = 0;
+    let (k, report) = loop {
+        let (k, s, report) = period_reporting(&mut d);
+        if let Some(r) = report {
+            break (k, r);
+        }
+        assert_eq!(s.fault_bits, 0);
+        if k > p + 1 {
+            assert_eq!(s.duty_a, 1000, "the held duty, not yet off");
+            held += 1;
+        }
+        assert!(k < p + 10 * u32::from(WATCHDOG), "no watchdog");
+    };
+    assert_eq!(k, p + u32::from(WATCHDOG), "the N-th period without is off");
+    assert_eq!(
+        held,
+        u32::from(WATCHDOG) - 2,
+        "N − 1 held, all reported so far"
+    );
+    assert_eq!((report.at_sample, report.fault_bits), (k, faults::WATCHDOG));
+    let (_, s, _) = period_reporting(&mut d);
+    assert_eq!(
+        (s.fault_bits, s.duty_a),
+        (faults::WATCHDOG, 0),
+        "S(k + 1) shows it"
+    );
+}
+
+#[test]
+fn d13_before_a_hello_and_frames_of_drive_kinds_are_not_acted_upon() {
+    let mut d = drive();
+    let mut h = Host(0);
+    h.control(&mut d, Action::Enable);
+    assert!(!d.outputs_on(), "no session yet");
+    assert_eq!(d.counters.foreign_frames, 1);
+    hello(&mut h, &mut d);
+    // A SAMPLE sent to the drive, numbered far ahead: dropped before the sequence rule,
+    // so the host's next frame is still accepted.
+    let bytes = frame_bytes(
+        1000,
+        Message::Sample(Sample {
+            encoder_counts: 0,
+            adc_a: 0,
+            adc_b: 0,
+            adc_bus: 0,
+            duty_a: 0,
+            duty_b: 0,
+            applied_command_seq: 0,
+            fault_bits: 0,
+            status: 0,
+        }),
+    );
+    assert!(d.on_frame(&bytes).is_none());
+    assert_eq!(d.counters.bad_frames, 1);
+    h.control(&mut d, Action::Enable);
+    assert!(d.outputs_on());
+    assert_eq!(d.counters.stale_frames, 0);
+}
+
+#[test]
+fn d14_disable_and_reset_discard_the_plan_and_the_waiting_command() {
+    for stop in [Action::Disable, Action::Reset] {
+        let mut d = drive();
+        let mut h = following(&mut d);
+        let (s, _) = period(&mut d);
+        h.command(&mut d, s, 7000);
+        h.send(&mut d, plan(s, &[2000, 3000, 4000]));
+        h.control(&mut d, stop);
+        h.control(&mut d, Action::Enable);
+        period(&mut d);
+        period(&mut d);
+        let (_, got) = period(&mut d);
+        assert_eq!(
+            got.status & (status::COMMAND_HELD | status::COMMAND_PLANNED),
+            status::COMMAND_HELD,
+            "{stop:?}: held, not from the discarded plan"
+        );
+        assert_eq!(
+            got.duty_a, 0,
+            "{stop:?}: the waiting COMMAND was discarded, nothing held from before"
+        );
+    }
+}
+
+#[test]
+fn d15_enable_and_align_are_ignored_while_a_fault_is_latched() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    h.command(&mut d, 0, i16::MIN);
+    period(&mut d);
+    h.control(&mut d, Action::Align);
+    h.control(&mut d, Action::Enable);
+    let (_, s) = period(&mut d);
+    assert_eq!(s.status & (status::ALIGNING | status::ENABLED), 0);
+    assert_eq!((s.duty_a, s.duty_b), (0, 0), "nothing energized");
+    h.control(&mut d, Action::Reset);
+    h.control(&mut d, Action::Enable);
+    assert!(d.outputs_on());
+}
+
+#[test]
+fn d16_one_fault_report_each_time_new_bits_latch() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    h.command(&mut d, 0, i16::MIN);
+    let reports: Vec<FaultReport> = (0..50).filter_map(|_| period_reporting(&mut d).2).collect();
+    assert_eq!(reports.len(), 1, "{reports:?}");
+    d.trip(faults::OVERCURRENT);
+    let (_, s, report) = period_reporting(&mut d);
+    assert_ne!(s.fault_bits & faults::OVERCURRENT, 0);
+    assert_eq!(
+        report.map(|r| r.fault_bits),
+        Some(faults::BAD_COMMAND | faults::OVERCURRENT),
+        "every latched bit"
+    );
+    h.control(&mut d, Action::Reset);
+    h.command(&mut d, 0, i16::MIN);
+    assert!(period_reporting(&mut d).2.is_some(), "again after RESET");
+}
+
+#[test]
+fn d17_an_enable_during_align_waits_for_its_end_and_commands_are_not_applied() {
+    let mut d = drive();
+    let mut h = Host(0);
+    let config = hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    h.control(&mut d, Action::Enable);
+    let n = u32::from(config.align_ms) * config.sample_rate_hz / 1000;
+    for i in 0..n {
+        let (k, s) = period(&mut d);
+        let both = status::ALIGNING | status::ENABLED;
+        assert_eq!(s.status & both, both, "sample {i}");
+        assert_eq!(s.applied_command_seq, 0, "sample {i}: no COMMAND applied");
+        h.command(&mut d, k, 5000);
+    }
+    let (_, s) = period(&mut d);
+    assert_eq!(s.status & status::ALIGNING, 0, "clear after n samples");
 }
 
 // ---- the host (H1–H8), against the bridge's link ----

@@ -91,6 +91,11 @@ pub struct DriveCounters {
     /// Frames from an address other than the session's host (UDP).
     pub foreign_frames: u64,
     pub commands_applied: u64,
+    /// COMMANDs discarded because their period had begun (they came too late).
+    pub commands_late: u64,
+    /// CONTROLs without effect in the state they came in (ENABLE or ALIGN while a fault is
+    /// latched).
+    pub ignored_controls: u64,
     /// Periods without their COMMAND (the watchdog's count), and of those, the ones that
     /// got a PLAN entry instead of the held duties.
     pub periods_held: u64,
@@ -105,6 +110,10 @@ pub struct DriveCore {
     bus_v: f64,
     enabled: bool,
     latched: u16,
+    /// Latched bits already sent in a FAULT_REPORT (one report each time new bits latch).
+    reported: u16,
+    /// A HELLO has been taken: before one, nothing but HELLO is acted on.
+    session: bool,
     last_rx_seq: Option<u32>,
     pending: Option<Command>,
     pending_seq: u32,
@@ -151,6 +160,8 @@ impl DriveCore {
             bus_v: s.drive.bus_voltage_v,
             enabled: false,
             latched: 0,
+            reported: 0,
+            session: false,
             last_rx_seq: None,
             pending: None,
             pending_seq: 0,
@@ -219,6 +230,20 @@ impl DriveCore {
         self.holding = false;
     }
 
+    /// Outputs off until the next ENABLE, the watchdog disarmed, the stored PLAN and any
+    /// waiting COMMAND forgotten (§4.3: HELLO, ALIGN, DISABLE and RESET all do this).
+    fn stand_down(&mut self) {
+        self.enabled = false;
+        self.armed = false;
+        self.since_command = 0;
+        self.pending = None;
+        self.plan = None;
+        // Nothing to hold: the next ENABLE starts from duty 0 (§4.1).
+        self.held_duty = (0, 0);
+        self.held_seq = 0;
+        self.stop_aligning();
+    }
+
     /// Handles one received datagram. Bad, duplicate and out-of-order frames are counted
     /// and dropped; nothing from them is applied.
     pub fn on_frame(&mut self, bytes: &[u8]) -> Option<Reply> {
@@ -233,16 +258,26 @@ impl DriveCore {
                 return None;
             }
         };
+        // Only a host sends these; before a HELLO there is no host to act for (§2, §3.1).
+        let host_kind = !matches!(
+            frame.message,
+            Message::Sample(_) | Message::Config(_) | Message::FaultReport(_)
+        );
+        if !host_kind {
+            self.counters.bad_frames += 1;
+            return None;
+        }
+        if !self.session && frame.message != Message::Hello {
+            self.counters.foreign_frames += 1;
+            return None;
+        }
         // A HELLO starts a new session: a new host counts its frames from its own start,
         // so sequence tracking restarts with it, and the outputs stay off until it enables
-        // them.
+        // them; the next ENABLE starts a run.
         if frame.message == Message::Hello {
-            self.enabled = false;
-            self.armed = false;
-            self.pending = None;
-            self.plan = None;
-            self.since_command = 0;
-            self.stop_aligning();
+            self.session = true;
+            self.stand_down();
+            self.run_start = None;
         } else if !is_newer(frame.seq, self.last_rx_seq) {
             self.counters.stale_frames += 1;
             return None;
@@ -260,9 +295,19 @@ impl DriveCore {
                 }
                 None
             }
+            Message::Control(Action::Enable | Action::Align) if self.latched != 0 => {
+                // Only RESET clears a fault (§5); nothing is energized before it.
+                self.counters.ignored_controls += 1;
+                None
+            }
+            Message::Control(Action::Align) if self.config.align_ms == 0 => {
+                // A drive that does not align (an absolute encoder) ignores ALIGN (§4.3).
+                self.counters.ignored_controls += 1;
+                None
+            }
             Message::Control(Action::Enable) => {
                 self.enabled = true;
-                // A run starts at the first ENABLE after an ALIGN or DISABLE (an ENABLE
+                // A run starts at the first ENABLE after a HELLO, ALIGN or DISABLE (an ENABLE
                 // after a RESET mid-run continues it): the plant's load profile and the
                 // truth count from there.
                 if self.run_start.is_none() {
@@ -276,27 +321,22 @@ impl DriveCore {
                 None
             }
             Message::Control(Action::Disable) => {
-                self.enabled = false;
+                self.stand_down();
                 self.run_start = None;
-                self.armed = false;
-                self.stop_aligning();
                 None
             }
             Message::Control(Action::Reset) => {
+                // An ENABLE after it continues the run (`stepdrive reset`).
                 self.latched = 0;
-                self.since_command = 0;
-                self.enabled = false;
-                self.armed = false;
+                self.reported = 0;
+                self.stand_down();
                 None
             }
             Message::Control(Action::Align) => {
                 // With phase A energized the rotor settles at an electrical zero
                 // (N_r θ ≡ 0 mod 2π), where the host's encoder zero then commutates right.
-                self.enabled = false;
-                self.armed = false;
+                self.stand_down();
                 self.run_start = None;
-                self.pending = None;
-                self.plan = None;
                 let periods =
                     u64::from(self.config.align_ms) * u64::from(self.config.sample_rate_hz) / 1000;
                 self.aligning = u32::try_from(periods).unwrap_or(u32::MAX);
@@ -379,7 +419,6 @@ impl DriveCore {
     /// one, the previous duties are held; after the watchdog's periods without one, the
     /// outputs go off and a fault latches. Returns a fault report if one just latched.
     pub fn run_period(&mut self, sample_seq: u32) -> Option<FaultReport> {
-        let before = self.latched;
         self.planned = false;
         let wanted = sample_seq.wrapping_sub(1);
         if self.aligning > 0 && self.latched == 0 {
@@ -387,7 +426,7 @@ impl DriveCore {
                 self.aligning -= 1;
             }
             self.pending = None;
-            return self.apply(self.align_duty_now(), 0, before, sample_seq);
+            return self.apply(self.align_duty_now(), 0, sample_seq);
         }
         match self.pending.take() {
             Some(c) if c.answers_sample == wanted && self.enabled => {
@@ -400,8 +439,10 @@ impl DriveCore {
             }
             other => {
                 // A command for a later sample waits for its period; older ones are dropped.
-                if let Some(c) = other.filter(|c| is_newer(c.answers_sample, Some(wanted))) {
-                    self.pending = Some(c);
+                match other {
+                    Some(c) if is_newer(c.answers_sample, Some(wanted)) => self.pending = Some(c),
+                    Some(_) => self.counters.commands_late += 1,
+                    None => {}
                 }
                 if self.enabled {
                     self.since_command = self.since_command.saturating_add(1);
@@ -414,21 +455,25 @@ impl DriveCore {
                         self.counters.periods_planned += 1;
                     }
                 }
-                if self.armed && self.since_command >= u32::from(self.config.watchdog_periods) {
+                // A latched fault has the outputs off already: the watchdog is disarmed.
+                if self.armed
+                    && self.latched == 0
+                    && self.since_command >= u32::from(self.config.watchdog_periods)
+                {
                     self.latched |= faults::WATCHDOG;
                 }
             }
         }
         if self.holding && self.latched == 0 && !self.armed {
             // Aligned and not yet commanded: phase A keeps the rotor at its zero.
-            return self.apply(self.align_duty_now(), 0, before, sample_seq);
+            return self.apply(self.align_duty_now(), 0, sample_seq);
         }
         if !self.outputs_on() {
             self.held_duty = (0, 0);
             self.held_seq = 0;
         }
         let (duty, seq) = (self.held_duty, self.held_seq);
-        self.apply(duty, seq, before, sample_seq)
+        self.apply(duty, seq, sample_seq)
     }
 
     fn align_duty_now(&self) -> (i16, i16) {
@@ -439,14 +484,8 @@ impl DriveCore {
     }
 
     /// Applies `duty` (reported in the next SAMPLE with `seq`) over the period and
-    /// integrates the motor; a fault report if one latched since `before`.
-    fn apply(
-        &mut self,
-        duty: (i16, i16),
-        seq: u32,
-        before: u16,
-        sample_seq: u32,
-    ) -> Option<FaultReport> {
+    /// integrates the motor; a fault report if bits latched since the last one.
+    fn apply(&mut self, duty: (i16, i16), seq: u32, sample_seq: u32) -> Option<FaultReport> {
         let duty = if self.latched == 0 { duty } else { (0, 0) };
         self.held_duty = duty;
         self.held_seq = if self.latched == 0 { seq } else { 0 };
@@ -456,7 +495,14 @@ impl DriveCore {
             ..Default::default()
         };
         self.sim.advance(Some(&v));
-        (self.latched != before).then_some(FaultReport {
+        // Bits latched since the last report, whether by a frame before this period's
+        // sample, by the sample's own values or by the watchdog at this period's start:
+        // period `sample_seq` is the first with the outputs off (§5).
+        if self.latched & !self.reported == 0 {
+            return None;
+        }
+        self.reported = self.latched;
+        Some(FaultReport {
             fault_bits: self.latched,
             at_sample: sample_seq,
         })
@@ -685,8 +731,8 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
         tracing::info!(rows, dropped, path = %path.display(), "truth written");
     }
     eprintln!(
-        "drive: frames ok {}, CRC errors {}, bad {}, stale {}, commands applied {}, periods without their command {} (PLAN entry applied in {}), latched faults {:#06x}",
-        c.frames_ok, c.crc_errors, c.bad_frames, c.stale_frames, c.commands_applied, c.periods_held, c.periods_planned, core.latched_faults()
+        "drive: frames ok {}, CRC errors {}, bad {}, stale {}, foreign {}, commands applied {}, late commands discarded {}, periods without their command {} (PLAN entry applied in {}), controls ignored {}, latched faults {:#06x}",
+        c.frames_ok, c.crc_errors, c.bad_frames, c.stale_frames, c.foreign_frames, c.commands_applied, c.commands_late, c.periods_held, c.periods_planned, c.ignored_controls, core.latched_faults()
     );
     Ok(c)
 }
@@ -695,6 +741,15 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
 mod tests {
     use super::*;
     use stepdrive_drive_protocol::frame_bytes;
+
+    /// A drive a host has said HELLO to (frame seq 0).
+    fn in_session(mut d: DriveCore) -> DriveCore {
+        assert!(matches!(
+            d.on_frame(&frame_bytes(0, Message::Hello)),
+            Some(Reply::Config(_))
+        ));
+        d
+    }
 
     fn cmd(answers: u32, d: i16) -> Message {
         Message::Command(Command {
@@ -768,7 +823,7 @@ mod tests {
     /// dropped; one with a −32768 duty latches BAD_COMMAND like such a COMMAND.
     #[test]
     fn missing_commands_take_the_freshest_plan_entry_for_their_period() {
-        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+        let mut d = in_session(DriveCore::new(&Scenario::default(), 20, 8));
         assert_eq!(d.config.plan_capacity, 8);
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         d.run_period(0);
@@ -812,7 +867,7 @@ mod tests {
 
     #[test]
     fn watchdog_turns_outputs_off_and_latches_until_reset() {
-        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+        let mut d = in_session(DriveCore::new(&Scenario::default(), 20, 8));
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         d.run_period(0);
         d.on_frame(&frame_bytes(2, cmd(0, 5000)));
@@ -875,7 +930,7 @@ mod tests {
     /// at; it rests there within the load's offset (0.01 N·m / 25 N·m/rad = 4e-4 rad).
     #[test]
     fn align_leaves_the_rotor_at_an_electrical_zero() {
-        let mut d = DriveCore::new(&Scenario::default(), 2000, 8);
+        let mut d = in_session(DriveCore::new(&Scenario::default(), 2000, 8));
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         for k in 0..400u32 {
             d.on_frame(&frame_bytes(2 + k, cmd(k.wrapping_sub(1), 12_000)));

@@ -524,8 +524,10 @@ fn a_drive_that_comes_back_after_silence_gets_its_commands_again() {
     assert!(drive_log.contains("latched faults 0x0000"), "{drive_log}");
     let doc = read_json(&json);
     let run = run_of(&doc, "proposed");
-    // The silence itself is reported: one fault state, nothing more.
-    assert_eq!(num(run, "fault_samples"), 1.0, "{run}");
+    // The silence itself is reported, as silence: one fault state from the bridge, no
+    // sample the drive faulted.
+    assert_eq!(num(run, "silent_samples"), 1.0, "{run}");
+    assert_eq!(num(run, "fault_samples"), 0.0, "{run}");
 }
 
 #[test]

@@ -4,7 +4,7 @@
 use crate::outcome::{fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED};
 use serde::Serialize;
 use stepdrive_shared::frames::dq_currents;
-use stepdrive_shared::messages::{state_flags, DriveState};
+use stepdrive_shared::messages::{fault_bits, state_flags, DriveState};
 use stepdrive_shared::trajectory::Trapezoid;
 use stepdrive_shared::{Method, Scenario};
 
@@ -49,8 +49,11 @@ pub struct RunReport {
     pub samples: u64,
     /// Samples during which the drive limited a phase voltage to ±V_bus.
     pub voltage_limited_samples: u64,
-    /// Samples that carried a fault bit.
+    /// Samples that carried a fault bit other than the bridge's DRIVE_SILENT.
     pub fault_samples: u64,
+    /// Hardware: states the bridge published because the drive was silent (no valid
+    /// SAMPLE for its silence window): the host heard nothing, the drive latched nothing.
+    pub silent_samples: u64,
     /// Realtime only: loop timing, deadline misses, latencies.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub timing: Option<crate::timing::TimingReport>,
@@ -171,6 +174,7 @@ pub struct Metrics {
     samples: u64,
     limited: u64,
     faults: u64,
+    silent: u64,
     first_latched: Option<FaultEvent>,
     step_out_rad: f64,
     previous_i: Option<[f64; 2]>,
@@ -206,6 +210,7 @@ impl Metrics {
             samples: 0,
             limited: 0,
             faults: 0,
+            silent: 0,
             first_latched: None,
             step_out_rad: step_out_threshold_rad(s),
             previous_i: None,
@@ -264,8 +269,11 @@ impl Metrics {
         if s.flags & state_flags::VOLTAGE_LIMITED != 0 {
             self.limited += 1;
         }
-        if s.fault != 0 {
+        self.silent += u64::from(s.fault & fault_bits::DRIVE_SILENT != 0);
+        if s.fault & !fault_bits::DRIVE_SILENT != 0 {
             self.faults += 1;
+        }
+        if s.fault != 0 {
             if s.fault & LATCHED != 0 && self.first_latched.is_none() {
                 let seen_unix_s = std::time::SystemTime::now()
                     .duration_since(std::time::UNIX_EPOCH)
@@ -282,7 +290,7 @@ impl Metrics {
         self.last_time = t;
     }
 
-    /// Samples with any fault bit so far.
+    /// Samples with a fault bit so far, the bridge's DRIVE_SILENT aside.
     pub fn faulted_samples(&self) -> u64 {
         self.faults
     }
@@ -357,6 +365,7 @@ impl Metrics {
             samples: self.samples,
             voltage_limited_samples: self.limited,
             fault_samples: self.faults,
+            silent_samples: self.silent,
             timing: None,
             load_step: self.step.map(|w| w.report(self.period)),
             truth: None,

@@ -99,8 +99,11 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         ("sim time [s]", |r| format!("{:.3}", r.sim_time_s)),
         ("wall time [s]", |r| format!("{:.3}", r.wall_time_s)),
         ("samples", |r| r.samples.to_string()),
-        ("limited / faulted samples", |r| {
-            format!("{} / {}", r.voltage_limited_samples, r.fault_samples)
+        ("limited / faulted / silent samples", |r| {
+            format!(
+                "{} / {} / {}",
+                r.voltage_limited_samples, r.fault_samples, r.silent_samples
+            )
         }),
     ];
     let step_rows: [Row; 2] = [

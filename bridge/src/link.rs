@@ -264,7 +264,10 @@ impl DriveLink {
                 };
                 // A faulted drive reports ENABLED clear too: that sample starts the run, so
                 // that its fault is seen.
-                if self.awaiting_enable && s.status & status::ENABLED == 0 && s.fault_bits == 0 {
+                // An ENABLE taken during an ALIGN shows ENABLED beside ALIGNING: the run starts
+                // when the alignment ends (§7 step 5).
+                let running = s.status & (status::ENABLED | status::ALIGNING) == status::ENABLED;
+                if self.awaiting_enable && !running && s.fault_bits == 0 {
                     self.before_enable += 1;
                     return Event::Dropped;
                 }

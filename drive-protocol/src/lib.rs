@@ -162,7 +162,7 @@ pub struct ConfigError {
 impl Config {
     /// Checks every field against §4.5 of the specification, first failure first.
     pub fn check(&self) -> Result<(), ConfigError> {
-        let rules: [(&'static str, i64, bool, &'static str); 8] = [
+        let rules: [(&'static str, i64, bool, &'static str); 9] = [
             (
                 "sample_rate_hz",
                 self.sample_rate_hz.into(),
@@ -210,6 +210,13 @@ impl Config {
                 self.align_current_ma.into(),
                 self.align_ms == 0 || self.align_current_ma > 0,
                 "must be > 0 when align_ms is",
+            ),
+            (
+                "align_ms",
+                self.align_ms.into(),
+                self.align_ms == 0
+                    || u64::from(self.align_ms) * u64::from(self.sample_rate_hz) >= 1000,
+                "must last at least one sample period when not 0",
             ),
         ];
         match rules.into_iter().find(|r| !r.2) {

@@ -1,7 +1,9 @@
 //! The run's figures of merit, computed from the plant's state stream alone (the truth), with
 //! θ_d taken from the scenario's trajectory, so a controller cannot grade itself.
 
-use crate::outcome::{fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED};
+use crate::outcome::{
+    fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED, MIN_SEEN_FRACTION,
+};
 use serde::Serialize;
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::{fault_bits, state_flags, DriveState};
@@ -45,8 +47,20 @@ pub struct RunReport {
     pub eq7_bound_rad: f64,
     pub sim_time_s: f64,
     pub wall_time_s: f64,
-    /// Current-loop cycles executed (= plant samples).
+    /// Samples the monitor saw (the figures come from these alone).
     pub samples: u64,
+    /// Samples up to the last one seen that the monitor never saw (gaps in the index): lost
+    /// on the wire, skipped by the bridge, or overwritten in the monitor's queue while it
+    /// had no CPU.
+    pub missed_samples: u64,
+    /// Samples in the cruise window: seen, and missed.
+    pub cruise_samples: u64,
+    pub cruise_missed_samples: u64,
+    /// The longest stretch of the run the monitor did not see, s.
+    pub longest_gap_s: f64,
+    /// Why the figures do not stand (outcome `unobserved`): which window was not seen.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub unobserved: Option<String>,
     /// Samples during which the drive limited a phase voltage to ±V_bus.
     pub voltage_limited_samples: u64,
     /// Samples that carried a fault bit other than the bridge's DRIVE_SILENT.
@@ -181,6 +195,13 @@ pub struct Metrics {
     last_time: f64,
     step: Option<StepWatch>,
     period: f64,
+    sample_hz: f64,
+    /// The index of the last sample pushed, and what the gaps before it held.
+    last_seq: Option<u64>,
+    missed: u64,
+    cruise_missed: u64,
+    final_missed: u64,
+    longest_gap: u64,
 }
 
 impl Metrics {
@@ -217,10 +238,40 @@ impl Metrics {
             last_time: 0.0,
             step: StepWatch::new(s),
             period: s.sample_period_s(),
+            sample_hz: s.rates.current_loop_hz,
+            last_seq: None,
+            missed: 0,
+            cruise_missed: 0,
+            final_missed: 0,
+            longest_gap: 0,
+        }
+    }
+
+    /// The samples `from..to` never arrived: count them, and those of them in the cruise and
+    /// final windows (O(samples missed), only when some were).
+    fn missed_between(&mut self, from: u64, to: u64) {
+        self.missed += to - from;
+        self.longest_gap = self.longest_gap.max(to - from);
+        for k in from..to {
+            let t = k as f64 / self.sample_hz;
+            let (tau, _) = self.trajectory.phase(t);
+            if tau >= self.cruise.0 && tau <= self.cruise.1 {
+                self.cruise_missed += 1;
+            }
+            if t >= self.final_from {
+                self.final_missed += 1;
+            }
         }
     }
 
     pub fn push(&mut self, s: &DriveState) {
+        let expected = self.last_seq.map_or(0, |q| q + 1);
+        if s.seq > expected {
+            self.missed_between(expected, s.seq);
+            // The interval ending here did not start at the last sample seen.
+            self.previous_i = None;
+        }
+        self.last_seq = Some(self.last_seq.map_or(s.seq, |q| q.max(s.seq)));
         let t = s.sample_time_s;
         let reference = self.trajectory.at(t);
         let error = reference.theta - s.theta_rad;
@@ -273,19 +324,17 @@ impl Metrics {
         if s.fault & !fault_bits::DRIVE_SILENT != 0 {
             self.faults += 1;
         }
-        if s.fault != 0 {
-            if s.fault & LATCHED != 0 && self.first_latched.is_none() {
-                let seen_unix_s = std::time::SystemTime::now()
-                    .duration_since(std::time::UNIX_EPOCH)
-                    .map_or(0.0, |d| d.as_secs_f64());
-                self.first_latched = Some(FaultEvent {
-                    sample: s.seq,
-                    sim_time_s: t,
-                    seen_unix_s,
-                    bits: s.fault,
-                    faults: fault_names(s.fault),
-                });
-            }
+        if s.fault & LATCHED != 0 && self.first_latched.is_none() {
+            let seen_unix_s = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0.0, |d| d.as_secs_f64());
+            self.first_latched = Some(FaultEvent {
+                sample: s.seq,
+                sim_time_s: t,
+                seen_unix_s,
+                bits: s.fault,
+                faults: fault_names(s.fault),
+            });
         }
         self.last_time = t;
     }
@@ -299,15 +348,43 @@ impl Metrics {
         self.samples
     }
 
-    /// How a run that reached its end went: a latched fault, then a step-out, decide.
+    /// How a run that reached its end went: a latched fault, then a step-out, then whether
+    /// the monitor saw enough of it, decide.
     pub fn outcome(&self) -> Outcome {
         if self.first_latched.is_some() {
             Outcome::Fault
         } else if self.max_abs_error.is_nan() || self.max_abs_error > self.step_out_rad {
             Outcome::SteppedOut
+        } else if self.unobserved().is_some() {
+            Outcome::Unobserved
         } else {
             Outcome::Ok
         }
+    }
+
+    /// Which window of the run (up to its last sample seen) the monitor saw less than
+    /// [`MIN_SEEN_FRACTION`] of, if any. A window the run never reached (a `--duration`
+    /// shorter than the profile) has nothing to see and is not one.
+    pub fn unobserved(&self) -> Option<String> {
+        let windows = [
+            ("the run", self.samples, self.missed),
+            ("the cruise window", self.cruise_n, self.cruise_missed),
+            ("the final window", self.final_n, self.final_missed),
+        ];
+        windows
+            .into_iter()
+            .find(|&(_, seen, missed)| {
+                missed > 0 && (seen as f64) < MIN_SEEN_FRACTION * (seen + missed) as f64
+            })
+            .map(|(name, seen, missed)| {
+                format!(
+                    "the monitor saw {seen} of the {} samples of {name} ({:.1} %; at least {:.0} % \
+                     needed)",
+                    seen + missed,
+                    100.0 * seen as f64 / (seen + missed) as f64,
+                    100.0 * MIN_SEEN_FRACTION
+                )
+            })
     }
 
     /// The report of a run that reached its last sample.
@@ -363,6 +440,11 @@ impl Metrics {
             sim_time_s: self.last_time,
             wall_time_s,
             samples: self.samples,
+            missed_samples: self.missed,
+            cruise_samples: self.cruise_n,
+            cruise_missed_samples: self.cruise_missed,
+            longest_gap_s: self.longest_gap as f64 / self.sample_hz,
+            unobserved: self.unobserved(),
             voltage_limited_samples: self.limited,
             fault_samples: self.faults,
             silent_samples: self.silent,
@@ -370,5 +452,66 @@ impl Metrics {
             load_step: self.step.map(|w| w.report(self.period)),
             truth: None,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state(s: &Scenario, k: u64) -> DriveState {
+        let t = k as f64 / s.rates.current_loop_hz;
+        DriveState {
+            seq: k,
+            sample_time_s: t,
+            // On the trajectory: the motor follows.
+            theta_rad: Trapezoid::new(&s.trajectory).at(t).theta,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_run_whose_cruise_the_monitor_never_saw_does_not_pass() {
+        let s = Scenario::default();
+        let total = s.sample_count();
+        let mut m = Metrics::new(&s);
+        // What a starved monitor sees: the start, then the newest 8192 samples of its queue.
+        for k in (0..17_245).chain(total - 8192..total) {
+            m.push(&state(&s, k));
+        }
+        assert_eq!(m.outcome(), Outcome::Unobserved);
+        let r = m.finish(Method::Proposed, "hardware", 2.5);
+        assert!(r.cruise_max_abs_error_rad.is_nan());
+        assert_eq!(
+            (r.cruise_samples, r.missed_samples),
+            (0, total - 17_245 - 8192)
+        );
+        assert!(r.cruise_missed_samples > 11_000, "{r:?}");
+        assert!(
+            r.unobserved.as_deref().unwrap().contains("of the run"),
+            "{r:?}"
+        );
+    }
+
+    #[test]
+    fn a_lossy_link_and_a_short_run_still_pass() {
+        let s = Scenario::default();
+        let mut m = Metrics::new(&s);
+        // One sample in ten lost on the wire.
+        for k in (0..s.sample_count()).filter(|k| k % 10 != 3) {
+            m.push(&state(&s, k));
+        }
+        assert_eq!(m.outcome(), Outcome::Ok, "{:?}", m.unobserved());
+        // A run shorter than the profile never reaches the cruise: n/a, and ok.
+        let mut short = s.clone();
+        short.run.duration_s = Some(0.2);
+        let mut m = Metrics::new(&short);
+        for k in 0..short.sample_count() {
+            m.push(&state(&short, k));
+        }
+        let r = m.finish(Method::Proposed, "lockstep", 0.1);
+        assert_eq!(r.outcome, Outcome::Ok);
+        assert!(r.cruise_max_abs_error_rad.is_nan());
+        assert_eq!((r.samples, r.missed_samples), (4001, 0));
     }
 }

@@ -4,6 +4,7 @@
 //! | outcome | exit code | meaning |
 //! |---|---|---|
 //! | ok | 0 | every method ran to the end, no fault, the motor followed |
+//! | unobserved | 6 | the run ended, but the monitor saw too little of it (of the run, its cruise window or its final window) for its figures to stand |
 //! | error | 1 | the run could not start: bad input, a refused setting (before any motion) |
 //! | usage | 2 | the command line itself is wrong (clap) |
 //! | fault | 3 | the plant, the bridge or the drive latched a fault (watchdog, bad command, over-current, ...): outputs went off |
@@ -22,6 +23,11 @@ use stepdrive_shared::Scenario;
 #[serde(rename_all = "snake_case")]
 pub enum Outcome {
     Ok,
+    /// The figures do not stand: the monitor saw less than [`MIN_SEEN_FRACTION`] of the
+    /// samples of the run, of its cruise window or of its final window (lost on the wire,
+    /// skipped by the bridge, or overwritten in the monitor's queue while it had no CPU).
+    /// Below the outcomes that say what the motor did: evidence of those wins.
+    Unobserved,
     SteppedOut,
     Fault,
     ProcessDied,
@@ -32,6 +38,7 @@ impl Outcome {
     pub fn exit_code(self) -> u8 {
         match self {
             Outcome::Ok => 0,
+            Outcome::Unobserved => 6,
             Outcome::Fault => 3,
             Outcome::SteppedOut => 4,
             Outcome::ProcessDied => 5,
@@ -42,6 +49,7 @@ impl Outcome {
     pub fn title(self) -> &'static str {
         match self {
             Outcome::Ok => "OK",
+            Outcome::Unobserved => "UNOBSERVED",
             Outcome::Fault => "FAULT",
             Outcome::SteppedOut => "STEPPED OUT",
             Outcome::ProcessDied => "PROCESS DIED",
@@ -49,6 +57,12 @@ impl Outcome {
         }
     }
 }
+
+/// The least share of a window's samples (the whole run up to its last sample, the cruise
+/// window, the final window) the monitor must have seen for the run's figures to stand. A
+/// lossy link (one frame in ten corrupted: ~88 % seen) passes; a monitor that lost its CPU
+/// for longer than its queue (8192 samples, 0.41 s at 20 kHz) does not.
+pub const MIN_SEEN_FRACTION: f64 = 0.8;
 
 /// Faults that stay until a reset: the outputs are off. `DRIVE_SILENT` is the bridge's
 /// report of a silent drive and ends when the drive speaks again.
@@ -167,6 +181,7 @@ mod tests {
     fn severity_orders_the_outcomes_and_codes_are_distinct() {
         let all = [
             Outcome::Ok,
+            Outcome::Unobserved,
             Outcome::SteppedOut,
             Outcome::Fault,
             Outcome::ProcessDied,
@@ -176,7 +191,7 @@ mod tests {
         let mut codes: Vec<u8> = all.iter().map(|o| o.exit_code()).collect();
         codes.sort_unstable();
         codes.dedup();
-        assert_eq!(codes, [0, 3, 4, 5, 130]);
+        assert_eq!(codes, [0, 3, 4, 5, 6, 130]);
     }
 
     #[test]

@@ -63,7 +63,7 @@ fn sci(v: f64) -> String {
 
 pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
     type Row = (&'static str, fn(&RunReport) -> String);
-    let rows: [Row; 17] = [
+    let rows: [Row; 18] = [
         ("mode", |r| r.mode.clone()),
         ("outcome", |r| {
             let title = r.outcome.title().to_lowercase();
@@ -99,6 +99,7 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         ("sim time [s]", |r| format!("{:.3}", r.sim_time_s)),
         ("wall time [s]", |r| format!("{:.3}", r.wall_time_s)),
         ("samples", |r| r.samples.to_string()),
+        ("samples missed", |r| r.missed_samples.to_string()),
         ("limited / faulted / silent samples", |r| {
             format!(
                 "{} / {} / {}",
@@ -279,6 +280,21 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
             sci(r.max_abs_error_rad),
             step_out_threshold_rad(s)
         ),
+        Outcome::Unobserved => {
+            let wire = r.timing.as_ref().map_or(0, |t| t.frames_lost);
+            format!(
+                "{}: the figures above do not stand for the run. Of the {} samples it missed \
+                 (the longest stretch {:.3} s), {wire} were lost on the wire; the rest the \
+                 bridge skipped or the monitor's queue overwrote while the monitor had no CPU. \
+                 What to do: leave the monitor CPU time (a drive process spinning at SCHED_FIFO \
+                 on the plant's CPU leaves it none; see the deployment's CPUs), then run again.",
+                r.unobserved
+                    .as_deref()
+                    .unwrap_or("the monitor saw too little of the run"),
+                r.missed_samples,
+                r.longest_gap_s
+            )
+        }
         Outcome::ProcessDied | Outcome::Interrupted => format!(
             "{} after {:.3} s of {:.3} s simulated. The figures above cover what ran (marked \
              incomplete).",

@@ -2,7 +2,8 @@
 //! θ_d taken from the scenario's trajectory, so a controller cannot grade itself.
 
 use crate::outcome::{
-    fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED, MIN_SEEN_FRACTION,
+    fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED, MAX_UNSEEN_S,
+    MIN_SEEN_FRACTION,
 };
 use serde::Serialize;
 use stepdrive_shared::frames::dq_currents;
@@ -371,6 +372,13 @@ impl Metrics {
             ("the cruise window", self.cruise_n, self.cruise_missed),
             ("the final window", self.final_n, self.final_missed),
         ];
+        let gap_s = self.longest_gap as f64 / self.sample_hz;
+        if gap_s > MAX_UNSEEN_S {
+            return Some(format!(
+                "the monitor missed {:.3} s of the run in a row (at most {MAX_UNSEEN_S} s allowed)",
+                gap_s
+            ));
+        }
         windows
             .into_iter()
             .find(|&(_, seen, missed)| {

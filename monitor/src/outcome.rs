@@ -24,7 +24,8 @@ use stepdrive_shared::Scenario;
 pub enum Outcome {
     Ok,
     /// The figures do not stand: the monitor saw less than [`MIN_SEEN_FRACTION`] of the
-    /// samples of the run, of its cruise window or of its final window (lost on the wire,
+    /// samples of the run, of its cruise window or of its final window, or missed more than
+    /// [`MAX_UNSEEN_S`] in a row (lost on the wire,
     /// skipped by the bridge, or overwritten in the monitor's queue while it had no CPU).
     /// Below the outcomes that say what the motor did: evidence of those wins.
     Unobserved,
@@ -60,9 +61,17 @@ impl Outcome {
 
 /// The least share of a window's samples (the whole run up to its last sample, the cruise
 /// window, the final window) the monitor must have seen for the run's figures to stand. A
-/// lossy link (one frame in ten corrupted: ~88 % seen) passes; a monitor that lost its CPU
-/// for longer than its queue (8192 samples, 0.41 s at 20 kHz) does not.
-pub const MIN_SEEN_FRACTION: f64 = 0.8;
+/// lossy link passes (one frame in ten corrupted: ~88 % seen; 1 % dropped at 2 kHz without
+/// real-time priorities, the bridge superseding queued samples: 74 % of a 101-sample final
+/// window, its longest gap 5 ms); a monitor that lost its CPU for longer than its queue
+/// (8192 samples, 0.41 s at 20 kHz) saw 0–58 %.
+pub const MIN_SEEN_FRACTION: f64 = 0.5;
+
+/// The longest stretch of samples the monitor may miss, s: longer, and a transient (a load
+/// step, a stall, the start of the cruise) can pass unseen. The drive's own silences do not
+/// count (a paused drive pauses its sample index); a host stall that makes the bridge
+/// supersede samples lasts 1–25 ms here; a starved monitor missed 0.4–1.1 s.
+pub const MAX_UNSEEN_S: f64 = 0.1;
 
 /// Faults that stay until a reset: the outputs are off. `DRIVE_SILENT` is the bridge's
 /// report of a silent drive and ends when the drive speaks again.

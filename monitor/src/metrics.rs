@@ -197,6 +197,8 @@ pub struct Metrics {
     step: Option<StepWatch>,
     period: f64,
     sample_hz: f64,
+    /// Samples in the run: a gap never counts past its end, whatever index a state carries.
+    run_samples: u64,
     /// The index of the last sample pushed, and what the gaps before it held.
     last_seq: Option<u64>,
     missed: u64,
@@ -240,6 +242,7 @@ impl Metrics {
             step: StepWatch::new(s),
             period: s.sample_period_s(),
             sample_hz: s.rates.current_loop_hz,
+            run_samples: s.sample_count(),
             last_seq: None,
             missed: 0,
             cruise_missed: 0,
@@ -251,6 +254,7 @@ impl Metrics {
     /// The samples `from..to` never arrived: count them, and those of them in the cruise and
     /// final windows (O(samples missed), only when some were).
     fn missed_between(&mut self, from: u64, to: u64) {
+        let to = to.min(self.run_samples.max(from));
         self.missed += to - from;
         self.longest_gap = self.longest_gap.max(to - from);
         for k in from..to {

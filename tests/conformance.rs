@@ -135,13 +135,19 @@ impl Host {
 
 /// One period: the drive sends S(k) (which reports the period before) and runs the
 /// period that starts there. Returns k and S(k).
-fn period(d: &mut DriveCore) -> (u32, Sample) {
+/// One period, with the FAULT_REPORT the drive sends after S(k), if any.
+fn period_reporting(d: &mut DriveCore) -> (u32, Sample, Option<FaultReport>) {
     let f = d.sample_frame(0);
-    d.run_period(f.seq);
+    let report = d.run_period(f.seq);
     let Message::Sample(s) = f.message else {
         panic!("a SAMPLE")
     };
-    (f.seq, s)
+    (f.seq, s, report)
+}
+
+fn period(d: &mut DriveCore) -> (u32, Sample) {
+    let (k, s, _) = period_reporting(d);
+    (k, s)
 }
 
 fn hello(h: &mut Host, d: &mut DriveCore) -> Config {
@@ -404,16 +410,6 @@ fn d10_the_newest_plan_covers_missing_commands_and_an_equal_one_replaces_it() {
     assert_eq!(period(&mut d).1.duty_a, 5000);
 }
 
-/// One period as [`period`] does, with the FAULT_REPORT it sends after S(k), if any.
-fn period_reporting(d: &mut DriveCore) -> (u32, Sample, Option<FaultReport>) {
-    let f = d.sample_frame(0);
-    let report = d.run_period(f.seq);
-    let Message::Sample(s) = f.message else {
-        panic!("a SAMPLE")
-    };
-    (f.seq, s, report)
-}
-
 /// An enabled drive following C(k, 1000) for a few periods; returns the host.
 fn following(d: &mut DriveCore) -> Host {
     let mut h = Host(0);
@@ -504,20 +500,7 @@ fn d13_before_a_hello_and_frames_of_drive_kinds_are_not_acted_upon() {
     hello(&mut h, &mut d);
     // A SAMPLE sent to the drive, numbered far ahead: dropped before the sequence rule,
     // so the host's next frame is still accepted.
-    let bytes = frame_bytes(
-        1000,
-        Message::Sample(Sample {
-            encoder_counts: 0,
-            adc_a: 0,
-            adc_b: 0,
-            adc_bus: 0,
-            duty_a: 0,
-            duty_b: 0,
-            applied_command_seq: 0,
-            fault_bits: 0,
-            status: 0,
-        }),
-    );
+    let bytes = frame_bytes(1000, Message::Sample(RESTING));
     assert!(d.on_frame(&bytes).is_none());
     assert_eq!(d.counters.bad_frames, 1);
     h.control(&mut d, Action::Enable);
@@ -625,21 +608,25 @@ fn configured_link() -> DriveLink {
     l
 }
 
+/// An enabled drive at rest with the default CONFIG's scaling: 0 A, 24 V, duties 0.
+const RESTING: Sample = Sample {
+    encoder_counts: 0,
+    adc_a: 32768,
+    adc_b: 32768,
+    adc_bus: 2400,
+    duty_a: 0,
+    duty_b: 0,
+    applied_command_seq: 0,
+    fault_bits: 0,
+    status: status::ENABLED,
+};
+
 fn sample_at(seq: u32, counts: i32) -> Vec<u8> {
-    frame_bytes(
-        seq,
-        Message::Sample(Sample {
-            encoder_counts: counts,
-            adc_a: 32768,
-            adc_b: 32768,
-            adc_bus: 2400,
-            duty_a: 0,
-            duty_b: 0,
-            applied_command_seq: 0,
-            fault_bits: 0,
-            status: status::ENABLED,
-        }),
-    )
+    let s = Sample {
+        encoder_counts: counts,
+        ..RESTING
+    };
+    frame_bytes(seq, Message::Sample(s))
 }
 
 #[test]
@@ -757,20 +744,11 @@ fn h5_frames_of_another_version_are_counted_with_it() {
 }
 
 fn sample_with_status(seq: u32, status_bits: u16) -> Vec<u8> {
-    frame_bytes(
-        seq,
-        Message::Sample(Sample {
-            encoder_counts: 0,
-            adc_a: 32768,
-            adc_b: 32768,
-            adc_bus: 2400,
-            duty_a: 0,
-            duty_b: 0,
-            applied_command_seq: 0,
-            fault_bits: 0,
-            status: status_bits,
-        }),
-    )
+    let s = Sample {
+        status: status_bits,
+        ..RESTING
+    };
+    frame_bytes(seq, Message::Sample(s))
 }
 
 #[test]
@@ -841,20 +819,14 @@ fn h8_a_drive_that_does_not_hold_phase_a_at_its_align_current_is_refused() {
     let adc = |amps: f64| (f64::from(config.current_zero_count) + amps * counts_per_amp) as u16;
     // The first sample with ALIGNING clear: aligned, not yet enabled, phase A holding.
     let held = |seq: u32, i_a: f64, i_b: f64| {
-        frame_bytes(
-            seq,
-            Message::Sample(Sample {
-                encoder_counts: 0,
-                adc_a: adc(i_a),
-                adc_b: adc(i_b),
-                adc_bus: 2400,
-                duty_a: 2048,
-                duty_b: 0,
-                applied_command_seq: 0,
-                fault_bits: 0,
-                status: 0,
-            }),
-        )
+        let s = Sample {
+            adc_a: adc(i_a),
+            adc_b: adc(i_b),
+            duty_a: 2048,
+            status: 0,
+            ..RESTING
+        };
+        frame_bytes(seq, Message::Sample(s))
     };
     let align_a = 1.0;
     for (seq, i_a, i_b, accepted) in [

@@ -415,16 +415,13 @@ fn a_host_stall_at_speed_within_the_watchdog_is_covered_by_the_plan() {
     let scenario = dir.file(
         "cruise.toml",
         &format!(
-            "{}\n[trajectory]\naccel_s = 0.1\ncruise_s = 3.0\ndecel_s = 0.1\nhold_s = 0.15\n\
-             [metrics]\ncruise_start_s = 0.3\ncruise_end_s = 3.0\nfinal_window_s = 0.05\n",
-            slow_scenario().replace(SHORT, "")
+            "{SLOW_RATES}\n[trajectory]\naccel_s = 0.1\ncruise_s = 3.0\ndecel_s = 0.1\nhold_s = 0.15\n\
+             [metrics]\ncruise_start_s = 0.3\ncruise_end_s = 3.0\nfinal_window_s = 0.05\n"
         ),
     );
     let json = dir.path("hw.json");
     let inst = instance("hwstall");
-    let mut args = hardware_args(&scenario, &inst, &json);
-    let method = args.iter().position(|a| *a == "proposed").expect("method");
-    args[method] = "lyapunov";
+    let args = hardware_args_with(&scenario, &inst, &json, "lyapunov");
     let doc = run_with_frozen_current_loop(
         &args,
         &inst,

@@ -454,14 +454,7 @@ fn an_emulated_drive_serves_runs_back_to_back() {
     );
     // A host name, not only an address.
     let by_name = format!("localhost:{port}");
-    let mut args = hardware_args(&scenario, &inst, &json);
-    args.retain(|a| *a != "proposed");
-    let at = args
-        .iter()
-        .position(|a| *a == "--method")
-        .expect("--method")
-        + 1;
-    args.insert(at, "proposed,lyapunov");
+    let mut args = hardware_args_with(&scenario, &inst, &json, "proposed,lyapunov");
     args.extend(["--drive", &by_name]);
     let out = stepdrive(&args);
     signal(drive.id(), libc::SIGTERM);

@@ -45,9 +45,7 @@ fn methods_run(
     drive: &str,
     methods: &str,
 ) -> std::process::Output {
-    let mut args = hardware_args(scenario, inst, json);
-    let at = args.iter().position(|a| *a == "proposed").expect("method");
-    args[at] = methods;
+    let mut args = hardware_args_with(scenario, inst, json, methods);
     args.extend(["--drive", drive]);
     stepdrive(&args)
 }

@@ -88,7 +88,8 @@ pub struct DriveCounters {
     pub bad_frames: u64,
     pub crc_errors: u64,
     pub stale_frames: u64,
-    /// Frames from an address other than the session's host (UDP).
+    /// Frames from an address other than the session's host (UDP), and frames other than
+    /// HELLO before there is a session.
     pub foreign_frames: u64,
     pub commands_applied: u64,
     /// COMMANDs discarded because their period had begun (they came too late).
@@ -201,6 +202,11 @@ impl DriveCore {
 
     pub fn latched_faults(&self) -> u16 {
         self.latched
+    }
+
+    /// Whether a host has said HELLO (the drive has somewhere to send its samples).
+    pub fn in_session(&self) -> bool {
+        self.session
     }
 
     pub fn outputs_on(&self) -> bool {
@@ -596,7 +602,6 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
     let mut rx = [0u8; MAX_FRAME + 1];
     tracing::info!(listen = %o.listen, serial = ?o.serial, "emulated drive up; waiting for HELLO");
     // The host announces itself with HELLO; on UDP samples go to whoever sent the last one.
-    let mut connected = false;
     let started = monotonic_ns();
     let mut pacer = Pacer::new(started + period_ns, period_ns, o.wait);
     let mut reordered: Option<Frame> = None;
@@ -630,7 +635,6 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 if let (Wire::Udp { peer, .. }, Some(from)) = (&mut wire, from) {
                     *peer = Some(from);
                 }
-                connected = true;
                 running_since = None;
                 let f = Frame {
                     seq: core.report_seq(),
@@ -640,7 +644,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
                 send_frame(&mut wire, &f, &mut buf);
             }
         }
-        if !connected {
+        if !core.in_session() {
             pacer.skip_to(monotonic_ns());
             continue;
         }

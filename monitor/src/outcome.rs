@@ -25,8 +25,8 @@ pub enum Outcome {
     Ok,
     /// The figures do not stand: the monitor saw less than [`MIN_SEEN_FRACTION`] of the
     /// samples of the run, of its cruise window or of its final window, or missed more than
-    /// [`MAX_UNSEEN_S`] in a row (lost on the wire,
-    /// skipped by the bridge, or overwritten in the monitor's queue while it had no CPU).
+    /// [`MAX_UNSEEN_S`] in a row (lost on the wire, skipped by the bridge, or overwritten in
+    /// the monitor's queue while it had no CPU).
     /// Below the outcomes that say what the motor did: evidence of those wins.
     Unobserved,
     SteppedOut,
@@ -68,8 +68,8 @@ impl Outcome {
 pub const MIN_SEEN_FRACTION: f64 = 0.5;
 
 /// The longest stretch of samples the monitor may miss, s: longer, and a transient (a load
-/// step, a stall, the start of the cruise) can pass unseen. The drive's own silences do not
-/// count (a paused drive pauses its sample index); a host stall that makes the bridge
+/// step, a stall, the start of the cruise) can pass unseen. An emulated drive paused with its
+/// host does not count (its sample index pauses too); a host stall that makes the bridge
 /// supersede samples lasts 1–25 ms here; a starved monitor missed 0.4–1.1 s.
 pub const MAX_UNSEEN_S: f64 = 0.1;
 

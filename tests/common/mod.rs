@@ -282,8 +282,11 @@ pub fn run_with_frozen_current_loop(
 /// real-time priorities (tests share the CI machine's two cores), and there five processes
 /// plus loopback UDP at 20 kHz would measure the machine's scheduler, not the stack.
 pub fn slow_scenario() -> String {
-    format!("{SHORT}\n[rates]\ncurrent_loop_hz = 2000.0\nposition_loop_hz = 200.0\n")
+    format!("{SHORT}\n{SLOW_RATES}")
 }
+
+/// The rates of [`slow_scenario`], for a scenario with another trajectory.
+pub const SLOW_RATES: &str = "[rates]\ncurrent_loop_hz = 2000.0\nposition_loop_hz = 200.0\n";
 
 pub fn free_udp_port() -> u16 {
     std::net::UdpSocket::bind("127.0.0.1:0")
@@ -304,12 +307,22 @@ pub fn spawn_logged(args: &[&str]) -> Child {
 
 /// A hardware-mode run of the proposed method, without real-time settings.
 pub fn hardware_args<'a>(scenario: &'a Path, inst: &'a str, json: &'a Path) -> Vec<&'a str> {
+    hardware_args_with(scenario, inst, json, "proposed")
+}
+
+/// A hardware-mode run of `methods` (e.g. "proposed,lyapunov"), without real-time settings.
+pub fn hardware_args_with<'a>(
+    scenario: &'a Path,
+    inst: &'a str,
+    json: &'a Path,
+    methods: &'a str,
+) -> Vec<&'a str> {
     vec![
         "run",
         "--mode",
         "hardware",
         "--method",
-        "proposed",
+        methods,
         "--scenario",
         scenario.to_str().unwrap(),
         "--instance",

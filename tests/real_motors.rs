@@ -6,6 +6,7 @@
 mod common;
 
 use common::*;
+use std::time::Duration;
 
 /// A short move with the plant 20 % off in R and K_m, an unknown load, a step and detent.
 const REAL_MOTOR: &str = r#"
@@ -78,6 +79,9 @@ fn processes_reproduce_the_reference_on_a_plant_that_is_not_the_model() {
 
 #[test]
 fn the_robustness_command_writes_every_cell_and_names_the_rows() {
+    // Its simulations take both cores: beside a live stack they starve it, and the kernel's
+    // fair server then stops the stack's SCHED_FIFO loops for tens of ms (watchdog trips).
+    let _turn = one_stack_at_a_time();
     let dir = TempDir::new("robustness");
     let json = dir.path("robustness.json");
     let out = stepdrive(&["robustness", "--json", json.to_str().unwrap()]);
@@ -188,6 +192,47 @@ fn identify_writes_a_scenario_the_stack_runs_and_stops_at_a_bound() {
         "{all}"
     );
     assert!(!refused.exists());
+}
+
+/// A drive that latches a fault during `identify --mode hardware` (an injected
+/// over-current) is a fault: exit 3 naming it, not a failure of the command (exit 1).
+#[test]
+fn identify_through_a_faulting_drive_exits_3_naming_the_fault() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("identify-fault");
+    let bench = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../scenarios/identify-bench.toml"
+    );
+    let listen = format!("127.0.0.1:{}", free_udp_port());
+    let mut args = vec!["emulate-drive", "--listen", &listen];
+    args.extend(ORDINARY_SCHEDULING);
+    args.extend(["--scenario", bench, "--overcurrent-after", "0.5"]);
+    let mut drive = spawn_logged(&args);
+    let inst = instance("identify-fault");
+    let out = stepdrive(&[
+        "identify",
+        "--scenario",
+        bench,
+        "--mode",
+        "hardware",
+        "--drive",
+        &listen,
+        "--instance",
+        &inst,
+        "--out",
+        dir.path("never.toml").to_str().unwrap(),
+    ]);
+    signal(drive.id(), libc::SIGTERM);
+    let _ = wait_with_timeout(&mut drive, Duration::from_secs(10));
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(3), "{err}");
+    assert!(
+        err.contains("FAULT") && err.contains("OVERCURRENT"),
+        "{err}"
+    );
+    assert!(!dir.path("never.toml").exists());
+    assert!(processes_with(&inst).is_empty());
 }
 
 /// `identify --mode MODE` on `bench`: every parameter with a true value within

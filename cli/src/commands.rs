@@ -203,21 +203,24 @@ fn conclude(s: &Scenario, runs: &[RunReport], json: Option<JsonOut>) -> Result<(
     .into())
 }
 
-/// A run that did not go well: its headline is printed, the process exits with `code`.
-#[derive(Debug, thiserror::Error)]
-#[error("{headline}")]
-pub struct Exit {
-    pub code: u8,
-    pub headline: String,
-}
+pub use stepdrive_monitor::outcome::Exit;
 
 /// Lifts RT throttling for the life of the returned guard (`--rt-throttling off`, the
 /// default), when the run has real-time priorities to protect.
 fn throttling_guard(a: &StackArgs, d: &Deployment, mode: Mode) -> Result<Option<ThrottlingLifted>> {
+    lift_throttling(a.rt_throttling, d, mode)
+}
+
+/// [`throttling_guard`] for a command without the stack's options (`identify`).
+fn lift_throttling(
+    throttling: Throttling,
+    d: &Deployment,
+    mode: Mode,
+) -> Result<Option<ThrottlingLifted>> {
     if mode == Mode::Lockstep || !d.has_priorities() {
         return Ok(None);
     }
-    if a.rt_throttling == Throttling::Off {
+    if throttling == Throttling::Off {
         match ThrottlingLifted::engage() {
             Ok(g) => return Ok(g),
             Err(e) if d.require_rt => return Err(e),
@@ -609,6 +612,9 @@ pub struct IdentifyArgs {
     /// The stack's instance name (realtime and hardware).
     #[arg(long, default_value = "identify")]
     instance: String,
+    /// Realtime and hardware: RT throttling, as `run --rt-throttling` (lifted by default).
+    #[arg(long, value_enum, default_value_t = Throttling::Off)]
+    rt_throttling: Throttling,
 }
 
 fn positive(s: &str) -> Result<f64, String> {
@@ -656,6 +662,9 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
         if let Some(addr) = &a.drive {
             deployment.drive.address = Some(addr.clone());
         }
+        // As for `run`: with throttling on, the kernel takes the SCHED_FIFO sequence off its
+        // CPU for up to 50 ms a second, as long as the drive's watchdog.
+        let _throttling = lift_throttling(a.rt_throttling, &deployment, a.mode)?;
         let opts = stepdrive_monitor::launcher::LaunchOptions {
             instance: a.instance.clone(),
             mode: a.mode,

@@ -525,7 +525,7 @@ pub fn identify_node(a: IdentifyNodeArgs) -> Result<()> {
         |bus| {
             Ok((
                 IdentifyNode::new(&s, bounds, mode),
-                IdentifyPorts::open(bus, event)?,
+                IdentifyPorts::open(bus, mode, event)?,
             ))
         },
     )?;

@@ -20,7 +20,13 @@ use stepdrive_shared::{Method, Scenario};
 /// which with every command would be a fifth of the 50 µs period; a plan ten periods old
 /// still covers the 990 after the newest command. The loop predicts with the plan it last
 /// sent, which is the plant's freshest.
-const PLAN_EVERY: u64 = 10;
+pub(crate) const PLAN_EVERY: u64 = 10;
+
+/// Whether the command answering `seq` is followed by a plan: every [`PLAN_EVERY`]-th, and
+/// the first after a gap (`last`: the sample answered before), the newest state being news.
+pub(crate) fn plans_after(seq: u64, last: Option<u64>) -> bool {
+    last.is_none_or(|l| seq != l + 1) || seq % PLAN_EVERY == 0
+}
 
 /// What the current loop reads and writes.
 pub struct CurrentLoopPorts {
@@ -259,9 +265,8 @@ impl Node for CurrentLoopNode {
         }
         // After the command, so that planning never delays it; after a gap at once, the
         // newest state being news.
-        let after_gap = self.last_seq.is_none_or(|l| state.seq != l + 1);
         if let Some(plans) = &mut ports.plans {
-            if after_gap || state.seq % PLAN_EVERY == 0 {
+            if plans_after(state.seq, self.last_seq) {
                 let mut plan = *self.body.plan();
                 if plan.len > 0 {
                     plan.publish_time_ns = cx.now();

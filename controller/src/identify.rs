@@ -185,8 +185,23 @@ impl Sequence {
 
     /// The voltages for the period after `state`'s (the bounds checked first).
     pub fn next(&mut self, state: &DriveState) -> Result<[f64; 2], BoundHit> {
-        let t = state.sample_time_s;
         self.check(state)?;
+        Ok(self.voltages(state.sample_time_s))
+    }
+
+    /// What [`Self::next`] will answer to the `out.len()` samples after the one at `t`,
+    /// if their states stay within the bounds (a plan cannot check states not yet seen;
+    /// the next state checks them): the voltage plan for a drive that misses commands.
+    pub fn plan(&self, t: f64, out: &mut [[f32; 2]]) {
+        let mut ahead = self.clone();
+        for (j, slot) in out.iter_mut().enumerate() {
+            let v = ahead.voltages(t + self.period * (j + 1) as f64);
+            *slot = v.map(|x| x as f32);
+        }
+    }
+
+    /// The voltages of the period after the sample at `t`.
+    fn voltages(&mut self, t: f64) -> [f64; 2] {
         let dc = LEVELS as f64 * LEVEL_S;
         let v = match Self::part(t) {
             Part::PhaseA => [self.level(t), 0.0],
@@ -204,7 +219,7 @@ impl Sequence {
             Part::Done => [0.0, 0.0],
         };
         let lim = self.bounds.voltage_v;
-        Ok(v.map(|x| x.clamp(-lim, lim)))
+        v.map(|x| x.clamp(-lim, lim))
     }
 
     fn check(&mut self, s: &DriveState) -> Result<(), BoundHit> {
@@ -588,6 +603,37 @@ mod tests {
             }
             k += 1;
         }
+    }
+
+    /// The plan is what the sequence goes on to answer, entry for entry (to f32), in every
+    /// part: a drive that misses commands applies the voltages that would have come.
+    #[test]
+    fn the_plan_is_what_the_sequence_answers_next() {
+        let period = 50e-6;
+        let mut seq = Sequence::new(&MotorParams::default(), Bounds::default(), period);
+        let state = |k: u64| DriveState {
+            seq: k,
+            sample_time_s: k as f64 * period,
+            ..Default::default()
+        };
+        let end = (Sequence::duration_s() / period) as u64;
+        let mut plan = [[0.0f32; 2]; 500];
+        let mut planned_at = None;
+        let mut checked = 0;
+        for k in 0..end + 10 {
+            let v = seq.next(&state(k)).expect("within bounds");
+            if let Some(p) = planned_at.filter(|&p| k > p && k - p <= plan.len() as u64) {
+                let want = plan[(k - p - 1) as usize];
+                assert_eq!(v.map(|x| x as f32), want, "sample {k} planned at {p}");
+                checked += 1;
+            }
+            // A fresh plan every 300 samples, so every part's stretch is covered.
+            if k % 300 == 0 {
+                seq.plan(state(k).sample_time_s, &mut plan);
+                planned_at = Some(k);
+            }
+        }
+        assert!(checked as u64 > end / 2, "{checked}");
     }
 
     /// The rotor resting under load at each DC level gives the electrical zero: a measured θ

@@ -3,12 +3,12 @@
 //! fits (pre-allocated for the whole sequence), and on a bound turns the outputs off for
 //! the rest of the run.
 
-use crate::current_loop_node::wait_state_ready;
+use crate::current_loop_node::{plans_after, wait_state_ready};
 use crate::identify::{BoundHit, Bounds, Sequence};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
-use stepdrive_shared::messages::{state_flags, DriveCommand, DriveState};
+use stepdrive_shared::messages::{state_flags, DriveCommand, DrivePlan, DriveState, MAX_PLAN};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 use stepdrive_shared::Scenario;
@@ -16,16 +16,23 @@ use stepdrive_shared::Scenario;
 pub struct IdentifyPorts {
     pub states: Box<dyn Subscribe<DriveState>>,
     pub commands: Box<dyn Publish<DriveCommand>>,
+    /// Realtime: the sequence's voltages ahead, so that a drive or plant that misses a
+    /// command applies what would have come (the current loop's plan, for the sequence).
+    pub plans: Option<Box<dyn Publish<DrivePlan>>>,
     pub presence: Box<dyn Presence>,
     /// `event` wait (hardware mode): the bridge's state-ready event, as the current loop.
     pub state_ready: Option<Box<dyn Listen>>,
 }
 
 impl IdentifyPorts {
-    pub fn open(f: &mut impl PortFactory, event: bool) -> Result<Self, PortError> {
+    pub fn open(f: &mut impl PortFactory, mode: Mode, event: bool) -> Result<Self, PortError> {
         Ok(Self {
             states: f.subscriber(LOOP_BUFFER)?,
             commands: f.publisher()?,
+            plans: match mode {
+                Mode::Lockstep => None,
+                _ => Some(f.publisher()?),
+            },
             presence: f.presence()?,
             state_ready: if event { Some(f.listener()?) } else { None },
         })
@@ -41,6 +48,10 @@ pub struct IdentifyNode {
     due_ns: Option<u64>,
     state: Option<DriveState>,
     next_seq: u64,
+    /// The sample answered last (plans go out after a gap and every tenth command).
+    last_answered: Option<u64>,
+    plan_periods: usize,
+    plan: Box<DrivePlan>,
     /// Every state of the run, in order.
     pub recorded: Vec<DriveState>,
     /// The bound that stopped the sequence, if one did.
@@ -59,6 +70,9 @@ impl IdentifyNode {
             rate_hz: s.rates.current_loop_hz,
             state: None,
             next_seq: 0,
+            last_answered: None,
+            plan_periods: (s.drive.command_plan_periods as usize).min(MAX_PLAN),
+            plan: Box::default(),
             recorded: Vec::with_capacity(s.sample_count() as usize),
             stopped: None,
         }
@@ -104,6 +118,9 @@ impl Node for IdentifyNode {
 
     fn connect(&mut self, ports: &mut IdentifyPorts) -> Result<(), RunError> {
         ports.commands.connect()?;
+        if let Some(plans) = &mut ports.plans {
+            plans.connect()?;
+        }
         Ok(())
     }
 
@@ -157,6 +174,23 @@ impl Node for IdentifyNode {
         };
         self.next_seq += 1;
         ports.commands.publish(&command)?;
+        if let Some(plans) = &mut ports.plans {
+            if plans_after(state.seq, self.last_answered) && self.plan_periods > 0 {
+                let n = self.plan_periods;
+                let ahead = &mut self.plan.v[..n];
+                match self.stopped {
+                    // Stopped: the outputs stay off through a missed command too.
+                    Some(_) => ahead.fill([0.0; 2]),
+                    None => self.sequence.plan(state.sample_time_s, ahead),
+                }
+                self.plan.command_seq = command.seq;
+                self.plan.answers_seq = state.seq;
+                self.plan.len = n as u32;
+                self.plan.publish_time_ns = cx.now();
+                plans.publish(&self.plan)?;
+            }
+        }
+        self.last_answered = Some(state.seq);
         Ok(if state.flags & state_flags::LAST != 0 {
             Flow::Last
         } else {

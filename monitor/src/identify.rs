@@ -81,7 +81,7 @@ pub fn identify_simulated(s: &Scenario, bounds: Bounds) -> Result<Identified, Id
     );
     let mut node = Runner::new(
         IdentifyNode::new(&run, bounds, mode),
-        IdentifyPorts::open(&mut bus, false).map_err(RunError::from)?,
+        IdentifyPorts::open(&mut bus, Mode::Lockstep, false).map_err(RunError::from)?,
         settings,
         None,
     );

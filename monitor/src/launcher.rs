@@ -848,6 +848,20 @@ fn supervise(
     ending
 }
 
+/// A child that exited with its verdict on the run (a latched fault: 3) carries that exit
+/// code; any other failure is the process's own (exit 5).
+fn child_failed(child: &Supervised, status: ExitStatus) -> anyhow::Error {
+    let code = match status.code() {
+        Some(c) if VERDICT_EXIT_CODES.contains(&c) => c as u8,
+        _ => Outcome::ProcessDied.exit_code(),
+    };
+    crate::outcome::Exit {
+        code,
+        headline: child.describe_failure(status),
+    }
+    .into()
+}
+
 /// A loopback UDP address no one is using right now, for the emulated drive.
 fn free_loopback_port() -> Result<std::net::SocketAddr> {
     let probe = std::net::UdpSocket::bind("127.0.0.1:0").context("cannot find a free UDP port")?;
@@ -904,7 +918,7 @@ pub fn run_identify(
         }
         if let Some(status) = plant.poll_exit()? {
             if !status.success() {
-                anyhow::bail!("{}", plant.describe_failure(status));
+                return Err(child_failed(&plant, status));
             }
         }
         if termination_requested() {
@@ -924,10 +938,10 @@ pub fn run_identify(
         drive.finish(Duration::from_secs(5));
     }
     if !status.success() {
-        anyhow::bail!("{}", node.describe_failure(status));
+        return Err(child_failed(&node, status));
     }
     if !plant_status.success() {
-        anyhow::bail!("{}", plant.describe_failure(plant_status));
+        return Err(child_failed(&plant, plant_status));
     }
     let text = std::fs::read_to_string(&result)
         .with_context(|| format!("the identification left no result in {}", result.display()))?;

@@ -19,6 +19,14 @@ use serde::Serialize;
 use stepdrive_shared::messages::fault_bits;
 use stepdrive_shared::Scenario;
 
+/// A command that did not go well: its headline is printed, the process exits with `code`.
+#[derive(Debug, thiserror::Error)]
+#[error("{headline}")]
+pub struct Exit {
+    pub code: u8,
+    pub headline: String,
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Outcome {

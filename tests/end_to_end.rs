@@ -306,7 +306,7 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
 #[test]
 fn latency_session_writes_its_files() {
     let _turn = one_stack_at_a_time();
-    use stepdrive_monitor::histfile::CyclictestHistogram;
+    use stepdrive_monitor::latency::histfile::CyclictestHistogram;
     let dir = TempDir::new("latency");
     let out_dir = dir.path("report");
     let scenario = dir.file("short.toml", SHORT);

@@ -7,7 +7,7 @@ mod common;
 use common::*;
 use std::process::{Command, Stdio};
 use std::time::Duration;
-use stepdrive_monitor::recording::Recorded;
+use stepdrive_monitor::record::recording::Recorded;
 
 /// Every channel of the file has a schema, and the file has its summary (what a reader
 /// such as PlotJuggler needs).
@@ -148,7 +148,7 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
         let info = png::Decoder::new(png)
             .read_info()
             .expect("a PNG that decodes");
-        let (w, h) = stepdrive_monitor::plot::PNG_SIZE;
+        let (w, h) = stepdrive_monitor::record::plot::PNG_SIZE;
         assert_eq!((info.info().width, info.info().height), (w, h), "{name}");
     }
     assert!(std::fs::read_to_string(figs.join("error.svg"))

@@ -5,15 +5,15 @@ use crate::options::{parse_seconds, seconds, ScenarioOpt, StackArgs, Throttling}
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
-use stepdrive_monitor::attach::ResetResult;
-use stepdrive_monitor::latency::{run_latency, table as latency_table, LatencyOptions};
-use stepdrive_monitor::launcher::{run_stack, LaunchOptions};
-use stepdrive_monitor::metrics::RunReport;
-use stepdrive_monitor::outcome::Outcome;
-use stepdrive_monitor::recording::Recording;
-use stepdrive_monitor::report::{document, headline, overall, table};
-use stepdrive_monitor::simulate::{simulate as simulate_run, simulate_stalls};
-use stepdrive_monitor::throttling::ThrottlingLifted;
+use stepdrive_monitor::latency::session::{run_latency, table as latency_table, LatencyOptions};
+use stepdrive_monitor::record::recording::Recording;
+use stepdrive_monitor::report::metrics::RunReport;
+use stepdrive_monitor::report::outcome::Outcome;
+use stepdrive_monitor::report::table::{document, headline, overall, table};
+use stepdrive_monitor::studies::simulate::{simulate as simulate_run, simulate_stalls};
+use stepdrive_monitor::supervise::attach::ResetResult;
+use stepdrive_monitor::supervise::launcher::{run_stack, LaunchOptions};
+use stepdrive_monitor::supervise::throttling::ThrottlingLifted;
 use stepdrive_runtime::deploy::Deployment;
 use stepdrive_runtime::rt::rt_runtime_us;
 use stepdrive_shared::scenario::Mode;
@@ -203,7 +203,7 @@ fn conclude(s: &Scenario, runs: &[RunReport], json: Option<JsonOut>) -> Result<(
     .into())
 }
 
-pub use stepdrive_monitor::outcome::Exit;
+pub use stepdrive_monitor::report::outcome::Exit;
 
 /// Lifts RT throttling for the life of the returned guard (`--rt-throttling off`, the
 /// default), when the run has real-time priorities to protect.
@@ -305,7 +305,7 @@ fn close_recording(recording: Option<Recording>, plots: Option<&std::path::Path>
         }
     }
     if let Some(dir) = plots {
-        match stepdrive_monitor::plot::plot_file(&path, dir) {
+        match stepdrive_monitor::record::plot::plot_file(&path, dir) {
             Ok(files) => println!("{} plots written to {}", files.len(), dir.display()),
             Err(e) => tracing::error!("cannot draw the plots: {e:#}"),
         }
@@ -375,8 +375,8 @@ pub fn latency(a: LatencyArgs) -> Result<()> {
 }
 
 pub fn reset(a: ResetArgs) -> Result<()> {
-    let result = stepdrive_monitor::attach::reset(&a.instance, a.wait_s)?;
-    let text = stepdrive_monitor::attach::describe(&result);
+    let result = stepdrive_monitor::supervise::attach::reset(&a.instance, a.wait_s)?;
+    let text = stepdrive_monitor::supervise::attach::describe(&result);
     if let ResetResult::StillLatched(_) = result {
         return Err(Exit {
             code: Outcome::Fault.exit_code(),
@@ -391,8 +391,13 @@ pub fn reset(a: ResetArgs) -> Result<()> {
 pub fn monitor(a: MonitorArgs) -> Result<()> {
     let s = a.scenario.load()?;
     let json = JsonOut::create(a.json.as_ref())?;
-    let report =
-        stepdrive_monitor::attach::watch(&a.instance, &s, a.method, a.peer_timeout_s, None)?;
+    let report = stepdrive_monitor::supervise::attach::watch(
+        &a.instance,
+        &s,
+        a.method,
+        a.peer_timeout_s,
+        None,
+    )?;
     conclude(&s, &[report], json)
 }
 
@@ -411,7 +416,7 @@ pub fn record(a: RecordArgs) -> Result<()> {
     let s = w.scenario.load()?;
     let json = JsonOut::create(w.json.as_ref())?;
     let mut recording = Recording::create(&a.file, &s)?;
-    let report = stepdrive_monitor::attach::watch(
+    let report = stepdrive_monitor::supervise::attach::watch(
         &w.instance,
         &s,
         w.method,
@@ -464,7 +469,7 @@ pub struct PlotArgs {
 }
 
 pub fn plot(a: PlotArgs) -> Result<()> {
-    let files = stepdrive_monitor::plot::plot_file(&a.file, &a.out)?;
+    let files = stepdrive_monitor::record::plot::plot_file(&a.file, &a.out)?;
     for f in &files {
         println!("{}", f.display());
     }
@@ -482,7 +487,7 @@ pub struct ExportArgs {
 }
 
 pub fn export(a: ExportArgs) -> Result<()> {
-    let files = stepdrive_monitor::recording::export_csv(&a.file, &a.csv)?;
+    let files = stepdrive_monitor::record::recording::export_csv(&a.file, &a.csv)?;
     for (f, rows) in &files {
         println!("{} ({rows} rows)", f.display());
     }
@@ -501,7 +506,7 @@ pub struct ScopeArgs {
 
 pub fn scope(a: ScopeArgs) -> Result<()> {
     let s = a.scenario.load()?;
-    stepdrive_monitor::scope::run_scope(&a.instance, &s)
+    stepdrive_monitor::record::scope::run_scope(&a.instance, &s)
 }
 
 #[derive(Args, Debug)]
@@ -520,7 +525,7 @@ pub struct RobustnessArgs {
 /// on stdout, the full results in JSON. Step-outs and faults are results here, named in
 /// the table and summed up at the end, not errors of the command.
 pub fn robustness(a: RobustnessArgs) -> Result<()> {
-    use stepdrive_monitor::robustness::{run_table, tables, RobustnessDocument};
+    use stepdrive_monitor::studies::robustness::{run_table, tables, RobustnessDocument};
     let s = a.scenario.load()?;
     let threads = a.threads.map_or_else(
         || std::thread::available_parallelism().map_or(1, |n| n.get()),
@@ -627,8 +632,8 @@ fn positive(s: &str) -> Result<f64, String> {
 /// The identification sequence against the simulated plant (lockstep): table, scenario
 /// file, JSON. A bound hit stops it with the outputs off and exits 3.
 pub fn identify(a: IdentifyArgs) -> Result<()> {
-    use stepdrive_controller::identify::Bounds;
-    use stepdrive_monitor::identify::{default_max_speed, identified_scenario, table};
+    use stepdrive_control::identify::Bounds;
+    use stepdrive_monitor::studies::identify::{default_max_speed, identified_scenario, table};
     let s = a.scenario.load()?;
     if a.max_voltage > s.drive.bus_voltage_v {
         anyhow::bail!(
@@ -657,7 +662,7 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
         identify_lockstep(&s, bounds, &stopped)?
     } else {
         let mut run = s.clone();
-        run.run.duration_s = Some(stepdrive_controller::identify::Sequence::duration_s());
+        run.run.duration_s = Some(stepdrive_control::identify::Sequence::duration_s());
         let mut deployment = Deployment::default();
         if let Some(addr) = &a.drive {
             deployment.drive.address = Some(addr.clone());
@@ -665,13 +670,13 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
         // As for `run`: with throttling on, the kernel takes the SCHED_FIFO sequence off its
         // CPU for up to 50 ms a second, as long as the drive's watchdog.
         let _throttling = lift_throttling(a.rt_throttling, &deployment, a.mode)?;
-        let opts = stepdrive_monitor::launcher::LaunchOptions {
+        let opts = stepdrive_monitor::supervise::launcher::LaunchOptions {
             instance: a.instance.clone(),
             mode: a.mode,
             deployment,
         };
-        use stepdrive_monitor::identify::{identified, NodeResult};
-        match stepdrive_monitor::launcher::run_identify(&run, &bounds, &opts)? {
+        use stepdrive_monitor::studies::identify::{identified, NodeResult};
+        match stepdrive_monitor::supervise::launcher::run_identify(&run, &bounds, &opts)? {
             NodeResult::Estimates(e) => identified(&s, e),
             NodeResult::Stopped { hit, .. } => return Err(stopped(hit)),
             NodeResult::Failed(why) => anyhow::bail!("identification failed: {why}"),
@@ -701,10 +706,10 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
 
 fn identify_lockstep(
     s: &Scenario,
-    bounds: stepdrive_controller::identify::Bounds,
+    bounds: stepdrive_control::identify::Bounds,
     stopped: &dyn Fn(String) -> anyhow::Error,
-) -> Result<stepdrive_monitor::identify::Identified> {
-    use stepdrive_monitor::identify::{identify_simulated, IdentifyError};
+) -> Result<stepdrive_monitor::studies::identify::Identified> {
+    use stepdrive_monitor::studies::identify::{identify_simulated, IdentifyError};
     match identify_simulated(s, bounds) {
         Ok(f) => Ok(f),
         Err(IdentifyError::Bound { hit, .. }) => Err(stopped(hit.to_string())),

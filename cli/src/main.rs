@@ -9,7 +9,7 @@ mod roles;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
-use stepdrive_monitor::outcome::Outcome;
+use stepdrive_monitor::report::outcome::Outcome;
 use stepdrive_runtime::poll::install_termination_handler;
 use stepdrive_runtime::RunError;
 
@@ -130,7 +130,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::Latency(a) => commands::latency(a),
         Cmd::EmulateDrive(a) => roles::emulate_drive(a),
         Cmd::Pingpong(a) => roles::pingpong(a),
-        Cmd::RtThrottlingGuard => stepdrive_monitor::throttling::guard(),
+        Cmd::RtThrottlingGuard => stepdrive_monitor::supervise::throttling::guard(),
     }
 }
 

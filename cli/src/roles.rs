@@ -12,8 +12,8 @@ use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
 use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
 use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
 use stepdrive_emulated_drive::{run_emulator, AlignFault, EmulatorOptions, FaultInjection};
-use stepdrive_monitor::outcome::{fault_names, Outcome, LATCHED};
-use stepdrive_monitor::pingpong::{PingPongOptions, Transport};
+use stepdrive_monitor::latency::pingpong::{PingPongOptions, Transport};
+use stepdrive_monitor::report::outcome::{fault_names, Outcome, LATCHED};
 use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
 use stepdrive_runtime::deploy::{Deployment, Process};
 use stepdrive_runtime::pacer::WaitStrategy;
@@ -476,7 +476,7 @@ pub fn pingpong(a: PingpongArgs) -> Result<()> {
             d.wait(Process::CurrentLoop, Mode::Realtime),
         )
     };
-    stepdrive_monitor::pingpong::run(&PingPongOptions {
+    stepdrive_monitor::latency::pingpong::run(&PingPongOptions {
         transport: a.transport,
         endpoint: a.endpoint,
         ping,
@@ -507,9 +507,9 @@ pub struct IdentifyNodeArgs {
 }
 
 pub fn identify_node(a: IdentifyNodeArgs) -> Result<()> {
-    use stepdrive_controller::identify::Bounds;
+    use stepdrive_control::identify::Bounds;
     use stepdrive_controller::identify_node::{IdentifyNode, IdentifyPorts};
-    use stepdrive_monitor::identify::{conclude, IdentifyError, NodeResult};
+    use stepdrive_monitor::studies::identify::{conclude, IdentifyError, NodeResult};
     let s = a.common.scenario.load()?;
     let d = a.common.deployment(Process::CurrentLoop)?;
     let mode = a.common.mode;

@@ -5,7 +5,7 @@
 //! the newest sample and uses the newest setpoint. Its deadline for sample k is the plant's
 //! deadline k + d, the period the answer is applied in.
 
-use crate::current_loop::CurrentLoop;
+use stepdrive_control::current_loop::CurrentLoop;
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;

@@ -4,7 +4,7 @@
 //! the rest of the run.
 
 use crate::current_loop_node::{plans_after, wait_state_ready};
-use crate::identify::{BoundHit, Bounds, Sequence};
+use stepdrive_control::identify::{BoundHit, Bounds, Sequence};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;

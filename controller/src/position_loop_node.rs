@@ -4,7 +4,7 @@
 //! plant's deadline grid shifted by `phase_ns`, and takes the newest state at each tick
 //! (it does not chase the plant's re-anchoring: it only needs the newest state).
 
-use crate::position_loop::PositionLoop;
+use stepdrive_control::position_loop::PositionLoop;
 use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;

@@ -1,22 +1,14 @@
-//! The operator's console: launches and supervises the stack ([`launcher`]), computes the
-//! metrics from the plant's state stream ([`metrics`]), runs the same nodes in one process as
-//! a reference ([`simulate`]), reports ([`report`], [`timing`]), and measures latency against
-//! baselines ([`latency`], [`pingpong`], [`histfile`]), and says how a run ended
-//! ([`outcome`]: exit codes and headlines).
+//! The operator's console, one folder per job:
+//! - [`supervise`]: launches the stack's processes, supervises them, attaches to a running
+//!   stack;
+//! - [`report`]: the metrics, the timing, the outcome (exit codes and headlines), the table
+//!   and JSON;
+//! - [`record`]: MCAP recordings, CSV export, plots, the live scope;
+//! - [`latency`]: latency sessions and their baselines;
+//! - [`studies`]: in-process simulations, the robustness table, identification.
 
-pub mod attach;
-pub mod histfile;
-pub mod identify;
 pub mod latency;
-pub mod launcher;
-pub mod metrics;
-pub mod outcome;
-pub mod pingpong;
-pub mod plot;
-pub mod recording;
+pub mod record;
 pub mod report;
-pub mod robustness;
-pub mod scope;
-pub mod simulate;
-pub mod throttling;
-pub mod timing;
+pub mod studies;
+pub mod supervise;

@@ -3,6 +3,7 @@
 //! alignment only, so every type carries a schema version in its name: bump it whenever a
 //! field changes, even one that fits in padding.
 
+#[cfg(feature = "ipc")]
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Sequence value meaning "no such sample/command".
@@ -37,9 +38,13 @@ pub mod fault_bits {
 }
 
 /// Plant (or drive bridge) → everyone: the measured state at sample `seq`.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.DriveState.v2")
+)]
 #[repr(C)]
-#[type_name("stepdrive.DriveState.v2")]
 pub struct DriveState {
     /// Sample index k (0, 1, 2, ... from the start of the run).
     pub seq: u64,
@@ -69,9 +74,13 @@ pub struct DriveState {
 
 /// Current loop → plant: phase voltages computed from sample `answers_seq`, for period
 /// answers_seq + d.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.DriveCommand.v1")
+)]
 #[repr(C)]
-#[type_name("stepdrive.DriveCommand.v1")]
 pub struct DriveCommand {
     /// Command sequence number; equals `answers_seq` in lockstep.
     pub seq: u64,
@@ -105,9 +114,13 @@ pub const MAX_PLAN: usize = 1024;
 /// loses torque within a millisecond while the plan keeps commutating. A miss is still a
 /// miss (counted, and it feeds the watchdog). Published after the command so that planning
 /// never delays it.
-#[derive(Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.DrivePlan.v2")
+)]
 #[repr(C)]
-#[type_name("stepdrive.DrivePlan.v2")]
 pub struct DrivePlan {
     /// The [`DriveCommand::seq`] this plan continues.
     pub command_seq: u64,
@@ -167,9 +180,13 @@ impl DrivePlan {
 
 /// Anyone → the plant (or bridge): clear the latched faults once their cause is gone
 /// (`stepdrive reset`). The plant refuses while the cause remains (no commands coming).
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.ResetRequest.v1")
+)]
 #[repr(C)]
-#[type_name("stepdrive.ResetRequest.v1")]
 pub struct ResetRequest {
     pub seq: u64,
     /// CLOCK_MONOTONIC at publication, nanoseconds.
@@ -181,9 +198,13 @@ pub struct ResetRequest {
 
 /// Position/torque loop → current loop: torque demand and the trajectory segment that
 /// holds until the next tick.
-#[derive(Debug, Clone, Copy, Default, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.TorqueSetpoint.v2")
+)]
 #[repr(C)]
-#[type_name("stepdrive.TorqueSetpoint.v2")]
 pub struct TorqueSetpoint {
     /// Tick counter of the position loop.
     pub seq: u64,

@@ -5,6 +5,7 @@
 use crate::messages::{DriveCommand, DrivePlan, DriveState, ResetRequest, TorqueSetpoint};
 use crate::scenario::Mode;
 use crate::stats::StatsReport;
+#[cfg(feature = "ipc")]
 use iceoryx2::prelude::ZeroCopySend;
 use std::fmt::Debug;
 
@@ -113,7 +114,15 @@ pub struct Qos {
 pub const STATE_READY: &str = "drive/state-ready";
 
 /// A message type of the stack and the one topic it travels on.
+#[cfg(feature = "ipc")]
 pub trait Message: Copy + Debug + ZeroCopySend + 'static {
+    const TOPIC: Topic;
+}
+
+/// A message type of the stack and the one topic it travels on (without iceoryx2: the
+/// laws and drive firmware use the types, not the transport).
+#[cfg(not(feature = "ipc"))]
+pub trait Message: Copy + Debug + 'static {
     const TOPIC: Topic;
 }
 

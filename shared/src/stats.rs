@@ -1,6 +1,7 @@
 //! Loop statistics without allocation: a fixed-size log-linear ("HDR") histogram of
 //! nanosecond values and the per-process stats message every loop publishes.
 
+#[cfg(feature = "ipc")]
 use iceoryx2::prelude::ZeroCopySend;
 
 /// Values below this are counted exactly (one bucket per ns).
@@ -12,9 +13,13 @@ const OCTAVES: usize = 35;
 pub const BUCKETS: usize = LINEAR as usize + OCTAVES * (1 << SUB_BITS);
 
 /// Fixed-size histogram of non-negative nanosecond values with exact min, max, sum.
-#[derive(Debug, Clone, Copy, PartialEq, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.Histogram.v1")
+)]
 #[repr(C)]
-#[type_name("stepdrive.Histogram.v1")]
 pub struct Histogram {
     pub count: u64,
     pub sum_ns: u64,
@@ -139,9 +144,13 @@ pub mod roles {
 }
 
 /// A loop's timing statistics, published at ~1 Hz and once more (`is_final`) at exit.
-#[derive(Debug, Clone, Copy, PartialEq, Default, ZeroCopySend)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.StatsReport.v4")
+)]
 #[repr(C)]
-#[type_name("stepdrive.StatsReport.v4")]
 pub struct StatsReport {
     pub role: u32,
     pub is_final: u32,

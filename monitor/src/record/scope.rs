@@ -7,7 +7,7 @@
 //! or killing it never touches the loops. What it draws is a pure function of [`View`]
 //! ([`render`]), tested on ratatui's `TestBackend`.
 
-use crate::outcome::fault_names;
+use crate::report::outcome::fault_names;
 use anyhow::Result;
 use ratatui::layout::{Constraint, Layout};
 use ratatui::style::{Color, Modifier, Style};
@@ -267,7 +267,7 @@ pub fn render(f: &mut Frame, v: &View) {
 /// the stack's end.
 pub fn run_scope(instance: &str, s: &Scenario) -> Result<()> {
     use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
-    let mut bus = crate::attach::attach_reader(instance, "scope", s)?;
+    let mut bus = crate::supervise::attach::attach_reader(instance, "scope", s)?;
     let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let mut stats = bus.subscriber::<StatsReport>(4)?;
     let rate = s.rates.current_loop_hz;

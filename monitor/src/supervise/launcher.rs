@@ -5,10 +5,10 @@
 //! and reaped on any exit path (drop guard), children die with us (PR_SET_PDEATHSIG), and
 //! dead nodes' shared memory is removed.
 
-use crate::metrics::{Metrics, RunReport, TruthReport};
-use crate::outcome::Outcome;
-use crate::recording::Recording;
-use crate::timing::{rss_kib, Resources, Rss, TimingReport};
+use crate::record::recording::Recording;
+use crate::report::metrics::{Metrics, RunReport, TruthReport};
+use crate::report::outcome::Outcome;
+use crate::report::timing::{rss_kib, Resources, Rss, TimingReport};
 use anyhow::{Context, Result};
 use std::io::{BufRead, BufReader};
 use std::os::unix::process::CommandExt;
@@ -855,7 +855,7 @@ fn child_failed(child: &Supervised, status: ExitStatus) -> anyhow::Error {
         Some(c) if VERDICT_EXIT_CODES.contains(&c) => c as u8,
         _ => Outcome::ProcessDied.exit_code(),
     };
-    crate::outcome::Exit {
+    crate::report::outcome::Exit {
         code,
         headline: child.describe_failure(status),
     }
@@ -874,9 +874,9 @@ fn free_loopback_port() -> Result<std::net::SocketAddr> {
 /// Returns what the identification process found.
 pub fn run_identify(
     s: &Scenario,
-    bounds: &stepdrive_controller::identify::Bounds,
+    bounds: &stepdrive_control::identify::Bounds,
     opts: &LaunchOptions,
-) -> Result<crate::identify::NodeResult> {
+) -> Result<crate::studies::identify::NodeResult> {
     let mode = opts.mode;
     let mut d = opts.deployment.clone();
     cleanup_dead_nodes();

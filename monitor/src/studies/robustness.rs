@@ -2,9 +2,9 @@
 //! changes the plant only (or, for the unknown load, what the controller is told), runs in
 //! lockstep in memory (deterministic), and reports the figures a user compares drives by.
 
-use crate::metrics::RunReport;
-use crate::outcome::Outcome;
-use crate::simulate::simulate;
+use crate::report::metrics::RunReport;
+use crate::report::outcome::Outcome;
+use crate::studies::simulate::simulate;
 use serde::Serialize;
 use std::fmt::Write as _;
 use stepdrive_runtime::RunError;

@@ -1,7 +1,7 @@
 //! The run's figures of merit, computed from the plant's state stream alone (the truth), with
 //! θ_d taken from the scenario's trajectory, so a controller cannot grade itself.
 
-use crate::outcome::{
+use crate::report::outcome::{
     fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED, MAX_UNSEEN_S,
     MIN_SEEN_FRACTION,
 };
@@ -16,7 +16,7 @@ use stepdrive_shared::{Method, Scenario};
 pub struct RunReport {
     pub method: String,
     pub mode: String,
-    /// How the run ended (see [`crate::outcome`]).
+    /// How the run ended (see [`crate::report::outcome`]).
     pub outcome: Outcome,
     /// False when the run stopped before its last sample: the figures cover what ran.
     pub complete: bool,
@@ -71,7 +71,7 @@ pub struct RunReport {
     pub silent_samples: u64,
     /// Realtime only: loop timing, deadline misses, latencies.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub timing: Option<crate::timing::TimingReport>,
+    pub timing: Option<crate::report::timing::TimingReport>,
     /// With a load step in `[plant.load]`: what the first one did.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub load_step: Option<LoadStepReport>,

@@ -2,7 +2,7 @@
 //! and log, with the eq. (7) bound and the cruise window), phase currents, i_d and i_q,
 //! phase voltages against the bus, torque. Several methods in one recording are overlaid.
 
-use crate::recording::{RecordError, Recorded, StateRecord};
+use crate::record::recording::{RecordError, Recorded, StateRecord};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use std::path::{Path, PathBuf};
@@ -25,7 +25,7 @@ pub enum PlotError {
 }
 
 /// The font of every label: embedded, so PNGs need no system fonts.
-static FONT: &[u8] = include_bytes!("../assets/DejaVuSans.ttf");
+static FONT: &[u8] = include_bytes!("../../assets/DejaVuSans.ttf");
 const FAMILY: &str = "sans-serif";
 
 fn register_font() {

@@ -6,9 +6,9 @@
 //! - [`watch`]: computes a run's figures from the state stream, as `run` does for the stack
 //!   it launches.
 
-use crate::metrics::{Metrics, RunReport};
-use crate::outcome::{fault_names, Outcome, LATCHED};
-use crate::recording::Recording;
+use crate::record::recording::Recording;
+use crate::report::metrics::{Metrics, RunReport};
+use crate::report::outcome::{fault_names, Outcome, LATCHED};
 use anyhow::{bail, Result};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::clock::monotonic_ns;

@@ -4,7 +4,7 @@
 
 use serde::Serialize;
 use std::time::Duration;
-use stepdrive_controller::identify::{fit, BoundHit, Bounds, Estimates, FitError, Sequence};
+use stepdrive_control::identify::{fit, BoundHit, Bounds, Estimates, FitError, Sequence};
 use stepdrive_controller::identify_node::{IdentifyNode, IdentifyPorts};
 use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
 use stepdrive_runtime::memory::MemoryBus;
@@ -136,7 +136,7 @@ pub enum NodeResult {
 }
 
 fn rows(e: &Estimates, truth: Option<(&MotorParams, f64, f64)>) -> Vec<Row> {
-    let row = |name, unit, est: stepdrive_controller::identify::Estimate, t: Option<f64>| Row {
+    let row = |name, unit, est: stepdrive_control::identify::Estimate, t: Option<f64>| Row {
         name,
         unit,
         estimate: est.value,
@@ -207,7 +207,7 @@ pub fn table(rows: &[Row]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::simulate::simulate;
+    use crate::studies::simulate::simulate;
     use stepdrive_shared::Method;
 
     fn bench() -> Scenario {

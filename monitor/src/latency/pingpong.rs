@@ -5,7 +5,7 @@
 //! sides are nodes of the same runner as the stack, so the baseline differs from the
 //! current loop only in its transport (and in the current loop's host-hold accounting).
 
-use crate::histfile::SparseHistogram;
+use crate::latency::histfile::SparseHistogram;
 use anyhow::{Context, Result};
 use std::os::unix::net::UnixDatagram;
 use std::path::PathBuf;

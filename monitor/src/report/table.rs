@@ -1,7 +1,7 @@
 //! The side-by-side table and the JSON document of a set of runs.
 
-use crate::metrics::RunReport;
-use crate::outcome::{step_out_threshold_rad, utc_time_of_day, Outcome};
+use crate::report::metrics::RunReport;
+use crate::report::outcome::{step_out_threshold_rad, utc_time_of_day, Outcome};
 use serde::Serialize;
 use std::fmt::Write as _;
 use stepdrive_shared::Scenario;
@@ -192,7 +192,7 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         if !t.resources.rss.is_empty() {
             let _ = writeln!(out, "  {}", t.resources.describe());
         }
-        let line = |name: &str, p: Option<&crate::timing::Percentiles>| match p {
+        let line = |name: &str, p: Option<&crate::report::timing::Percentiles>| match p {
             Some(p) if p.count > 0 => format!(
                 "  {name:<34} p50 {:>7.1} µs  p99 {:>7.1} µs  p99.9 {:>8.1} µs  max {:>9.1} µs\n",
                 p.p50_us, p.p99_us, p.p99_9_us, p.max_us

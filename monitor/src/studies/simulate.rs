@@ -3,7 +3,7 @@
 //! lockstep it is the reference a multi-process run must reproduce bit for bit; with stalls
 //! it shows what a host stall of the current loop costs under the realtime plant's rules.
 
-use crate::metrics::{Metrics, RunReport};
+use crate::report::metrics::{Metrics, RunReport};
 use std::ops::Range;
 use std::time::{Duration, Instant};
 use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
@@ -194,8 +194,8 @@ impl Node for StateSink {
 mod tests {
     //! The paper's claims, checked on the in-process simulation of the full loop bodies.
     use super::*;
-    use crate::outcome::Outcome;
-    use crate::report::expected_microstepping_cruise_error;
+    use crate::report::outcome::Outcome;
+    use crate::report::table::expected_microstepping_cruise_error;
 
     fn sim(s: &Scenario, method: Method) -> RunReport {
         simulate(s, method).expect("the simulation runs")

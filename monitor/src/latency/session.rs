@@ -3,11 +3,11 @@
 //! ping-pong with the current loop's wait strategy, and cyclictest when installed), prints
 //! one table, and writes latency.json, cyclictest-compatible histograms and a log-y plot.
 
-use crate::histfile::{cyclictest_file, CyclictestHistogram, SparseHistogram};
-use crate::launcher::{run_stack, LaunchOptions, Supervised};
-use crate::metrics::RunReport;
-use crate::pingpong::Transport;
-use crate::timing::Percentiles;
+use crate::latency::histfile::{cyclictest_file, CyclictestHistogram, SparseHistogram};
+use crate::latency::pingpong::Transport;
+use crate::report::metrics::RunReport;
+use crate::report::timing::Percentiles;
+use crate::supervise::launcher::{run_stack, LaunchOptions, Supervised};
 use anyhow::{bail, Context, Result};
 use serde::Serialize;
 use std::fmt::Write as _;

@@ -365,6 +365,10 @@ impl Node for BridgeNode {
         Role::Bridge
     }
 
+    fn latched_fault(&self) -> u32 {
+        self.core.last_fault()
+    }
+
     fn pace(&self) -> Pace {
         Pace::Input
     }

@@ -10,6 +10,7 @@ mod roles;
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
 use stepdrive_monitor::report::outcome::Outcome;
+use stepdrive_runtime::node::Role;
 use stepdrive_runtime::poll::install_termination_handler;
 use stepdrive_runtime::RunError;
 
@@ -44,8 +45,11 @@ enum Cmd {
     /// sequence (DC levels, steps, an open-loop spin) and write a scenario that uses them.
     Identify(commands::IdentifyArgs),
     /// The plant process: motor model eq. (1), publishes drive/state, applies drive/command;
-    /// in hardware mode a bridge to a drive.
-    Plant(roles::PlantArgs),
+    /// in hardware mode the bridge to a drive (as `bridge`).
+    Plant(roles::DeviceArgs),
+    /// The bridge process (hardware mode): the plant's contract toward the stack, the drive
+    /// wire protocol (docs/drive-protocol.md) toward a drive.
+    Bridge(roles::DeviceArgs),
     /// The current-loop process: commutation (17) + sampled current tracking (22), or a baseline.
     CurrentLoop(roles::CurrentLoopArgs),
     /// The position/torque-loop process: trajectory + torque modulation (12).
@@ -116,7 +120,8 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::Robustness(a) => commands::robustness(a),
         Cmd::Identify(a) => commands::identify(a),
         Cmd::IdentifyNode(a) => roles::identify_node(a),
-        Cmd::Plant(a) => roles::plant(a),
+        Cmd::Plant(a) => roles::device(a, Role::Plant),
+        Cmd::Bridge(a) => roles::device(a, Role::Bridge),
         Cmd::CurrentLoop(a) => roles::current_loop(a),
         Cmd::PositionLoop(a) => roles::position_loop(a),
         Cmd::Scenario(a) => commands::scenario(a),

@@ -6,7 +6,8 @@ use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
 use std::time::Duration;
-use stepdrive_runtime::deploy::{Deployment, Process};
+use stepdrive_runtime::deploy::Deployment;
+use stepdrive_runtime::node::Role;
 use stepdrive_runtime::pacer::WaitStrategy;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::DEFAULT_INSTANCE;
@@ -168,16 +169,17 @@ impl RtArgs {
 }
 
 impl PlacementArgs {
-    pub fn apply(&self, d: &mut Deployment, process: Process) {
-        let p = d.placement_mut(process);
-        if self.wait.is_some() {
-            p.wait = self.wait;
-        }
-        if let Some(prio) = self.priority {
-            p.priority = (prio > 0).then_some(prio);
-        }
-        if let Some(Cpu(cpu)) = self.cpu {
-            p.cpu = cpu;
+    pub fn apply(&self, d: &mut Deployment, process: Role) {
+        if let Some(p) = d.placement_mut(process) {
+            if self.wait.is_some() {
+                p.wait = self.wait;
+            }
+            if let Some(prio) = self.priority {
+                p.priority = (prio > 0).then_some(prio);
+            }
+            if let Some(Cpu(cpu)) = self.cpu {
+                p.cpu = cpu;
+            }
         }
         self.rt.apply(d);
     }
@@ -206,7 +208,7 @@ pub struct ProcessArgs {
 impl ProcessArgs {
     /// The deployment file (or the defaults) with this command line's overrides for
     /// `process`.
-    pub fn deployment(&self, process: Process) -> Result<Deployment> {
+    pub fn deployment(&self, process: Role) -> Result<Deployment> {
         let mut d = self.deploy.load()?;
         self.timeouts.apply(&mut d);
         self.placement.apply(&mut d, process);
@@ -307,12 +309,14 @@ impl StackArgs {
         }
         self.rt.apply(&mut d);
         for (wait, process) in [
-            (self.plant_wait, Process::Plant),
-            (self.current_wait, Process::CurrentLoop),
-            (self.position_wait, Process::PositionLoop),
+            (self.plant_wait, Role::Plant),
+            (self.current_wait, Role::CurrentLoop),
+            (self.position_wait, Role::PositionLoop),
         ] {
             if wait.is_some() {
-                d.placement_mut(process).wait = wait;
+                if let Some(p) = d.placement_mut(process) {
+                    p.wait = wait;
+                }
             }
         }
         if let Some(n) = self.watchdog_periods {

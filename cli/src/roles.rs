@@ -7,36 +7,32 @@ use crate::options::{seconds, DeployOpt, PlacementArgs, ProcessArgs, ScenarioOpt
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use std::path::PathBuf;
-use stepdrive_bridge::link::{EncoderCalibration, HeldLoad};
-use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
-use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
-use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
+use stepdrive_control::identify::Bounds;
 use stepdrive_emulated_drive::{run_emulator, AlignFault, EmulatorOptions, FaultInjection};
+use stepdrive_monitor::assemble::{assemble, Assemble, Setup};
 use stepdrive_monitor::latency::pingpong::{PingPongOptions, Transport};
 use stepdrive_monitor::report::outcome::{fault_names, Outcome, LATCHED};
-use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
-use stepdrive_runtime::deploy::{Deployment, Process};
+use stepdrive_runtime::deploy::Deployment;
+use stepdrive_runtime::node::{Node, Role};
 use stepdrive_runtime::pacer::WaitStrategy;
-use stepdrive_runtime::process::{run_process, ProcessSpec};
+use stepdrive_runtime::process::{Process, ProcessSpec};
+use stepdrive_runtime::RunError;
 use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::stack::{stack, Purpose};
 use stepdrive_shared::{Method, Scenario};
 
-/// Realtime: the first deadline this long after the plant sees its peers, so that every
-/// process is in its loop by then.
-const PLANT_START_DELAY_NS: u64 = 20_000_000;
-
 #[derive(Args, Debug)]
-pub struct PlantArgs {
+pub struct DeviceArgs {
     #[command(flatten)]
     pub common: ProcessArgs,
     /// Realtime: after this many periods in a row without a command the outputs go off
     /// (zero volts) and a fault is latched (default 1000 = 50 ms at 20 kHz).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
     pub watchdog_periods: Option<u32>,
-    /// drive/state subscribers to wait for before the first sample: 2 = current and
-    /// position loops; 3 adds a monitor.
-    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..=8))]
-    pub wait_subscribers: u32,
+    /// drive/state subscribers to wait for before the first sample (default: the stack's
+    /// own readers, the current and position loops; 3 adds a monitor).
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..=8))]
+    pub wait_subscribers: Option<u32>,
     /// Start without a position loop: a tool drives the plant alone (`stepdrive identify`).
     #[arg(long)]
     pub no_position_loop: bool,
@@ -94,106 +90,71 @@ impl DriveLinkArgs {
     }
 }
 
-fn spec<'a>(
-    a: &'a ProcessArgs,
-    process: Process,
-    node_name: &'a str,
-    d: &'a Deployment,
-    scenario: &'a Scenario,
-) -> ProcessSpec<'a> {
-    ProcessSpec {
-        instance: &a.instance,
-        mode: a.mode,
-        process,
-        node_name,
-        deployment: d,
-        scenario,
+/// One role's process: its node, built from the stack's declaration, on the runner.
+struct RoleProcess<'a> {
+    role: Role,
+    args: &'a ProcessArgs,
+    deployment: Deployment,
+    scenario: Scenario,
+}
+
+impl<'a> RoleProcess<'a> {
+    fn new(role: Role, args: &'a ProcessArgs, deployment: Deployment) -> Result<Self> {
+        Ok(Self {
+            role,
+            args,
+            deployment,
+            scenario: args.scenario.load()?,
+        })
+    }
+
+    fn spec(&self) -> ProcessSpec<'_> {
+        ProcessSpec {
+            instance: &self.args.instance,
+            mode: self.args.mode,
+            role: self.role,
+            deployment: &self.deployment,
+            scenario: &self.scenario,
+        }
+    }
+
+    /// The setup of a stack for `purpose` started by hand: the device waits for the stack's
+    /// own readers.
+    fn setup(&self, purpose: Purpose) -> Setup<'_> {
+        let stack = stack(self.args.mode, purpose);
+        Setup::new(&self.scenario, &stack, &self.deployment, 0, true)
     }
 }
 
-pub fn plant(a: PlantArgs) -> Result<()> {
-    let s = a.common.scenario.load()?;
-    let mode = a.common.mode;
-    let process = if mode == Mode::Hardware {
-        Process::Bridge
-    } else {
-        Process::Plant
-    };
-    let mut d = a.common.deployment(process)?;
-    a.drive.apply(&mut d);
-    if let Some(n) = a.watchdog_periods {
-        d.watchdog_periods = n;
+/// Runs the node in this process and returns the faults it latched by the end of its run.
+struct InProcess<'a>(Process<'a>);
+
+impl Assemble for InProcess<'_> {
+    type Out = u32;
+    fn node<N: Node + 'static>(&mut self, node: N, ports: N::Ports) -> Result<u32, RunError> {
+        Ok(self.0.run(node, ports)?.node.latched_fault())
     }
-    d.validate().context("command-line options")?;
-    let wait_subscribers = a.wait_subscribers as usize;
-    if mode != Mode::Hardware {
-        if a.drive.drive.is_some() {
-            bail!(
-                "--drive is for --mode hardware: in {} mode the plant is the motor model",
-                mode.as_str()
-            );
-        }
-        let settings = PlantSettings {
-            mode,
-            wait_subscribers,
-            wait_position_loop: !a.no_position_loop,
-            watchdog_periods: d.watchdog_periods,
-            start_delay_ns: PLANT_START_DELAY_NS,
-        };
-        let finished = run_process(&spec(&a.common, process, "plant", &d, &s), |bus| {
-            Ok((PlantNode::new(&s, settings), PlantPorts::open(bus, mode)?))
-        })?;
-        return ended_safe("plant", finished.node.latched_fault());
-    }
-    let drive: DriveAddr = d
-        .drive
-        .address
-        .as_deref()
-        .context("in hardware mode the plant is a bridge to a drive: give it with --drive HOST:PORT (or a serial device path)")?
-        .parse()?;
-    let wait = d.wait(Process::Bridge, mode);
-    if wait == WaitStrategy::Event {
-        bail!(
-            "--wait event is for the current loop; the bridge waits for the drive's frames \
-             with sleep, spin or hybrid:<µs>"
-        );
-    }
-    let settings = BridgeSettings {
-        drive,
-        wait_subscribers,
-        wait_position_loop: !a.no_position_loop,
-        silence_periods: d.drive.silence_periods,
-        plan_every: d.drive.plan_every,
-        observer_hz: d.drive.observer_hz,
-        calibration: EncoderCalibration {
-            offset_counts: d.drive.encoder_offset_counts,
-            reverse: d.drive.reverse_encoder,
-            held_load: Some(HeldLoad {
-                torque_nm: s.load.torque_nm,
-                torque_constant_nm_per_a: s.motor.torque_constant_nm_per_a,
-                rotor_teeth: s.motor.n_r(),
-            }),
-        },
-        look_for_answers: wait == WaitStrategy::Sleep,
-    };
-    let finished = run_process(&spec(&a.common, process, "plant", &d, &s), |bus| {
-        let node = BridgeNode::new(&s, settings.clone())?;
-        let ports = BridgePorts::open(bus, &settings.drive)?;
-        Ok((node, ports))
-    })?;
-    ended_safe("bridge", finished.node.core().last_fault())
+}
+
+/// Builds `role`'s node from the declaration and runs it in this process; a device that
+/// ends its run with a latched fault says so (exit 3).
+fn run_role(p: &RoleProcess, setup: &Setup) -> Result<()> {
+    let spec = p.spec();
+    let (process, mut bus) = Process::open(&spec)?;
+    let fault = assemble(p.role, setup, &mut bus, &mut InProcess(process))?;
+    ended_safe(p.role, fault)
 }
 
 /// A plant or bridge that ends its run with a latched fault has lost the motor: it says so
 /// and exits with the fault's code.
-fn ended_safe(who: &str, fault: u32) -> Result<()> {
+fn ended_safe(role: Role, fault: u32) -> Result<()> {
     if fault & LATCHED == 0 {
         return Ok(());
     }
     Err(Exit {
         code: Outcome::Fault.exit_code(),
         headline: format!(
-            "FAULT (exit {}): the {who} ended its run with {} latched; the outputs are off. \
+            "FAULT (exit {}): the {role} ended its run with {} latched; the outputs are off. \
              See the log above for when and why; `stepdrive reset --instance NAME` clears it \
              once the cause is gone.",
             Outcome::Fault.exit_code(),
@@ -203,60 +164,62 @@ fn ended_safe(who: &str, fault: u32) -> Result<()> {
     .into())
 }
 
+/// `stepdrive plant` (and `bridge`): the device. In hardware mode `plant` is the bridge.
+pub fn device(a: DeviceArgs, asked: Role) -> Result<()> {
+    let mode = a.common.mode;
+    let role = match mode {
+        Mode::Hardware => Role::Bridge,
+        Mode::Lockstep | Mode::Realtime if asked == Role::Bridge => bail!(
+            "the bridge talks to a drive: it runs in --mode hardware (in {} mode the device is \
+             the plant: `stepdrive plant`)",
+            mode.as_str()
+        ),
+        Mode::Lockstep | Mode::Realtime => Role::Plant,
+    };
+    let mut d = a.common.deployment(role)?;
+    a.drive.apply(&mut d);
+    if let Some(n) = a.watchdog_periods {
+        d.watchdog_periods = n;
+    }
+    d.validate().context("command-line options")?;
+    if role == Role::Plant && a.drive.drive.is_some() {
+        bail!(
+            "--drive is for --mode hardware: in {} mode the plant is the motor model",
+            mode.as_str()
+        );
+    }
+    let p = RoleProcess::new(role, &a.common, d)?;
+    let purpose = match a.no_position_loop {
+        true => Purpose::Identify,
+        false => Purpose::Control,
+    };
+    let mut setup = p.setup(purpose);
+    if let Some(n) = a.wait_subscribers {
+        setup.state_readers = n as usize;
+    }
+    run_role(&p, &setup)
+}
 #[derive(Args, Debug)]
 pub struct CurrentLoopArgs {
     #[command(flatten)]
     pub common: ProcessArgs,
-    /// Control method: proposed (17)+(22), lyapunov (39), open_loop (2).
+    /// Control method: proposed (17)+(22), lyapunov (39), open_loop (2), pi.
     #[arg(long, value_enum, default_value_t = Method::Proposed)]
     pub method: Method,
 }
 
-/// Whether the current loop's process sleeps on the bridge's state-ready event (`--wait
-/// event`), which only a bridge raises.
-fn waits_on_event(d: &Deployment, mode: Mode) -> Result<bool> {
-    let event = d.wait(Process::CurrentLoop, mode) == WaitStrategy::Event;
-    if event && mode != Mode::Hardware {
-        bail!(
-            "--wait event needs a plant that raises state-ready: only the bridge does \
-             (--mode hardware)"
-        );
-    }
-    Ok(event)
-}
-
 pub fn current_loop(a: CurrentLoopArgs) -> Result<()> {
-    let s = a.common.scenario.load()?;
-    let d = a.common.deployment(Process::CurrentLoop)?;
-    let mode = a.common.mode;
-    let event = waits_on_event(&d, mode)?;
-    run_process(
-        &spec(&a.common, Process::CurrentLoop, "current-loop", &d, &s),
-        |bus| {
-            Ok((
-                CurrentLoopNode::new(&s, a.method, mode).watching_setpoints(d.peer_timeout()),
-                CurrentLoopPorts::open(bus, mode, event)?,
-            ))
-        },
-    )?;
-    Ok(())
+    let d = a.common.deployment(Role::CurrentLoop)?;
+    let p = RoleProcess::new(Role::CurrentLoop, &a.common, d)?;
+    let mut setup = p.setup(Purpose::Control);
+    setup.method = a.method;
+    run_role(&p, &setup)
 }
 
 pub fn position_loop(a: ProcessArgs) -> Result<()> {
-    let s = a.scenario.load()?;
-    let d = a.deployment(Process::PositionLoop)?;
-    // Half a current period after the plant's samples: each tick finds its sample out.
-    let phase_ns = s.sample_period_ns() / 2;
-    run_process(
-        &spec(&a, Process::PositionLoop, "position-loop", &d, &s),
-        |bus| {
-            Ok((
-                PositionLoopNode::new(&s, a.mode, phase_ns),
-                PositionLoopPorts::open(bus)?,
-            ))
-        },
-    )?;
-    Ok(())
+    let d = a.deployment(Role::PositionLoop)?;
+    let p = RoleProcess::new(Role::PositionLoop, &a, d)?;
+    run_role(&p, &p.setup(Purpose::Control))
 }
 
 #[derive(Args, Debug)]
@@ -374,7 +337,7 @@ fn percent(s: &str) -> Result<f64, String> {
 pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
     let scenario = a.scenario.load()?;
     let mut d = a.deploy.load()?;
-    a.placement.apply(&mut d, Process::EmulatedDrive);
+    a.placement.apply(&mut d, Role::EmulatedDrive);
     d.validate().context("command-line options")?;
     let watchdog_periods = match a.watchdog_periods {
         Some(n) => n,
@@ -399,8 +362,8 @@ pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
         serial: a.serial,
         scenario,
         // The drive stands for hardware: it always runs on the wall clock.
-        wait: d.wait(Process::EmulatedDrive, Mode::Realtime),
-        rt: d.rt(Process::EmulatedDrive, Mode::Realtime),
+        wait: d.wait(Role::EmulatedDrive, Mode::Realtime),
+        rt: d.rt(Role::EmulatedDrive, Mode::Realtime),
         watchdog_periods,
         plan_capacity: a.plan_capacity.unwrap_or(d.drive.emulated_plan_capacity),
         align_ma: a.align_ma,
@@ -469,12 +432,9 @@ pub fn pingpong(a: PingpongArgs) -> Result<()> {
     let ping = a.role == PingPongRole::Ping;
     let (process, wait) = if ping {
         // Paced like the plant, on a plain sleep.
-        (Process::Plant, WaitStrategy::Sleep)
+        (Role::Plant, WaitStrategy::Sleep)
     } else {
-        (
-            Process::CurrentLoop,
-            d.wait(Process::CurrentLoop, Mode::Realtime),
-        )
+        (Role::CurrentLoop, d.wait(Role::CurrentLoop, Mode::Realtime))
     };
     stepdrive_monitor::latency::pingpong::run(&PingPongOptions {
         transport: a.transport,
@@ -507,29 +467,23 @@ pub struct IdentifyNodeArgs {
 }
 
 pub fn identify_node(a: IdentifyNodeArgs) -> Result<()> {
-    use stepdrive_control::identify::Bounds;
-    use stepdrive_controller::identify_node::{IdentifyNode, IdentifyPorts};
     use stepdrive_monitor::studies::identify::{conclude, IdentifyError, NodeResult};
-    let s = a.common.scenario.load()?;
-    let d = a.common.deployment(Process::CurrentLoop)?;
-    let mode = a.common.mode;
-    let event = waits_on_event(&d, mode)?;
-    let bounds = Bounds {
+    let d = a.common.deployment(Role::Identify)?;
+    let p = RoleProcess::new(Role::Identify, &a.common, d)?;
+    let mut setup = p.setup(Purpose::Identify);
+    setup.bounds = Bounds {
         current_a: a.max_current,
         voltage_v: a.max_voltage,
         speed_rad_s: a.max_speed,
         travel_rad: a.max_travel,
     };
-    let finished = run_process(
-        &spec(&a.common, Process::CurrentLoop, "current-loop", &d, &s),
-        |bus| {
-            Ok((
-                IdentifyNode::new(&s, bounds, mode),
-                IdentifyPorts::open(bus, mode, event)?,
-            ))
-        },
-    )?;
-    let result = match conclude(&s, &finished.node, s.sample_period_s()) {
+    // Built as `assemble` builds it, but kept: its fits need what it recorded.
+    let spec = p.spec();
+    let (mut process, mut bus) = Process::open(&spec)?;
+    let (node, ports) = stepdrive_monitor::assemble::identify(&setup, &mut bus)?;
+    let finished = process.run(node, ports)?;
+    let s = &p.scenario;
+    let result = match conclude(s, &finished.node, s.sample_period_s()) {
         Ok(found) => NodeResult::Estimates(found.estimates),
         Err(IdentifyError::Bound {
             hit,

@@ -92,6 +92,34 @@ const PROFILE: [(f64, f64); 9] = [
     (0.15, 0.0),
 ];
 
+/// A plan being written: the sequence's voltages after a sample, entry by entry.
+#[derive(Debug, Clone)]
+pub struct Planner {
+    ahead: Sequence,
+    /// The sample the plan continues.
+    t: f64,
+    /// Entries written.
+    j: usize,
+}
+
+impl Planner {
+    /// Writes the next `out.len()` entries.
+    pub fn fill(&mut self, out: &mut [[f32; 2]]) {
+        for slot in out.iter_mut() {
+            self.j += 1;
+            let v = self
+                .ahead
+                .voltages(self.t + self.ahead.period * self.j as f64);
+            *slot = v.map(|x| x as f32);
+        }
+    }
+
+    /// Entries written so far.
+    pub fn written(&self) -> usize {
+        self.j
+    }
+}
+
 /// Which part of the sequence a sample belongs to.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Part {
@@ -193,10 +221,17 @@ impl Sequence {
     /// if their states stay within the bounds (a plan cannot check states not yet seen;
     /// the next state checks them): the voltage plan for a drive that misses commands.
     pub fn plan(&self, t: f64, out: &mut [[f32; 2]]) {
-        let mut ahead = self.clone();
-        for (j, slot) in out.iter_mut().enumerate() {
-            let v = ahead.voltages(t + self.period * (j + 1) as f64);
-            *slot = v.map(|x| x as f32);
+        let mut ahead = self.planner(t);
+        ahead.fill(out);
+    }
+
+    /// The sequence continued from the sample at `t`, to write a plan piece by piece
+    /// ([`Planner::fill`]): a whole plan at once would take tens of µs from the loop.
+    pub fn planner(&self, t: f64) -> Planner {
+        Planner {
+            ahead: self.clone(),
+            t,
+            j: 0,
         }
     }
 

@@ -6,14 +6,16 @@
 //! deadline k + d, the period the answer is applied in.
 
 use stepdrive_control::current_loop::CurrentLoop;
+use stepdrive_runtime::inbox::Inbox;
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
-use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
+use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish};
 use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{
     state_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint,
 };
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
+use stepdrive_shared::stack::CURRENT_LOOP;
 use stepdrive_shared::{Method, Scenario};
 
 /// A plan goes out with every tenth command: 1000 periods of plan cost ~9 µs to compute,
@@ -30,8 +32,8 @@ pub(crate) fn plans_after(seq: u64, last: Option<u64>) -> bool {
 
 /// What the current loop reads and writes.
 pub struct CurrentLoopPorts {
-    pub states: Box<dyn Subscribe<DriveState>>,
-    pub setpoints: Box<dyn Subscribe<TorqueSetpoint>>,
+    pub states: Inbox<DriveState>,
+    pub setpoints: Inbox<TorqueSetpoint>,
     pub commands: Box<dyn Publish<DriveCommand>>,
     /// Realtime: the voltage plan, after every `PLAN_EVERY`-th command.
     pub plans: Option<Box<dyn Publish<DrivePlan>>>,
@@ -45,9 +47,10 @@ impl CurrentLoopPorts {
         // Setpoints first: the plant starts once the states have their subscribers, and
         // the first setpoint must find this loop listening.
         Ok(Self {
-            setpoints: f.subscriber(LOOP_BUFFER)?,
-            states: f.subscriber(LOOP_BUFFER)?,
+            setpoints: Inbox::open(f, &CURRENT_LOOP, mode, LOOP_BUFFER)?,
+            states: Inbox::open(f, &CURRENT_LOOP, mode, LOOP_BUFFER)?,
             commands: f.publisher()?,
+            // A lockstep plant waits for every command: it never needs a plan.
             plans: match mode {
                 Mode::Lockstep => None,
                 _ => Some(f.publisher()?),
@@ -58,56 +61,50 @@ impl CurrentLoopPorts {
     }
 }
 
-/// A lockstep stream that skipped or reordered: the plant or position loop broke the
+/// A lockstep setpoint for another sample than the tick's: the position loop broke the
 /// protocol.
 #[derive(Debug, thiserror::Error)]
-pub enum SequenceError {
-    #[error("expected state sample {expected}, got {got} (lockstep never skips)")]
-    State { expected: u64, got: u64 },
-    #[error("a setpoint computed from sample {got} arrived for sample {expected}")]
-    Setpoint { expected: u64, got: u64 },
+#[error("a setpoint computed from sample {got} arrived for sample {expected}")]
+pub struct WrongSetpoint {
+    pub expected: u64,
+    pub got: u64,
 }
 
 pub struct CurrentLoopNode {
     body: CurrentLoop,
-    lockstep: bool,
     ratio: u64,
     period_ns: u64,
     answer_budget_ns: u64,
     rate_hz: f64,
     setpoint: TorqueSetpoint,
-    /// Lockstep: the sample `setpoint` was computed from.
-    setpoint_for: Option<u64>,
-    /// The state taken for the coming cycle.
+    /// The state taken for the coming cycle, and the states skipped before it.
     state: Option<DriveState>,
+    skipped: u64,
     last_seq: Option<u64>,
     due_ns: Option<u64>,
     started: bool,
-    /// Realtime: when the last setpoint came, and how long it may be stale.
+    /// When the last setpoint came, and how long it may be stale before this loop stops.
     setpoint_seen_ns: Option<u64>,
     setpoint_timeout: Option<std::time::Duration>,
 }
 
 impl CurrentLoopNode {
+    /// Plans as `s` says, except in lockstep (see [`CurrentLoopPorts::plans`]).
     pub fn new(s: &Scenario, method: Method, mode: Mode) -> Self {
-        let lockstep = mode == Mode::Lockstep;
         let body = CurrentLoop::new(s, method);
         let period_ns = s.sample_period_ns();
         Self {
-            // The lockstep plant waits for every command, so it never needs a plan.
-            body: if lockstep {
-                body.with_plan_periods(0)
-            } else {
-                body
+            body: match mode {
+                Mode::Lockstep => body.with_plan_periods(0),
+                _ => body,
             },
-            lockstep,
             ratio: s.rate_ratio(),
             period_ns,
             answer_budget_ns: period_ns * u64::from(s.rates.compute_delay_periods.max(1)),
             rate_hz: s.rates.current_loop_hz,
             setpoint: TorqueSetpoint::default(),
-            setpoint_for: None,
             state: None,
+            skipped: 0,
             last_seq: None,
             due_ns: None,
             started: false,
@@ -116,88 +113,39 @@ impl CurrentLoopNode {
         }
     }
 
-    /// Realtime: stop (a silent peer) when no setpoint came for `timeout`.
+    /// Stop (a silent peer) when no setpoint came for `timeout`.
     pub fn watching_setpoints(mut self, timeout: std::time::Duration) -> Self {
         self.setpoint_timeout = Some(timeout);
         self
     }
 
-    fn poll_lockstep(&mut self, ports: &mut CurrentLoopPorts) -> Result<Poll, RunError> {
-        let state = match self.state {
-            Some(s) => s,
-            None => {
-                let Some(s) = ports.states.receive()? else {
-                    return Ok(Poll::Pending);
-                };
-                // The first state may be any: a loop that rejoins a running stack starts
-                // from the newest sample (the topic's history).
-                if let Some(expected) = self.last_seq.map(|q| q + 1) {
-                    if s.seq != expected {
-                        let e = SequenceError::State {
-                            expected,
-                            got: s.seq,
-                        };
-                        return Err(RunError::node(Role::CurrentLoop, e));
-                    }
-                }
-                self.state = Some(s);
-                s
-            }
-        };
-        // This sample's tick: its setpoint is the one computed there.
-        let tick = state.seq - state.seq % self.ratio;
-        if self.setpoint_for != Some(tick) {
-            let Some(sp) = ports.setpoints.receive()? else {
-                return Ok(Poll::Pending);
-            };
-            if sp.from_state_seq != tick {
-                let e = SequenceError::Setpoint {
-                    expected: tick,
-                    got: sp.from_state_seq,
-                };
-                return Err(RunError::node(Role::CurrentLoop, e));
-            }
-            self.setpoint = sp;
-            self.setpoint_for = Some(tick);
-        }
-        Ok(Poll::READY)
-    }
-
-    fn poll_realtime(
+    /// Takes the setpoints that arrived: the one of `state`'s tick, which a synchronous
+    /// (lockstep) stack must have before answering; otherwise the newest. False while the
+    /// one needed is not there.
+    fn take_setpoints(
         &mut self,
         ports: &mut CurrentLoopPorts,
-        cx: &mut Cx,
-    ) -> Result<Poll, RunError> {
-        // Older states are stale for a realtime loop; they show up as skipped.
-        let Some(state) = ports.states.newest()? else {
-            return Ok(Poll::Pending);
+        state: &DriveState,
+        now: u64,
+    ) -> Result<bool, RunError> {
+        let tick = state.seq - state.seq % self.ratio;
+        let synchronous = ports.setpoints.synchronous();
+        if synchronous && ports.setpoints.last_key() == Some(tick) {
+            return Ok(true);
+        }
+        let Some(sp) = ports.setpoints.take()? else {
+            return Ok(!synchronous);
         };
-        // The state hop ends here, before the setpoints are read.
-        cx.taken_at(cx.now());
-        let skipped = self
-            .last_seq
-            .map_or(0, |prev| state.seq.saturating_sub(prev + 1));
-        self.state = Some(state);
-        let now = cx.now();
-        if let Some(sp) = ports.setpoints.newest()? {
-            self.setpoint = sp;
-            self.setpoint_seen_ns = Some(now);
+        if synchronous && sp.message.from_state_seq != tick {
+            let e = WrongSetpoint {
+                expected: tick,
+                got: sp.message.from_state_seq,
+            };
+            return Err(RunError::node(Role::CurrentLoop, e));
         }
-        // A stale setpoint segment keeps extrapolating θ_d: a position loop that went quiet
-        // must stop this loop, not steer the motor on.
-        if let (Some(seen), Some(timeout)) = (self.setpoint_seen_ns, self.setpoint_timeout) {
-            if now.saturating_sub(seen) > timeout.as_nanos() as u64 {
-                return Err(RunError::PeerSilent {
-                    role: Role::CurrentLoop,
-                    awaiting: "control/setpoint from the position loop".to_string(),
-                    timeout,
-                });
-            }
-        }
-        Ok(Poll::Ready {
-            fresh: true,
-            skipped,
-        })
+        self.setpoint = sp.message;
+        self.setpoint_seen_ns = Some(now);
+        Ok(true)
     }
 }
 
@@ -242,11 +190,41 @@ impl Node for CurrentLoopNode {
     }
 
     fn poll(&mut self, ports: &mut CurrentLoopPorts, cx: &mut Cx) -> Result<Poll, RunError> {
-        if self.lockstep {
-            self.poll_lockstep(ports)
-        } else {
-            self.poll_realtime(ports, cx)
+        let state = match self.state {
+            Some(s) => s,
+            None => {
+                let Some(t) = ports.states.take()? else {
+                    return Ok(Poll::Pending);
+                };
+                // The state hop ends here, before the setpoints are read.
+                cx.taken_at(cx.now());
+                // Every state asks for an answer: one passed over is skipped.
+                self.skipped = self
+                    .last_seq
+                    .map_or(0, |prev| t.message.seq.saturating_sub(prev + 1));
+                self.state = Some(t.message);
+                t.message
+            }
+        };
+        let now = cx.now();
+        if !self.take_setpoints(ports, &state, now)? {
+            return Ok(Poll::Pending);
         }
+        // A stale setpoint segment keeps extrapolating θ_d: a position loop that went quiet
+        // must stop this loop, not steer the motor on.
+        if let (Some(seen), Some(timeout)) = (self.setpoint_seen_ns, self.setpoint_timeout) {
+            if now.saturating_sub(seen) > timeout.as_nanos() as u64 {
+                return Err(RunError::PeerSilent {
+                    role: Role::CurrentLoop,
+                    awaiting: "control/setpoint from the position loop".to_string(),
+                    timeout,
+                });
+            }
+        }
+        Ok(Poll::Ready {
+            fresh: true,
+            skipped: std::mem::take(&mut self.skipped),
+        })
     }
 
     fn step(&mut self, ports: &mut CurrentLoopPorts, cx: &mut Cx) -> Result<Flow, RunError> {
@@ -260,7 +238,8 @@ impl Node for CurrentLoopNode {
         command.publish_time_ns = cx.now();
         ports.commands.publish(&command)?;
         let done = cx.answered();
-        if !self.lockstep && done > state.deadline_ns + self.answer_budget_ns {
+        // A state with a deadline (on the wall clock) must be answered by its period's.
+        if state.deadline_ns > 0 && done > state.deadline_ns + self.answer_budget_ns {
             cx.stats.misses += 1;
         }
         // After the command, so that planning never delays it; after a gap at once, the
@@ -275,9 +254,7 @@ impl Node for CurrentLoopNode {
             }
         }
         self.last_seq = Some(state.seq);
-        if !self.lockstep {
-            self.due_ns = Some(state.deadline_ns + self.period_ns);
-        }
+        self.due_ns = (state.deadline_ns > 0).then(|| state.deadline_ns + self.period_ns);
         Ok(if state.flags & state_flags::LAST != 0 {
             Flow::Last
         } else {

@@ -3,8 +3,8 @@
 //! fits (pre-allocated for the whole sequence), and on a bound turns the outputs off for
 //! the rest of the run.
 
-use crate::current_loop_node::{plans_after, wait_state_ready};
-use stepdrive_control::identify::{BoundHit, Bounds, Sequence};
+use crate::current_loop_node::wait_state_ready;
+use stepdrive_control::identify::{BoundHit, Bounds, Planner, Sequence};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
@@ -12,6 +12,10 @@ use stepdrive_shared::messages::{state_flags, DriveCommand, DrivePlan, DriveStat
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 use stepdrive_shared::Scenario;
+
+/// Plan entries written after each command: ~4 µs of the 50 µs period (a whole 1000-entry
+/// plan at once, ~40 µs, held the bridge off the shared CPU and made commands late).
+const PLAN_PIECE: usize = 50;
 
 pub struct IdentifyPorts {
     pub states: Box<dyn Subscribe<DriveState>>,
@@ -48,9 +52,11 @@ pub struct IdentifyNode {
     due_ns: Option<u64>,
     state: Option<DriveState>,
     next_seq: u64,
-    /// The sample answered last (plans go out after a gap and every tenth command).
-    last_answered: Option<u64>,
     plan_periods: usize,
+    /// The plan being written, a piece a cycle, and the command it continues (its seq, the
+    /// sample it answers); whether the zeros after a stop went out.
+    planner: Option<(Planner, (u64, u64))>,
+    zeros_sent: bool,
     plan: Box<DrivePlan>,
     /// Every state of the run, in order.
     pub recorded: Vec<DriveState>,
@@ -70,12 +76,56 @@ impl IdentifyNode {
             rate_hz: s.rates.current_loop_hz,
             state: None,
             next_seq: 0,
-            last_answered: None,
             plan_periods: (s.drive.command_plan_periods as usize).min(MAX_PLAN),
+            planner: None,
+            zeros_sent: false,
             plan: Box::default(),
             recorded: Vec::with_capacity(s.sample_count() as usize),
             stopped: None,
         }
+    }
+}
+
+impl IdentifyNode {
+    /// A piece of the plan after each command ([`PLAN_PIECE`] entries), published when it is
+    /// whole: it then continues a command up to `plan_periods / PLAN_PIECE` cycles old, as
+    /// the current loop's plans do. Once a bound stopped the sequence, a plan of zeros goes
+    /// out at once: the outputs stay off through a missed command too.
+    fn write_plan(
+        &mut self,
+        state: &DriveState,
+        command: &DriveCommand,
+        cx: &mut Cx,
+        plans: &mut dyn Publish<DrivePlan>,
+    ) -> Result<(), RunError> {
+        let n = self.plan_periods;
+        if n == 0 || self.zeros_sent {
+            return Ok(());
+        }
+        let continues = if self.stopped.is_some() {
+            self.plan.v[..n].fill([0.0; 2]);
+            self.zeros_sent = true;
+            (command.seq, state.seq)
+        } else {
+            let (planner, continues) = self.planner.get_or_insert_with(|| {
+                let planner = self.sequence.planner(state.sample_time_s);
+                (planner, (command.seq, state.seq))
+            });
+            let from = planner.written();
+            let to = (from + PLAN_PIECE).min(n);
+            planner.fill(&mut self.plan.v[from..to]);
+            if to < n {
+                return Ok(());
+            }
+            let continues = *continues;
+            self.planner = None;
+            continues
+        };
+        (self.plan.command_seq, self.plan.answers_seq) = continues;
+        self.plan.len = n as u32;
+        self.plan.publish_time_ns = cx.now();
+        plans.publish(&self.plan)?;
+        Ok(())
     }
 }
 
@@ -175,22 +225,8 @@ impl Node for IdentifyNode {
         self.next_seq += 1;
         ports.commands.publish(&command)?;
         if let Some(plans) = &mut ports.plans {
-            if plans_after(state.seq, self.last_answered) && self.plan_periods > 0 {
-                let n = self.plan_periods;
-                let ahead = &mut self.plan.v[..n];
-                match self.stopped {
-                    // Stopped: the outputs stay off through a missed command too.
-                    Some(_) => ahead.fill([0.0; 2]),
-                    None => self.sequence.plan(state.sample_time_s, ahead),
-                }
-                self.plan.command_seq = command.seq;
-                self.plan.answers_seq = state.seq;
-                self.plan.len = n as u32;
-                self.plan.publish_time_ns = cx.now();
-                plans.publish(&self.plan)?;
-            }
+            self.write_plan(&state, &command, cx, plans.as_mut())?;
         }
-        self.last_answered = Some(state.seq);
         Ok(if state.flags & state_flags::LAST != 0 {
             Flow::Last
         } else {

@@ -1,4 +1,5 @@
-//! The operator's console, one folder per job:
+//! The operator's console, one folder per job (and [`assemble`]: the stack's nodes built
+//! from its declaration, for processes and simulations alike):
 //! - [`supervise`]: launches the stack's processes, supervises them, attaches to a running
 //!   stack;
 //! - [`report`]: the metrics, the timing, the outcome (exit codes and headlines), the table
@@ -7,6 +8,7 @@
 //! - [`latency`]: latency sessions and their baselines;
 //! - [`studies`]: in-process simulations, the robustness table, identification.
 
+pub mod assemble;
 pub mod latency;
 pub mod record;
 pub mod report;

@@ -1,29 +1,30 @@
 //! The simulated plant as a node of the runner. Each cycle publishes the state at sample k,
-//! takes the commands, and integrates one period. In lockstep the plant is the clock: it
-//! waits for exactly the command its delay line needs, so runs are bit-identical. In
-//! realtime it runs on absolute deadlines and never waits for anyone: the command for
-//! (t_k, t_{k+1}] is the one answering sample k − d; one not there when the period starts
-//! is a deadline miss, covered by the freshest plan ([`CommandSlot`]); and when the host
-//! holds the process past a period, its simulated time pauses ([`Late::Pause`]).
+//! takes the commands, and integrates one period by one set of rules ([`CommandSlot`]): the
+//! command for (t_k, t_{k+1}] is the one answering sample k − d; one not there is a miss,
+//! covered by the freshest plan or the held voltage, and a watchdog's worth in a row turns
+//! the outputs off. Paced by its input (lockstep) the plant is the clock: it waits until
+//! the command its period needs is there, so there are no misses and runs are
+//! bit-identical. On its own clock (realtime) it waits for nobody; when the host holds the
+//! process past a period, its simulated time pauses ([`Late::Pause`]).
 //!
 //! A latched fault stays until a reset request (`stepdrive reset`) arrives while its cause
-//! is gone. A current loop that dies and is restarted rejoins: in realtime its commands are
-//! simply taken again; in lockstep the plant waits for a new one (within the start-up
-//! timeout), which starts from the newest state, and the periods whose commands died with
-//! the old one get no voltage.
+//! is gone. A current loop that dies and is restarted rejoins: on the clock its commands
+//! are simply taken again; paced by its input the plant waits for a new one (within the
+//! start-up timeout), which starts from the newest state, and the periods whose commands
+//! died with the old one are misses.
 
 use crate::sim::{CommandSlot, PlantSim};
+use stepdrive_runtime::inbox::Inbox;
 use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{fault_bits, DriveCommand, DrivePlan, DriveState, ResetRequest};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
+use stepdrive_shared::stack::PLANT;
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
-/// Lockstep: commands may arrive ahead of the one the delay line needs; a few are kept.
-const PENDING: usize = 8;
 /// Lockstep: after this long without the awaited command, and then at most this often, the
 /// plant looks for dead peers.
 const LOOK_FOR_THE_DEAD_NS: u64 = 200_000_000;
@@ -31,8 +32,8 @@ const LOOK_FOR_THE_DEAD_NS: u64 = 200_000_000;
 /// What the plant reads and writes.
 pub struct PlantPorts {
     pub states: Box<dyn Publish<DriveState>>,
-    pub commands: Box<dyn Subscribe<DriveCommand>>,
-    /// Realtime: the current loop's voltage plans.
+    pub commands: Inbox<DriveCommand>,
+    /// Realtime: the current loop's voltage plans (a lockstep plant waits for every command).
     pub plans: Option<Box<dyn Subscribe<DrivePlan>>>,
     pub resets: Box<dyn Subscribe<ResetRequest>>,
     pub presence: Box<dyn Presence>,
@@ -41,7 +42,7 @@ pub struct PlantPorts {
 impl PlantPorts {
     pub fn open(f: &mut impl PortFactory, mode: Mode) -> Result<Self, PortError> {
         Ok(Self {
-            commands: f.subscriber(LOOP_BUFFER)?,
+            commands: Inbox::open(f, &PLANT, mode, LOOP_BUFFER)?,
             plans: match mode {
                 Mode::Lockstep => None,
                 _ => Some(f.subscriber(LOOP_BUFFER)?),
@@ -63,7 +64,7 @@ pub struct PlantSettings {
     /// Wait for a position loop (a setpoint publisher) too; false for a tool that drives the
     /// plant alone (the identification sequence).
     pub wait_position_loop: bool,
-    /// Realtime: misses in a row after which the outputs go off and a fault latches.
+    /// Misses in a row after which the outputs go off and a fault latches.
     pub watchdog_periods: u32,
     /// Realtime: the first deadline this long after start-up, so every process is in its
     /// loop by then.
@@ -78,6 +79,19 @@ struct Peers {
     state_subscribers: usize,
 }
 
+/// A plant paced by its input (lockstep) waits for the current loop's command; while it
+/// waits, it watches the current loop leave and another attach (a restarted process).
+#[derive(Debug, Clone, Copy, Default)]
+struct Rejoin {
+    /// The current loop left (its publisher is gone).
+    gone: bool,
+    /// Since when the awaited command has been awaited, and when dead peers were last
+    /// looked for.
+    waiting_since_ns: Option<u64>,
+    dead_checked_ns: u64,
+    state_subscribers: usize,
+}
+
 pub struct PlantNode {
     sim: PlantSim,
     settings: PlantSettings,
@@ -88,32 +102,13 @@ pub struct PlantNode {
     /// Start-up: the peers as last counted; `started` once they were all there.
     peers: Option<Peers>,
     started: bool,
-    /// Lockstep: whether the current sample's state is out, commands received ahead of
-    /// their turn, and the command the next period takes.
+    /// The current sample's state is out.
     emitted: bool,
-    pending: [Option<DriveCommand>; PENDING],
-    next: Option<DriveCommand>,
-    /// Realtime: the command rules.
+    /// The command rules: which command, plan entry or held voltage each period gets.
     slot: CommandSlot,
     /// A reset request waiting for the next period (the requester's pid).
     reset_requested: Option<u32>,
-    /// Lockstep: the current loop left (its publisher is gone), and, once another has
-    /// attached, the stream is resynchronised on its first command.
-    current_loop_gone: bool,
-    resync: bool,
-    /// Lockstep: since when the awaited command has been awaited, and when dead peers were
-    /// last looked for.
-    waiting_since_ns: Option<u64>,
-    dead_checked_ns: u64,
-    state_subscribers: usize,
-}
-
-/// A lockstep command that cannot be the one awaited: the current loop broke the protocol.
-#[derive(Debug, thiserror::Error)]
-#[error("a command for sample {got} arrived while waiting for the one for sample {expected}")]
-pub struct OutOfOrderCommand {
-    pub got: u64,
-    pub expected: u64,
+    rejoin: Rejoin,
 }
 
 impl PlantNode {
@@ -129,51 +124,44 @@ impl PlantNode {
             peers: None,
             started: false,
             emitted: false,
-            pending: [None; PENDING],
-            next: None,
             slot: CommandSlot::new(delay),
             reset_requested: None,
-            current_loop_gone: false,
-            resync: false,
-            waiting_since_ns: None,
-            dead_checked_ns: 0,
-            state_subscribers: 0,
+            rejoin: Rejoin::default(),
         }
     }
 
-    /// The realtime command rules' counters (misses, plan coverage, runs).
+    /// The command rules' counters (misses, plan coverage, runs).
     pub fn slot(&self) -> &CommandSlot {
         &self.slot
     }
 
-    /// The faults latched at the end of the run (zero: healthy).
-    pub fn latched_fault(&self) -> u32 {
-        self.sim.fault()
+    fn is_last(&self) -> bool {
+        self.sim.sample_index() + 1 == self.samples
     }
 
-    fn publish_state(
-        &mut self,
-        ports: &mut PlantPorts,
-        cx: &Cx,
-        last: bool,
-    ) -> Result<(), RunError> {
-        let mut state = self.sim.state(last);
+    fn publish_state(&mut self, ports: &mut PlantPorts, cx: &Cx) -> Result<(), RunError> {
+        let mut state = self.sim.state(self.is_last());
         state.deadline_ns = cx.deadline_ns;
         state.publish_time_ns = cx.now();
         ports.states.publish(&state)?;
         Ok(())
     }
 
-    /// The command lockstep waits for before integrating the period after sample k: the
-    /// one the delay line needs, or at the last sample the answer to it (so the current
-    /// loop finishes before our subscriber goes away; older ones are skipped then).
-    fn awaited(&self) -> Option<(u64, bool)> {
-        let k = self.sim.sample_index();
-        if k + 1 == self.samples {
-            Some((k, true))
-        } else {
-            self.sim.needed_command().map(|seq| (seq, false))
+    /// The command the period after sample k waits for: the one its delay line needs, or
+    /// at the last sample the answer to it (so the current loop finishes before our
+    /// subscriber goes away). `None` while the delay line fills.
+    fn awaited(&self) -> Option<u64> {
+        match self.is_last() {
+            true => Some(self.sim.sample_index()),
+            false => self.sim.needed_command(),
         }
+    }
+
+    /// Whether the awaited command is decided: here, or never to come (a newer one is here:
+    /// the current loop that would have sent it was replaced).
+    fn decided(&self) -> bool {
+        self.awaited()
+            .is_none_or(|seq| self.slot.newest().is_some_and(|newest| newest >= seq))
     }
 
     /// Takes the reset requests that arrived; one is acted on at the next period.
@@ -197,10 +185,7 @@ impl PlantNode {
             return;
         }
         let silent = self.slot.runs.current;
-        if fault & fault_bits::COMMAND_TIMEOUT != 0
-            && self.settings.mode != Mode::Lockstep
-            && silent >= self.settings.watchdog_periods
-        {
+        if fault & fault_bits::COMMAND_TIMEOUT != 0 && silent >= self.settings.watchdog_periods {
             tracing::warn!(
                 pid,
                 periods = silent,
@@ -216,113 +201,36 @@ impl PlantNode {
         );
     }
 
-    /// Lockstep: watches the current loop leave and another attach. Its history brings the
-    /// newcomer the newest state at once. A loop killed outright still counts until its
-    /// ports are removed, so after a while without its command the plant looks for dead
-    /// peers.
+    /// Paced by its input: watches the current loop leave and another attach. Its history
+    /// brings the newcomer the newest state at once, and its stream starts where it
+    /// joined. A loop killed outright still counts until its ports are removed, so after a
+    /// while without its command the plant looks for dead peers.
     fn watch_current_loop(&mut self, ports: &mut PlantPorts, now: u64) -> Result<(), RunError> {
-        let since = *self.waiting_since_ns.get_or_insert(now);
+        let r = &mut self.rejoin;
+        let since = *r.waiting_since_ns.get_or_insert(now);
         if now.saturating_sub(since) > LOOK_FOR_THE_DEAD_NS
-            && now.saturating_sub(self.dead_checked_ns) > LOOK_FOR_THE_DEAD_NS
+            && now.saturating_sub(r.dead_checked_ns) > LOOK_FOR_THE_DEAD_NS
         {
-            self.dead_checked_ns = now;
+            r.dead_checked_ns = now;
             ports.presence.forget_dead();
         }
         let subscribers = ports.presence.subscribers(Topic::State);
-        if subscribers != self.state_subscribers {
-            // A newcomer gets the newest state from the topic's history.
-            self.state_subscribers = subscribers;
+        if subscribers != r.state_subscribers {
+            r.state_subscribers = subscribers;
             ports.states.connect()?;
         }
         let present = ports.presence.publishers(Topic::Command) > 0;
-        if !present && !self.current_loop_gone {
-            self.current_loop_gone = true;
+        if !present && !r.gone {
+            r.gone = true;
             tracing::error!(
                 "the current loop is gone; waiting for another to attach (start-up timeout)"
             );
-        } else if present && self.current_loop_gone {
-            self.current_loop_gone = false;
-            self.resync = true;
+        } else if present && r.gone {
+            r.gone = false;
+            ports.commands.rejoin();
             tracing::warn!("a current loop attached; resuming from the newest sample");
         }
         Ok(())
-    }
-
-    fn poll_lockstep(&mut self, ports: &mut PlantPorts, cx: &mut Cx) -> Result<Poll, RunError> {
-        let k = self.sim.sample_index();
-        if !self.emitted {
-            self.publish_state(ports, cx, k + 1 == self.samples)?;
-            self.emitted = true;
-        }
-        self.take_resets(ports)?;
-        let Some((seq, drain)) = self.awaited() else {
-            return Ok(Poll::READY);
-        };
-        let slot = (seq % PENDING as u64) as usize;
-        if let Some(c) = self.pending[slot].filter(|c| c.answers_seq == seq) {
-            self.pending[slot] = None;
-            return Ok(self.take(Some(c)));
-        }
-        while let Some(c) = ports.commands.receive()? {
-            if c.answers_seq == seq {
-                return Ok(self.take(Some(c)));
-            }
-            if drain && c.answers_seq < seq {
-                continue;
-            }
-            if self.resync && c.answers_seq > seq && c.answers_seq < seq + PENDING as u64 {
-                // The command awaited died with the old current loop; the new one starts
-                // after it: this period gets no voltage, the next takes the new command.
-                self.pending[(c.answers_seq % PENDING as u64) as usize] = Some(c);
-                return Ok(self.take(None));
-            }
-            if c.answers_seq < seq || c.answers_seq >= seq + PENDING as u64 {
-                return Err(RunError::node(
-                    Role::Plant,
-                    OutOfOrderCommand {
-                        got: c.answers_seq,
-                        expected: seq,
-                    },
-                ));
-            }
-            self.pending[(c.answers_seq % PENDING as u64) as usize] = Some(c);
-        }
-        self.watch_current_loop(ports, cx.now())?;
-        Ok(Poll::Pending)
-    }
-
-    /// Lockstep: the command for the coming period is decided (`None`: none will come).
-    fn take(&mut self, command: Option<DriveCommand>) -> Poll {
-        self.resync &= command.is_none();
-        self.next = command;
-        self.waiting_since_ns = None;
-        Poll::READY
-    }
-
-    fn poll_realtime(&mut self, ports: &mut PlantPorts, cx: &mut Cx) -> Result<Poll, RunError> {
-        let k = self.sim.sample_index();
-        let last = k + 1 == self.samples;
-        self.publish_state(ports, cx, last)?;
-        if last {
-            return Ok(Poll::Finished);
-        }
-        self.take_resets(ports)?;
-        // Everything that arrived since the last period.
-        let next_needed = k.saturating_sub(self.delay);
-        while let Some(c) = ports.commands.receive()? {
-            let now = cx.now();
-            cx.stats.hop.record(now.saturating_sub(c.publish_time_ns));
-            cx.stats
-                .sensor_to_actuator
-                .record(c.publish_time_ns.saturating_sub(c.state_publish_time_ns));
-            self.slot.offer(c, next_needed);
-        }
-        if let Some(plans) = &mut ports.plans {
-            // In place: a plan is ~2 KB and only the freshest is kept.
-            let slot = &mut self.slot;
-            plans.drain(&mut |plan| slot.offer_plan(plan))?;
-        }
-        Ok(Poll::READY)
     }
 }
 
@@ -356,7 +264,7 @@ impl Node for PlantNode {
                 p.setpoint_publishers,
                 p.state_subscribers
             ),
-            (_, Some((seq, _))) if self.settings.mode == Mode::Lockstep => {
+            (_, Some(seq)) if self.pace() == Pace::Input => {
                 format!("the command for sample {seq} from the current loop")
             }
             _ => "the current loop".to_string(),
@@ -395,22 +303,52 @@ impl Node for PlantNode {
         Ok(())
     }
 
+    /// Publishes the sample's state (once), takes what arrived: resets, every command, the
+    /// freshest plan. Ready when the command the coming period waits for is decided; on
+    /// its own clock the period comes anyway, and a command not there is a miss.
     fn poll(&mut self, ports: &mut PlantPorts, cx: &mut Cx) -> Result<Poll, RunError> {
-        match self.settings.mode {
-            Mode::Lockstep => self.poll_lockstep(ports, cx),
-            _ => self.poll_realtime(ports, cx),
+        if !self.emitted {
+            self.publish_state(ports, cx)?;
+            self.emitted = true;
         }
+        self.take_resets(ports)?;
+        let next_needed = self.sim.sample_index().saturating_sub(self.delay);
+        while let Some(t) = ports.commands.take()? {
+            let c = t.message;
+            let now = cx.now();
+            cx.stats.hop.record(now.saturating_sub(c.publish_time_ns));
+            cx.stats
+                .sensor_to_actuator
+                .record(c.publish_time_ns.saturating_sub(c.state_publish_time_ns));
+            self.slot.offer(c, next_needed);
+        }
+        if let Some(plans) = &mut ports.plans {
+            // In place: a plan is ~8 KB and only the freshest is kept.
+            let slot = &mut self.slot;
+            plans.drain(&mut |plan| slot.offer_plan(plan))?;
+        }
+        let clocked = self.pace() != Pace::Input;
+        if self.is_last() && (clocked || self.decided()) {
+            // The run ends at its last sample: on the clock at once, paced by its input once
+            // the answer to it is in (the current loop then finishes before this plant goes).
+            return Ok(Poll::Finished);
+        }
+        if self.decided() {
+            self.rejoin.waiting_since_ns = None;
+            return Ok(Poll::READY);
+        }
+        if !clocked {
+            self.watch_current_loop(ports, cx.now())?;
+        }
+        Ok(Poll::Pending)
     }
 
+    /// The period after the sample: the command the delay line needs, or (missing) the
+    /// freshest plan's entry or the held voltage; a watchdog's worth of misses in a row
+    /// turns the outputs off.
     fn step(&mut self, _ports: &mut PlantPorts, _cx: &mut Cx) -> Result<Flow, RunError> {
         self.apply_reset();
-        if self.settings.mode == Mode::Lockstep {
-            if self.sim.sample_index() + 1 == self.samples {
-                return Ok(Flow::Last);
-            }
-            self.sim.advance(self.next.take().as_ref());
-            self.emitted = false;
-        } else if self
+        if self
             .sim
             .advance_realtime(&mut self.slot, self.settings.watchdog_periods)
         {
@@ -421,28 +359,28 @@ impl Node for PlantNode {
                  off, fault latched until `stepdrive reset` (once commands come again)"
             );
         }
+        self.emitted = false;
         Ok(Flow::Continue)
     }
 
     fn awaiting_rejoin(&self) -> bool {
-        self.current_loop_gone
+        self.rejoin.gone
+    }
+
+    fn latched_fault(&self) -> u32 {
+        self.sim.fault()
     }
 
     fn report(&self, stats: &mut StatsReport) {
-        if self.settings.mode != Mode::Lockstep {
-            // The plant's misses are the commands it lacked; its own lateness shows as
-            // overruns.
-            self.slot.copy_counters(stats);
-        }
+        // The plant's misses are the commands it lacked; its own lateness shows as overruns.
+        self.slot.copy_counters(stats);
     }
 
     fn stop(&mut self, _ports: &mut PlantPorts, _cx: &mut Cx) {
-        if self.settings.mode != Mode::Lockstep {
-            tracing::debug!(
-                misses = self.slot.misses,
-                miss_runs_1_2_4_8_16_32_64_128 = ?self.slot.runs.by_length,
-                "plant's command record"
-            );
-        }
+        tracing::debug!(
+            misses = self.slot.misses,
+            miss_runs_1_2_4_8_16_32_64_128 = ?self.slot.runs.by_length,
+            "plant's command record"
+        );
     }
 }

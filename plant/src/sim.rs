@@ -229,6 +229,8 @@ pub struct CommandSlot {
     pub late_discarded: u64,
     /// Misses in a row (the watchdog's count) and their runs.
     pub runs: MissRuns,
+    /// The newest sample a command offered in time answers.
+    newest: Option<u64>,
 }
 
 impl CommandSlot {
@@ -242,6 +244,7 @@ impl CommandSlot {
             planned: 0,
             late_discarded: 0,
             runs: MissRuns::default(),
+            newest: None,
         }
     }
 
@@ -260,11 +263,17 @@ impl CommandSlot {
             self.late_discarded += 1;
             return;
         }
+        self.newest = self.newest.max(Some(c.answers_seq));
         let slot = &mut self.pending[(c.answers_seq % 8) as usize];
         if slot.is_some_and(|old| old.answers_seq >= c.answers_seq) {
             return;
         }
         *slot = Some(c);
+    }
+
+    /// The newest sample a command offered in time answers: the stream has reached it.
+    pub fn newest(&self) -> Option<u64> {
+        self.newest
     }
 
     /// Offers a received plan; the one continuing the newest command is kept.

@@ -15,18 +15,7 @@ use std::path::Path;
 use std::time::Duration;
 use stepdrive_shared::messages::MAX_PLAN;
 use stepdrive_shared::scenario::Mode;
-
-/// The processes a deployment places.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Process {
-    Plant,
-    CurrentLoop,
-    PositionLoop,
-    Bridge,
-    EmulatedDrive,
-    /// The launcher itself while it supervises a realtime run.
-    Monitor,
-}
+use stepdrive_shared::stack::Role;
 
 /// Where and how one process runs. Absent fields take the process's default.
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -295,26 +284,36 @@ impl Deployment {
         Duration::from_secs_f64(self.peer_timeout_s)
     }
 
-    fn placement(&self, process: Process) -> &Placement {
-        match process {
-            Process::Plant => &self.plant,
-            Process::CurrentLoop => &self.current_loop,
-            Process::PositionLoop => &self.position_loop,
-            Process::Bridge => &self.bridge,
-            Process::EmulatedDrive => &self.emulated_drive,
-            Process::Monitor => &self.monitor,
+    /// Where `role` runs. The identification runs in the current loop's place; a tool
+    /// outside the stack has no placement.
+    fn placement(&self, role: Role) -> &Placement {
+        const UNPLACED: Placement = Placement {
+            wait: None,
+            priority: None,
+            cpu: None,
+        };
+        match role {
+            Role::Plant => &self.plant,
+            Role::CurrentLoop | Role::Identify => &self.current_loop,
+            Role::PositionLoop => &self.position_loop,
+            Role::Bridge => &self.bridge,
+            Role::EmulatedDrive => &self.emulated_drive,
+            Role::Monitor => &self.monitor,
+            Role::Tool(_) => &UNPLACED,
         }
     }
 
-    pub fn placement_mut(&mut self, process: Process) -> &mut Placement {
-        match process {
-            Process::Plant => &mut self.plant,
-            Process::CurrentLoop => &mut self.current_loop,
-            Process::PositionLoop => &mut self.position_loop,
-            Process::Bridge => &mut self.bridge,
-            Process::EmulatedDrive => &mut self.emulated_drive,
-            Process::Monitor => &mut self.monitor,
-        }
+    /// `role`'s placement, to change it; none for a tool.
+    pub fn placement_mut(&mut self, role: Role) -> Option<&mut Placement> {
+        Some(match role {
+            Role::Plant => &mut self.plant,
+            Role::CurrentLoop | Role::Identify => &mut self.current_loop,
+            Role::PositionLoop => &mut self.position_loop,
+            Role::Bridge => &mut self.bridge,
+            Role::EmulatedDrive => &mut self.emulated_drive,
+            Role::Monitor => &mut self.monitor,
+            Role::Tool(_) => return None,
+        })
     }
 
     /// How `process` waits in `mode`: its placement's strategy, or its default. The
@@ -325,19 +324,19 @@ impl Deployment {
     /// loop `sleep`; the bridge `hybrid:30` with a real-time priority (asleep until 30 µs
     /// before the drive's frame is due, then polling its socket), `sleep` without (polling
     /// would only take the CPU from the processes it waits for).
-    pub fn wait(&self, process: Process, mode: Mode) -> WaitStrategy {
+    pub fn wait(&self, process: Role, mode: Mode) -> WaitStrategy {
         if let Some(w) = self.placement(process).wait {
             return w;
         }
         match process {
-            Process::Plant | Process::EmulatedDrive => WaitStrategy::Hybrid { margin_ns: 25_000 },
-            Process::CurrentLoop if mode == Mode::Hardware => WaitStrategy::Event,
-            Process::CurrentLoop => WaitStrategy::Hybrid { margin_ns: 40_000 },
-            Process::PositionLoop | Process::Monitor => WaitStrategy::Sleep,
-            Process::Bridge if self.bridge.priority.is_some() => {
+            Role::Plant | Role::EmulatedDrive => WaitStrategy::Hybrid { margin_ns: 25_000 },
+            Role::CurrentLoop | Role::Identify if mode == Mode::Hardware => WaitStrategy::Event,
+            Role::CurrentLoop | Role::Identify => WaitStrategy::Hybrid { margin_ns: 40_000 },
+            Role::PositionLoop | Role::Monitor | Role::Tool(_) => WaitStrategy::Sleep,
+            Role::Bridge if self.bridge.priority.is_some() => {
                 WaitStrategy::Hybrid { margin_ns: 30_000 }
             }
-            Process::Bridge => WaitStrategy::Sleep,
+            Role::Bridge => WaitStrategy::Sleep,
         }
     }
 
@@ -346,20 +345,22 @@ impl Deployment {
     pub fn resolved(&self, mode: Mode) -> Deployment {
         let mut d = self.clone();
         for process in [
-            Process::Plant,
-            Process::CurrentLoop,
-            Process::PositionLoop,
-            Process::Bridge,
-            Process::EmulatedDrive,
+            Role::Plant,
+            Role::CurrentLoop,
+            Role::PositionLoop,
+            Role::Bridge,
+            Role::EmulatedDrive,
         ] {
             let wait = self.wait(process, mode);
-            d.placement_mut(process).wait = Some(wait);
+            if let Some(p) = d.placement_mut(process) {
+                p.wait = Some(wait);
+            }
         }
         d
     }
 
     /// The real-time settings `process` applies to itself in `mode` (none in lockstep).
-    pub fn rt(&self, process: Process, mode: Mode) -> RtOptions {
+    pub fn rt(&self, process: Role, mode: Mode) -> RtOptions {
         if mode == Mode::Lockstep {
             return RtOptions::default();
         }
@@ -368,8 +369,8 @@ impl Deployment {
             priority: p.priority.filter(|&v| v > 0),
             cpu: p.cpu,
             // The monitor only wants its priority: it allocates as it records.
-            lock_memory: self.lock_memory && process != Process::Monitor,
-            timer_slack_ns: (process != Process::Monitor).then_some(self.timer_slack_ns),
+            lock_memory: self.lock_memory && process != Role::Monitor,
+            timer_slack_ns: (process != Role::Monitor).then_some(self.timer_slack_ns),
             require: self.require_rt,
         }
     }
@@ -390,18 +391,18 @@ mod tests {
             (Some(0), Some(1), Some(1))
         );
         assert_eq!(
-            d.wait(Process::CurrentLoop, Mode::Realtime),
+            d.wait(Role::CurrentLoop, Mode::Realtime),
             WaitStrategy::Hybrid { margin_ns: 40_000 }
         );
         assert_eq!(
-            d.wait(Process::CurrentLoop, Mode::Hardware),
+            d.wait(Role::CurrentLoop, Mode::Hardware),
             WaitStrategy::Event
         );
         assert_eq!(
-            d.wait(Process::Bridge, Mode::Hardware),
+            d.wait(Role::Bridge, Mode::Hardware),
             WaitStrategy::Hybrid { margin_ns: 30_000 }
         );
-        assert_eq!(d.rt(Process::Plant, Mode::Lockstep), RtOptions::default());
+        assert_eq!(d.rt(Role::Plant, Mode::Lockstep), RtOptions::default());
         let back: Deployment = toml::from_str(&d.to_toml_string()).expect("parses");
         assert_eq!(back, d);
         // Written out for a mode, every wait strategy is spelled out and reads back the same.
@@ -413,14 +414,14 @@ mod tests {
         );
         let back: Deployment = toml::from_str(&hardware.to_toml_string()).expect("parses");
         assert_eq!(
-            back.wait(Process::CurrentLoop, Mode::Hardware),
+            back.wait(Role::CurrentLoop, Mode::Hardware),
             WaitStrategy::Event
         );
         // A file may give only what differs.
         let partial: Deployment =
             toml::from_str("[current_loop]\nwait = \"spin\"\n").expect("parses");
         assert_eq!(
-            partial.wait(Process::CurrentLoop, Mode::Realtime),
+            partial.wait(Role::CurrentLoop, Mode::Realtime),
             WaitStrategy::Spin
         );
         assert_eq!(partial.plant, d.plant);
@@ -431,17 +432,12 @@ mod tests {
         let mut d = Deployment::default();
         d.set_priorities(0, 0);
         d.set_cpus(None);
-        for p in [
-            Process::Plant,
-            Process::CurrentLoop,
-            Process::Bridge,
-            Process::Monitor,
-        ] {
+        for p in [Role::Plant, Role::CurrentLoop, Role::Bridge, Role::Monitor] {
             let rt = d.rt(p, Mode::Realtime);
             assert_eq!((rt.priority, rt.cpu), (None, None), "{p:?}");
         }
         // Without a priority the bridge blocks on its socket instead of polling it.
-        assert_eq!(d.wait(Process::Bridge, Mode::Hardware), WaitStrategy::Sleep);
+        assert_eq!(d.wait(Role::Bridge, Mode::Hardware), WaitStrategy::Sleep);
     }
 
     #[test]

@@ -13,6 +13,7 @@ pub mod clock;
 pub mod cycle;
 pub mod deploy;
 pub mod error;
+pub mod inbox;
 pub mod ipc;
 pub mod memory;
 pub mod node;

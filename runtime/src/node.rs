@@ -7,47 +7,8 @@
 
 use crate::clock::Clock;
 use crate::error::RunError;
-use stepdrive_shared::stats::{roles, StatsReport};
-
-/// Who a node is: names it in logs and errors, and says whose statistics it publishes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Role {
-    /// The simulated plant: the motor model behind the stack's contract.
-    Plant,
-    /// The plant's stand-in for real hardware: a bridge to a drive.
-    Bridge,
-    CurrentLoop,
-    PositionLoop,
-    /// Anything else stepped by the runner (a recorder, a transport baseline).
-    Tool(&'static str),
-}
-
-impl Role {
-    pub fn name(self) -> &'static str {
-        match self {
-            Role::Plant => "plant",
-            Role::Bridge => "bridge",
-            Role::CurrentLoop => "current loop",
-            Role::PositionLoop => "position loop",
-            Role::Tool(name) => name,
-        }
-    }
-
-    /// The `StatsReport::role` it publishes under (the bridge stands in for the plant).
-    pub fn stats_role(self) -> u32 {
-        match self {
-            Role::Plant | Role::Bridge | Role::Tool(_) => roles::PLANT,
-            Role::CurrentLoop => roles::CURRENT_LOOP,
-            Role::PositionLoop => roles::POSITION_LOOP,
-        }
-    }
-}
-
-impl std::fmt::Display for Role {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.name())
-    }
-}
+pub use stepdrive_shared::stack::Role;
+use stepdrive_shared::stats::StatsReport;
 
 /// What starts a node's cycle.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -218,6 +179,12 @@ pub trait Node {
     /// runner then allows the start-up timeout instead of the peer timeout.
     fn awaiting_rejoin(&self) -> bool {
         false
+    }
+
+    /// The faults latched at the end of its run (a device's: the plant's, the bridge's);
+    /// zero when healthy or not a device.
+    fn latched_fault(&self) -> u32 {
+        0
     }
 
     /// Copies its counters into the statistics before they are published.

@@ -2,10 +2,10 @@
 //! iceoryx2 ports, its node, run to the end of the run by the [`Runner`]. Every role's
 //! process goes through [`run_process`].
 
-use crate::deploy::{Deployment, Process};
+use crate::deploy::Deployment;
 use crate::error::RunError;
 use crate::ipc::{IpcBus, Stamp};
-use crate::node::Node;
+use crate::node::{Node, Role};
 use crate::port::PortFactory;
 use crate::runner::{Finished, Runner, Settings};
 use std::time::Duration;
@@ -17,9 +17,9 @@ use stepdrive_shared::Scenario;
 pub struct ProcessSpec<'a> {
     pub instance: &'a str,
     pub mode: Mode,
-    pub process: Process,
-    /// The iceoryx2 node name under the instance ("plant", "current-loop", ...).
-    pub node_name: &'a str,
+    /// Its place: its deployment's placement, its iceoryx2 node name under the instance
+    /// (`Role::id`).
+    pub role: Role,
     pub deployment: &'a Deployment,
     /// Every process of the stack must run this one (see [`Stamp`]).
     pub scenario: &'a Scenario,
@@ -29,41 +29,61 @@ pub struct ProcessSpec<'a> {
 /// monitor (draining at ~1 kHz) takes them.
 const STATS_LINGER: Duration = Duration::from_millis(200);
 
+/// A role's process, set up: its real-time settings applied, its statistics port open.
+/// Build the role's node on the bus [`Process::open`] returns, then [`Process::run`] it.
+pub struct Process<'a> {
+    spec: &'a ProcessSpec<'a>,
+    stats: Option<Box<dyn crate::port::Publish<stepdrive_shared::stats::StatsReport>>>,
+}
+
+impl<'a> Process<'a> {
+    /// Applies the real-time settings and opens the stack's ports: the process, and the bus
+    /// its node's ports are opened on.
+    pub fn open(spec: &'a ProcessSpec<'a>) -> Result<(Self, IpcBus), RunError> {
+        // Before any port exists: mlockall then locks every segment as it is mapped, and a
+        // peer that waits for this process's publishers sees them only once it is set up.
+        spec.deployment.rt(spec.role, spec.mode).apply()?;
+        let stamp = Stamp::new(spec.mode, spec.scenario);
+        let mut bus = IpcBus::open(spec.instance, spec.role.id(), &stamp)?;
+        // Statistics are published in realtime and hardware modes.
+        let stats = match spec.mode {
+            Mode::Lockstep => None,
+            _ => Some(bus.publisher()?),
+        };
+        Ok((Self { spec, stats }, bus))
+    }
+
+    /// Runs `node` to the end of the run. Returns it and its final statistics.
+    pub fn run<N: Node>(&mut self, node: N, ports: N::Ports) -> Result<Finished<N>, RunError> {
+        let spec = self.spec;
+        let d = spec.deployment;
+        let settings = Settings {
+            wait: d.wait(spec.role, spec.mode),
+            startup_timeout: d.startup_timeout(),
+            peer_timeout: d.peer_timeout(),
+            // In hardware mode the loop sleeps on the bridge's event, whose length it does
+            // not choose, so it cannot tell a hold from a wait.
+            account_host_holds: spec.role == Role::CurrentLoop && spec.mode == Mode::Realtime,
+            linger: STATS_LINGER,
+        };
+        tracing::info!(
+            instance = spec.instance,
+            mode = spec.mode.as_str(),
+            wait = %settings.wait,
+            "{} up",
+            spec.role
+        );
+        Runner::new(node, ports, settings, self.stats.take()).run()
+    }
+}
+
 /// Applies the real-time settings, opens the ports, builds the node with `build`, and runs
-/// it. Statistics are published in realtime and hardware modes. Returns the node and its
-/// final statistics.
+/// it. Returns the node and its final statistics.
 pub fn run_process<N: Node>(
     spec: &ProcessSpec,
     build: impl FnOnce(&mut IpcBus) -> Result<(N, N::Ports), RunError>,
 ) -> Result<Finished<N>, RunError> {
-    let d = spec.deployment;
-    // Before any port exists: mlockall then locks every segment as it is mapped, and a
-    // peer that waits for this process's publishers sees them only once it is set up.
-    d.rt(spec.process, spec.mode).apply()?;
-    let stamp = Stamp::new(spec.mode, spec.scenario);
-    let mut bus = IpcBus::open(spec.instance, spec.node_name, &stamp)?;
+    let (mut process, mut bus) = Process::open(spec)?;
     let (node, ports) = build(&mut bus)?;
-    let realtime = spec.mode != Mode::Lockstep;
-    let stats_port = if realtime {
-        Some(bus.publisher()?)
-    } else {
-        None
-    };
-    let settings = Settings {
-        wait: d.wait(spec.process, spec.mode),
-        startup_timeout: d.startup_timeout(),
-        peer_timeout: d.peer_timeout(),
-        // In hardware mode the loop sleeps on the bridge's event, whose length it does not
-        // choose, so it cannot tell a hold from a wait.
-        account_host_holds: spec.process == Process::CurrentLoop && spec.mode == Mode::Realtime,
-        linger: STATS_LINGER,
-    };
-    tracing::info!(
-        instance = spec.instance,
-        mode = spec.mode.as_str(),
-        wait = %settings.wait,
-        "{} up",
-        spec.node_name
-    );
-    Runner::new(node, ports, settings, stats_port).run()
+    process.run(node, ports)
 }

@@ -118,7 +118,7 @@ impl<N: Node> Runner<N> {
         };
         // Heap-allocated once: the report is ~90 KB.
         let stats = Box::new(StatsReport {
-            role: role.stats_role(),
+            role: role.code(),
             ..Default::default()
         });
         let steal = (settings.account_host_holds && settings.wait != WaitStrategy::Event)

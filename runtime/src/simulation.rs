@@ -16,6 +16,7 @@ use crate::error::RunError;
 use crate::node::{Node, Pace, Role};
 use crate::runner::{Runner, Wake};
 use std::ops::Range;
+use stepdrive_shared::stats::StatsReport;
 
 /// What the simulation needs of a runner; every [`Runner`] is one.
 pub trait Member {
@@ -25,6 +26,8 @@ pub trait Member {
     fn next_deadline(&self) -> Option<u64>;
     fn finished(&self) -> bool;
     fn awaiting(&self) -> String;
+    /// Its statistics so far.
+    fn stats(&self) -> &StatsReport;
     /// The run is over (every member done, or an error): stop the node.
     fn finish(&mut self, clock: &VirtualClock, completed: bool) -> Result<(), RunError>;
 }
@@ -64,6 +67,10 @@ impl<N: Node> Member for Runner<N> {
 
     fn awaiting(&self) -> String {
         Runner::awaiting(self)
+    }
+
+    fn stats(&self) -> &StatsReport {
+        Runner::stats(self)
     }
 
     fn finish(&mut self, clock: &VirtualClock, completed: bool) -> Result<(), RunError> {

@@ -9,6 +9,7 @@ pub mod messages;
 pub mod plant;
 pub mod scenario;
 pub mod services;
+pub mod stack;
 pub mod stats;
 pub mod trajectory;
 

@@ -136,13 +136,6 @@ impl Histogram {
         (out, overflow)
     }
 }
-/// Which process a [`StatsReport`] comes from.
-pub mod roles {
-    pub const PLANT: u32 = 0;
-    pub const CURRENT_LOOP: u32 = 1;
-    pub const POSITION_LOOP: u32 = 2;
-}
-
 /// A loop's timing statistics, published at ~1 Hz and once more (`is_final`) at exit.
 #[derive(Debug, Clone, Copy, PartialEq, Default)]
 #[cfg_attr(
@@ -152,6 +145,7 @@ pub mod roles {
 )]
 #[repr(C)]
 pub struct StatsReport {
+    /// The publisher's [`crate::stack::Role::code`].
     pub role: u32,
     pub is_final: u32,
     pub seq: u64,

@@ -7,12 +7,14 @@ use crate::latency::histfile::{cyclictest_file, CyclictestHistogram, SparseHisto
 use crate::latency::pingpong::Transport;
 use crate::report::metrics::RunReport;
 use crate::report::timing::Percentiles;
-use crate::supervise::launcher::{run_stack, LaunchOptions, Supervised};
+use crate::supervise::children::Supervised;
+use crate::supervise::launcher::{run_stack, LaunchOptions};
 use anyhow::{bail, Context, Result};
 use serde::Serialize;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
+use stepdrive_shared::stack::Role;
 use stepdrive_shared::stats::Histogram;
 use stepdrive_shared::{Method, Scenario};
 
@@ -110,8 +112,8 @@ fn pingpong(
     };
     let mut pong_args = common("pong");
     pong_args.extend(["--out".to_string(), file.display().to_string()]);
-    let mut pong = Supervised::spawn("pingpong", &pong_args)?;
-    let mut ping = Supervised::spawn("pingpong", &common("ping"))?;
+    let mut pong = Supervised::spawn(Role::Tool("pingpong"), &pong_args)?;
+    let mut ping = Supervised::spawn(Role::Tool("pingpong"), &common("ping"))?;
     let limit = o.baseline_duration + Duration::from_secs(40);
     let ps = ping.finish(limit);
     let qs = pong.finish(Duration::from_secs(10));

@@ -601,12 +601,7 @@ impl Recording {
             return Ok(());
         };
         let (channel, t) = (ch.stats, ch.last_t);
-        let role = match r.role {
-            stepdrive_shared::stats::roles::PLANT => "plant",
-            stepdrive_shared::stats::roles::CURRENT_LOOP => "current-loop",
-            stepdrive_shared::stats::roles::POSITION_LOOP => "position-loop",
-            _ => "other",
-        };
+        let role = stepdrive_shared::stack::Role::from_code(r.role).map_or("other", |r| r.id());
         let rec = StatsRecord {
             t,
             role: role.to_string(),

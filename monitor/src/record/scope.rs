@@ -21,7 +21,8 @@ use stepdrive_runtime::port::PortFactory;
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::DriveState;
 use stepdrive_shared::services::MONITOR_BUFFER;
-use stepdrive_shared::stats::{roles, StatsReport};
+use stepdrive_shared::stack::{Role, Slot};
+use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::trajectory::Trapezoid;
 use stepdrive_shared::Scenario;
 
@@ -123,8 +124,9 @@ impl View {
     }
 
     pub fn push_stats(&mut self, r: &StatsReport) {
-        if let Some(slot) = self.stats.get_mut(r.role as usize) {
-            *slot = Some(*r);
+        let slot = Role::from_code(r.role).and_then(Role::slot);
+        if let Some(slot) = slot {
+            self.stats[slot.index()] = Some(*r);
         }
     }
 }
@@ -150,10 +152,12 @@ fn header(v: &View) -> Vec<Line<'static>> {
             if v.paused { "   PAUSED" } else { "" }
         )),
     ])];
-    let names = ["plant", "current loop", "position loop"];
     let mut timing = Vec::new();
-    for (i, name) in names.iter().enumerate() {
-        let Some(r) = v.stats[i] else { continue };
+    for slot in Slot::ALL {
+        let Some(r) = v.stats[slot.index()] else {
+            continue;
+        };
+        let name = Role::from_code(r.role).map_or("?", Role::title);
         let pct = if r.cycles > 0 {
             100.0 * r.misses as f64 / r.cycles as f64
         } else {
@@ -163,7 +167,7 @@ fn header(v: &View) -> Vec<Line<'static>> {
         if r.wakeup.count > 0 {
             text += &format!(", wake-up p99 {}", us(&r.wakeup, 0.99));
         }
-        if i == roles::PLANT as usize && r.sensor_to_actuator.count > 0 {
+        if slot == Slot::Device && r.sensor_to_actuator.count > 0 {
             text += &format!(", s2a p99 {}", us(&r.sensor_to_actuator, 0.99));
         }
         timing.push(text);
@@ -362,7 +366,7 @@ mod tests {
         let mut v = View::new(&s, "bench", "realtime");
         feed(&mut v, &s, 0, 20_000, 0);
         let mut plant = StatsReport {
-            role: roles::PLANT,
+            role: Role::Plant.code(),
             cycles: 20_000,
             misses: 20,
             ..Default::default()

@@ -23,6 +23,9 @@ pub struct RunReport {
     /// Why it stopped early.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stopped_because: Option<String>,
+    /// Why its recording is incomplete (the run went on without it).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub recording_error: Option<String>,
     /// The first latched fault.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fault: Option<FaultEvent>,
@@ -433,6 +436,7 @@ impl Metrics {
             outcome,
             complete: stopped_because.is_none(),
             stopped_because,
+            recording_error: None,
             fault: self.first_latched.clone(),
             cruise_max_abs_error_rad: if self.cruise_n == 0 {
                 f64::NAN

@@ -3,21 +3,22 @@
 //! lockstep it is the reference a multi-process run must reproduce bit for bit; with stalls
 //! it shows what a host stall of the current loop costs under the realtime plant's rules.
 
+use crate::assemble::{assemble, Assemble, Setup};
 use crate::report::metrics::{Metrics, RunReport};
+use crate::supervise::observer::Observer;
 use std::ops::Range;
 use std::time::{Duration, Instant};
-use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
-use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
-use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
+use stepdrive_runtime::deploy::Deployment;
 use stepdrive_runtime::memory::MemoryBus;
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role};
 use stepdrive_runtime::port::{PortFactory, Subscribe};
 use stepdrive_runtime::runner::{Runner, Settings};
-use stepdrive_runtime::simulation::{self, Hold};
+use stepdrive_runtime::simulation::{self, Hold, Member};
 use stepdrive_runtime::RunError;
-use stepdrive_shared::messages::{state_flags, DriveState};
+use stepdrive_shared::messages::DriveState;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::MONITOR_BUFFER;
+use stepdrive_shared::stack::{stack, Purpose};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{Method, Scenario};
 
@@ -79,6 +80,18 @@ pub struct NoDelay;
 /// Virtual time has no timeouts worth the name: a stuck simulation is a deadlock instead.
 const NEVER: Duration = Duration::from_secs(1_000_000_000);
 
+/// Each node of the declaration as a member of the simulation.
+struct Members(Vec<Box<dyn Member>>);
+
+impl Assemble for Members {
+    type Out = ();
+    fn node<N: Node + 'static>(&mut self, node: N, ports: N::Ports) -> Result<(), RunError> {
+        let runner = Runner::new(node, ports, Settings::lockstep(NEVER, NEVER), None);
+        self.0.push(Box::new(runner));
+        Ok(())
+    }
+}
+
 /// Runs the stack in `mode` in memory; returns the metrics of the plant's state stream and
 /// the plant's final statistics.
 fn run_in_memory(
@@ -89,38 +102,24 @@ fn run_in_memory(
     watchdog_periods: u32,
 ) -> Result<(Metrics, StatsReport), RunError> {
     let mut bus = MemoryBus::new(mode);
-    let settings = Settings::lockstep(NEVER, NEVER);
-    let plant = PlantNode::new(
-        s,
-        PlantSettings {
-            mode,
-            wait_subscribers: 3,
-            wait_position_loop: true,
-            watchdog_periods,
-            start_delay_ns: 0,
-        },
-    );
-    let mut plant = Runner::new(
-        plant,
-        PlantPorts::open(&mut bus, mode)?,
-        settings.clone(),
-        None,
-    );
-    let mut position = Runner::new(
-        PositionLoopNode::new(s, mode, 0),
-        PositionLoopPorts::open(&mut bus)?,
-        settings.clone(),
-        None,
-    );
-    let mut current = Runner::new(
-        CurrentLoopNode::new(s, method, mode),
-        CurrentLoopPorts::open(&mut bus, mode, false)?,
-        settings.clone(),
-        None,
-    );
-    let sink = StateSink::new(s);
+    let stack = stack(mode, Purpose::Control);
+    let deployment = Deployment {
+        watchdog_periods,
+        ..Deployment::default()
+    };
+    let mut setup = Setup::new(s, &stack, &deployment, 1, false);
+    setup.method = method;
+    let mut members = Members(Vec::with_capacity(stack.nodes.len() + 1));
+    for node in &stack.nodes {
+        assemble(node.role, &setup, &mut bus, &mut members)?;
+    }
+    // The monitor's part: every state by the supervisor's rules, into the metrics.
+    let sink = StateSink {
+        observer: Observer::new(s, mode),
+        rate_hz: s.rates.current_loop_hz,
+    };
     let sink_port = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
-    let mut sink = Runner::new(sink, sink_port, settings, None);
+    let mut sink = Runner::new(sink, sink_port, Settings::lockstep(NEVER, NEVER), None);
     let period_ns = s.sample_period_ns();
     let holds: Vec<Hold> = stalls
         .iter()
@@ -129,35 +128,34 @@ fn run_in_memory(
             during_ns: r.start * period_ns..r.end * period_ns,
         })
         .collect();
-    simulation::run(
-        &mut [&mut plant, &mut position, &mut current, &mut sink],
-        &holds,
-    )?;
-    Ok((sink.node().metrics.clone(), *plant.stats()))
-}
-
-/// The monitor's part in a simulation: every state into the metrics.
-struct StateSink {
-    metrics: Metrics,
-    rate_hz: f64,
-    last_seen: bool,
-}
-
-impl StateSink {
-    fn new(s: &Scenario) -> Self {
-        Self {
-            metrics: Metrics::new(s),
-            rate_hz: s.rates.current_loop_hz,
-            last_seen: false,
-        }
+    let mut all: Vec<&mut dyn Member> = Vec::with_capacity(members.0.len() + 1);
+    for m in members.0.iter_mut() {
+        all.push(m.as_mut());
     }
+    all.push(&mut sink);
+    simulation::run(&mut all, &holds)?;
+    drop(all);
+    let device = stack.device().role;
+    let plant = members
+        .0
+        .iter()
+        .find(|m| m.role() == device)
+        .map(|m| *m.stats())
+        .unwrap_or_default();
+    Ok((sink.node().observer.metrics().clone(), plant))
+}
+
+/// The monitor's part in a simulation: every state, by the supervisor's rules.
+struct StateSink {
+    observer: Observer<'static>,
+    rate_hz: f64,
 }
 
 impl Node for StateSink {
     type Ports = Box<dyn Subscribe<DriveState>>;
 
     fn role(&self) -> Role {
-        Role::Tool("monitor")
+        Role::Monitor
     }
 
     fn pace(&self) -> Pace {
@@ -173,12 +171,17 @@ impl Node for StateSink {
     }
 
     fn poll(&mut self, states: &mut Self::Ports, _cx: &mut Cx) -> Result<Poll, RunError> {
-        let (metrics, last_seen) = (&mut self.metrics, &mut self.last_seen);
+        let observer = &mut self.observer;
+        let mut broken = None;
         states.drain(&mut |st| {
-            metrics.push(st);
-            *last_seen |= st.flags & state_flags::LAST != 0;
+            if broken.is_none() {
+                broken = observer.state(st).err();
+            }
         })?;
-        Ok(if self.last_seen {
+        if let Some(stop) = broken {
+            return Err(RunError::Deadlock(stop.because));
+        }
+        Ok(if self.observer.last_seen() {
             Poll::READY
         } else {
             Poll::Pending

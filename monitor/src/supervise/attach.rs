@@ -7,19 +7,22 @@
 //!   it launches.
 
 use crate::record::recording::Recording;
-use crate::report::metrics::{Metrics, RunReport};
+use crate::report::metrics::RunReport;
 use crate::report::outcome::{fault_names, Outcome, LATCHED};
+use crate::supervise::observer::Observer;
+use crate::supervise::supervisor::{Controls, Ending, Feeds, Supervisor, Until};
 use anyhow::{bail, Result};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::clock::monotonic_ns;
 use stepdrive_runtime::ipc::{IpcBus, Stamp};
-use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::{PortFactory, Publish, Subscribe};
 use stepdrive_shared::messages::{
-    state_flags, DriveCommand, DrivePlan, DriveState, ResetRequest, TorqueSetpoint,
+    DriveCommand, DrivePlan, DriveState, ResetRequest, TorqueSetpoint,
 };
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER, MONITOR_BUFFER};
+use stepdrive_shared::stack::Role;
+use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{Method, Scenario};
 
 /// What a reset achieved.
@@ -105,130 +108,73 @@ pub fn attach_reader(instance: &str, role: &str, scenario: &Scenario) -> Result<
 }
 
 /// Computes the figures of the run on `instance` from its state stream, until its last
-/// sample, the stack going silent for `peer_timeout`, or Ctrl-C. `scenario` must be the
-/// stack's (its fingerprint is checked); `method` labels the report. With `recording`,
-/// every sample seen goes to the file, and those missed are counted.
-/// What a recorder takes besides the states: setpoints, commands and (realtime) plans.
-struct Controls {
-    setpoints: Box<dyn Subscribe<TorqueSetpoint>>,
-    commands: Box<dyn Subscribe<DriveCommand>>,
-    plans: Option<Box<dyn Subscribe<DrivePlan>>>,
-}
-
-impl Controls {
-    fn open(bus: &mut IpcBus, mode: Mode) -> Result<Self> {
-        // The plan topic has room for the plant and one reader: a stack recorded by `run`
-        // already has it, and is recorded here without its plans.
-        let plans = match mode {
-            Mode::Lockstep => None,
-            _ => match bus.subscriber::<DrivePlan>(LOOP_BUFFER) {
-                Ok(p) => Some(p),
-                Err(e) => {
-                    tracing::warn!("recording without the voltage plans: {e}");
-                    None
-                }
-            },
-        };
-        Ok(Self {
-            setpoints: bus.subscriber::<TorqueSetpoint>(MONITOR_BUFFER)?,
-            commands: bus.subscriber::<DriveCommand>(MONITOR_BUFFER)?,
-            plans,
-        })
-    }
-
-    fn record(&mut self, r: &mut Recording) -> Result<()> {
-        while let Some(sp) = self.setpoints.receive()? {
-            r.setpoint(&sp)?;
-        }
-        while let Some(c) = self.commands.receive()? {
-            r.command(&c)?;
-        }
-        if let Some(plans) = self.plans.as_mut() {
-            while let Some(p) = plans.receive()? {
-                r.plan(&p)?;
-            }
-        }
-        Ok(())
-    }
-}
-
+/// sample, the stack going silent for `peer_timeout`, or Ctrl-C: the one supervisor, with
+/// no children of its own. `scenario` must be the stack's (its fingerprint is checked);
+/// `method` labels the report. With `recording`, every sample seen goes to the file, with
+/// the setpoints, commands and (realtime) plans, and those missed are counted.
 pub fn watch(
     instance: &str,
     scenario: &Scenario,
     method: Method,
     peer_timeout: Duration,
-    mut recording: Option<&mut Recording>,
+    recording: Option<&mut Recording>,
 ) -> Result<RunReport> {
-    let mut bus = attach_reader(instance, "monitor", scenario)?;
+    let mut bus = attach_reader(instance, Role::Monitor.id(), scenario)?;
     let mode = bus.mode();
-    let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
-    let mut metrics = Metrics::new(scenario);
-    let mut controls = None;
-    if let Some(r) = recording.as_deref_mut() {
-        r.begin(method)?;
-        controls = Some(Controls::open(&mut bus, mode)?);
-    }
-    let mut last_seq: Option<u64> = None;
-    let mut last_heard = Instant::now();
-    let (mut first_ns, mut last_ns) = (None, 0);
-    let started = Instant::now();
-    let outcome = loop {
-        let mut last = false;
-        while let Some(s) = states.receive()? {
-            first_ns.get_or_insert(s.publish_time_ns);
-            last_ns = s.publish_time_ns;
-            metrics.push(&s);
-            if let Some(r) = recording.as_deref_mut() {
-                // Attached late or fallen behind: the samples never seen are counted.
-                if let Some(gap) = last_seq.map(|q| s.seq.saturating_sub(q + 1)) {
-                    r.lost(gap);
-                }
-                r.state(&s)?;
-            }
-            last_seq = Some(s.seq);
-            last_heard = Instant::now();
-            last |= s.flags & state_flags::LAST != 0;
-        }
-        if let (Some(c), Some(r)) = (controls.as_mut(), recording.as_deref_mut()) {
-            c.record(r)?;
-        }
-        if last {
-            // The answer to the last sample comes after it.
-            std::thread::sleep(Duration::from_millis(50));
-            if let (Some(c), Some(r)) = (controls.as_mut(), recording.as_deref_mut()) {
-                c.record(r)?;
-            }
-            break None;
-        }
-        if termination_requested() {
-            break Some((
-                Outcome::Interrupted,
-                "interrupted (SIGINT/SIGTERM)".to_string(),
-            ));
-        }
-        let limit = if metrics.samples() == 0 {
-            peer_timeout.max(Duration::from_secs(30))
-        } else {
-            peer_timeout
-        };
-        if last_heard.elapsed() > limit {
-            break Some((
-                Outcome::ProcessDied,
-                format!(
-                    "the plant of instance `{instance}` has been silent for {:.1} s",
-                    last_heard.elapsed().as_secs_f64()
-                ),
-            ));
-        }
-        std::thread::sleep(Duration::from_micros(500));
+    let controls = match recording {
+        Some(_) => Some(Controls {
+            setpoints: bus.subscriber::<TorqueSetpoint>(MONITOR_BUFFER)?,
+            commands: bus.subscriber::<DriveCommand>(MONITOR_BUFFER)?,
+            // The plan topic has room for the device and one reader: a stack recorded by
+            // `run` already has it, and is recorded here without its plans.
+            plans: match mode {
+                Mode::Lockstep => None,
+                _ => match bus.subscriber::<DrivePlan>(LOOP_BUFFER) {
+                    Ok(p) => Some(p),
+                    Err(e) => {
+                        tracing::warn!("recording without the voltage plans: {e}");
+                        None
+                    }
+                },
+            },
+        }),
+        None => None,
     };
-    let wall = first_ns.map_or(started.elapsed().as_secs_f64(), |f| {
-        last_ns.saturating_sub(f) as f64 * 1e-9
-    });
-    Ok(match outcome {
-        None => metrics.finish(method, mode.as_str(), wall),
-        Some((outcome, because)) => {
-            metrics.finish_early(method, mode.as_str(), wall, outcome, because)
+    let feeds = Feeds {
+        states: bus.subscriber::<DriveState>(MONITOR_BUFFER)?,
+        stats: bus.subscriber::<StatsReport>(4)?,
+        controls,
+    };
+    let observer = Observer::new(scenario, mode).recording(recording, method);
+    // A reader may be started before the stack: it waits for the first sample as long as
+    // for a silent peer, and at least 30 s.
+    let timeouts = (peer_timeout.max(Duration::from_secs(30)), peer_timeout);
+    let mut sup = Supervisor::new(
+        scenario,
+        mode,
+        method.as_str(),
+        feeds,
+        observer,
+        &mut [],
+        None,
+        timeouts,
+    );
+    let ending = sup.run(Until::LastSample)?;
+    if ending == Ending::Last {
+        // The answer to the last sample comes after it.
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    sup.drain_stats()?;
+    sup.drain_controls()?;
+    let stop = match ending {
+        Ending::Last => None,
+        Ending::Stopped(mut stop) => {
+            if stop.outcome == Outcome::ProcessDied && sup.observer.metrics().samples() > 0 {
+                stop.because = format!("instance `{instance}`: {}", stop.because);
+            }
+            Some(stop)
         }
-    })
+    };
+    let wall = sup.observer.wall_s();
+    Ok(sup.observer.report(method, mode.as_str(), wall, stop))
 }

@@ -1,0 +1,250 @@
+//! The stack's nodes built from its declaration (`stepdrive_shared::stack`): each role's
+//! node and ports, built the same way for a process (`stepdrive plant`, `current-loop`, ...)
+//! and for the in-process simulation. What differs is only what is done with them
+//! ([`Assemble`]): run on the wall clock in a process, or stepped with the others on
+//! virtual time.
+
+use stepdrive_bridge::link::{EncoderCalibration, HeldLoad};
+use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
+use stepdrive_control::identify::Bounds;
+use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
+use stepdrive_controller::identify_node::{IdentifyNode, IdentifyPorts};
+use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
+use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
+use stepdrive_runtime::deploy::Deployment;
+use stepdrive_runtime::node::Node;
+use stepdrive_runtime::pacer::WaitStrategy;
+use stepdrive_runtime::port::PortFactory;
+use stepdrive_runtime::RunError;
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::services::Topic;
+use stepdrive_shared::stack::{Role, Stack};
+use stepdrive_shared::{Method, Scenario};
+
+/// Realtime: the plant's first deadline this long after it sees its peers, so that every
+/// process is in its loop by then.
+const START_DELAY_NS: u64 = 20_000_000;
+
+/// What building a stack's nodes needs beside the declaration.
+#[derive(Debug, Clone)]
+pub struct Setup<'a> {
+    pub scenario: &'a Scenario,
+    pub mode: Mode,
+    pub deployment: &'a Deployment,
+    /// The current loop's method.
+    pub method: Method,
+    /// State subscribers the device waits for before its first sample (the stack's readers,
+    /// and a monitor).
+    pub state_readers: usize,
+    /// The device waits for a position loop too.
+    pub position_loop: bool,
+    /// Processes on the wall clock (a start-up delay, the position loop's ticks half a
+    /// period after the samples, a watch on the setpoints' freshness), or one thread of a
+    /// simulation.
+    pub wall_clock: bool,
+    /// The identification's bounds.
+    pub bounds: Bounds,
+}
+
+impl<'a> Setup<'a> {
+    /// The setup of `stack`'s nodes, the device waiting for `monitors` more state readers.
+    pub fn new(
+        scenario: &'a Scenario,
+        stack: &Stack,
+        deployment: &'a Deployment,
+        monitors: usize,
+        wall_clock: bool,
+    ) -> Self {
+        Self {
+            scenario,
+            mode: stack.mode,
+            deployment,
+            method: Method::Proposed,
+            state_readers: stack.readers(Topic::State) + monitors,
+            position_loop: stack.has_writer(Topic::Setpoint),
+            wall_clock,
+            bounds: Bounds::default(),
+        }
+    }
+
+    /// Whether `role` waits on the bridge's state-ready event (`--wait event`), which only a
+    /// bridge raises.
+    fn waits_on_event(&self, role: Role) -> Result<bool, RunError> {
+        let event = self.deployment.wait(role, self.mode) == WaitStrategy::Event;
+        if event && self.mode != Mode::Hardware {
+            return Err(RunError::node(role, NoEvent));
+        }
+        Ok(event)
+    }
+}
+
+/// `--wait event` outside hardware mode.
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "--wait event needs a plant that raises state-ready: only the bridge does (--mode hardware)"
+)]
+pub struct NoEvent;
+
+/// A role without a node that can be built here.
+#[derive(Debug, thiserror::Error)]
+pub enum AssembleError {
+    #[error("the {0} is not a node of the stack")]
+    NotANode(Role),
+    #[error("in hardware mode the plant is a bridge to a drive: give it with --drive HOST:PORT (or a serial device path)")]
+    NoDrive,
+    #[error(transparent)]
+    BadDrive(#[from] stepdrive_bridge::node::BadDriveAddr),
+    #[error("--wait event is for the current loop; the bridge waits for the drive's frames with sleep, spin or hybrid:<µs>")]
+    BridgeEvent,
+}
+
+/// What is done with each node once built.
+pub trait Assemble {
+    type Out;
+    fn node<N: Node + 'static>(&mut self, node: N, ports: N::Ports) -> Result<Self::Out, RunError>;
+}
+
+/// Builds `role`'s node and ports on `bus` and hands them to `a`.
+pub fn assemble<A: Assemble>(
+    role: Role,
+    setup: &Setup,
+    bus: &mut impl PortFactory,
+    a: &mut A,
+) -> Result<A::Out, RunError> {
+    match role {
+        Role::Plant => {
+            let (n, p) = plant(setup, bus)?;
+            a.node(n, p)
+        }
+        Role::Bridge => {
+            let (n, p) = bridge(setup, bus)?;
+            a.node(n, p)
+        }
+        Role::CurrentLoop => {
+            let (n, p) = current_loop(setup, bus)?;
+            a.node(n, p)
+        }
+        Role::PositionLoop => {
+            let (n, p) = position_loop(setup, bus)?;
+            a.node(n, p)
+        }
+        Role::Identify => {
+            let (n, p) = identify(setup, bus)?;
+            a.node(n, p)
+        }
+        Role::EmulatedDrive | Role::Monitor | Role::Tool(_) => {
+            Err(RunError::node(role, AssembleError::NotANode(role)))
+        }
+    }
+}
+
+/// The simulated plant.
+pub fn plant(
+    setup: &Setup,
+    bus: &mut impl PortFactory,
+) -> Result<(PlantNode, PlantPorts), RunError> {
+    let settings = PlantSettings {
+        mode: setup.mode,
+        wait_subscribers: setup.state_readers,
+        wait_position_loop: setup.position_loop,
+        watchdog_periods: setup.deployment.watchdog_periods,
+        start_delay_ns: if setup.wall_clock { START_DELAY_NS } else { 0 },
+    };
+    Ok((
+        PlantNode::new(setup.scenario, settings),
+        PlantPorts::open(bus, setup.mode)?,
+    ))
+}
+
+/// The bridge to the deployment's drive.
+pub fn bridge(
+    setup: &Setup,
+    bus: &mut impl PortFactory,
+) -> Result<(BridgeNode, BridgePorts), RunError> {
+    let settings = bridge_settings(setup)?;
+    let node = BridgeNode::new(setup.scenario, settings.clone())?;
+    let ports = BridgePorts::open(bus, &settings.drive)?;
+    Ok((node, ports))
+}
+
+/// The current loop with the setup's method.
+pub fn current_loop(
+    setup: &Setup,
+    bus: &mut impl PortFactory,
+) -> Result<(CurrentLoopNode, CurrentLoopPorts), RunError> {
+    let event = setup.waits_on_event(Role::CurrentLoop)?;
+    let mut node = CurrentLoopNode::new(setup.scenario, setup.method, setup.mode);
+    if setup.wall_clock {
+        node = node.watching_setpoints(setup.deployment.peer_timeout());
+    }
+    Ok((node, CurrentLoopPorts::open(bus, setup.mode, event)?))
+}
+
+/// The position loop.
+pub fn position_loop(
+    setup: &Setup,
+    bus: &mut impl PortFactory,
+) -> Result<(PositionLoopNode, PositionLoopPorts), RunError> {
+    // Half a current period after the plant's samples: each tick finds its sample out. In
+    // one thread the plant simply goes first.
+    let s = setup.scenario;
+    let phase_ns = if setup.wall_clock {
+        s.sample_period_ns() / 2
+    } else {
+        0
+    };
+    Ok((
+        PositionLoopNode::new(s, setup.mode, phase_ns),
+        PositionLoopPorts::open(bus, setup.mode)?,
+    ))
+}
+
+/// The identification sequence, in the current loop's place.
+pub fn identify(
+    setup: &Setup,
+    bus: &mut impl PortFactory,
+) -> Result<(IdentifyNode, IdentifyPorts), RunError> {
+    let event = setup.waits_on_event(Role::Identify)?;
+    Ok((
+        IdentifyNode::new(setup.scenario, setup.bounds, setup.mode),
+        IdentifyPorts::open(bus, setup.mode, event)?,
+    ))
+}
+
+/// The bridge's settings: the deployment's drive link, the scenario's load for the
+/// alignment's rest angle.
+fn bridge_settings(setup: &Setup) -> Result<BridgeSettings, RunError> {
+    let d = setup.deployment;
+    let s = setup.scenario;
+    let bad = |e: AssembleError| RunError::node(Role::Bridge, e);
+    let drive: DriveAddr = d
+        .drive
+        .address
+        .as_deref()
+        .ok_or(AssembleError::NoDrive)
+        .map_err(bad)?
+        .parse()
+        .map_err(|e| bad(AssembleError::BadDrive(e)))?;
+    let wait = d.wait(Role::Bridge, setup.mode);
+    if wait == WaitStrategy::Event {
+        return Err(bad(AssembleError::BridgeEvent));
+    }
+    Ok(BridgeSettings {
+        drive,
+        wait_subscribers: setup.state_readers,
+        wait_position_loop: setup.position_loop,
+        silence_periods: d.drive.silence_periods,
+        plan_every: d.drive.plan_every,
+        observer_hz: d.drive.observer_hz,
+        calibration: EncoderCalibration {
+            offset_counts: d.drive.encoder_offset_counts,
+            reverse: d.drive.reverse_encoder,
+            held_load: Some(HeldLoad {
+                torque_nm: s.load.torque_nm,
+                torque_constant_nm_per_a: s.motor.torque_constant_nm_per_a,
+                rotor_teeth: s.motor.n_r(),
+            }),
+        },
+        look_for_answers: wait == WaitStrategy::Sleep,
+    })
+}

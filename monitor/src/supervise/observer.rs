@@ -1,0 +1,247 @@
+//! What the supervisor does with each message it takes from a stack: one rule set for every
+//! way a stack is watched (launched by `run`, `identify` or `serve`; attached by `monitor` or
+//! `record`; stepped in one thread by `simulate`).
+//!
+//! - A state published after a newer one, or repeated, breaks the device's contract: the run
+//!   stops (process died).
+//! - A gap: in lockstep queues never drop, so after the first state the monitor sees (which
+//!   may be any: it may have attached late) a gap is the stack's protocol error and the run
+//!   stops; on the wall clock the monitor is the one reader allowed to fall behind, and what
+//!   it never saw is counted (and recorded as lost).
+//! - Every state goes into the metrics and, when recording, to the file; setpoints,
+//!   commands, plans and statistics go to the file as they come.
+//! - A recording that fails is said once and given up; the run goes on (the motor comes
+//!   first), and its report says the recording is incomplete.
+
+use crate::record::recording::Recording;
+use crate::report::metrics::{Metrics, RunReport};
+use crate::report::outcome::Outcome;
+use stepdrive_shared::messages::{
+    state_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint,
+};
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::{Method, Scenario};
+
+/// Why watching a stack stopped before its last sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Stop {
+    pub outcome: Outcome,
+    pub because: String,
+}
+
+impl Stop {
+    pub fn new(outcome: Outcome, because: impl Into<String>) -> Self {
+        Self {
+            outcome,
+            because: because.into(),
+        }
+    }
+}
+
+/// The per-message rules, the metrics and the recording of one run. See the module
+/// documentation.
+pub struct Observer<'r> {
+    metrics: Metrics,
+    recording: Option<&'r mut Recording>,
+    recording_failed: Option<String>,
+    /// Lockstep: every state after the first must be the next.
+    synchronous: bool,
+    last_seq: Option<u64>,
+    /// States the monitor never saw, after the first it saw.
+    lost: u64,
+    first_ns: Option<u64>,
+    last_ns: u64,
+    last_seen: bool,
+}
+
+impl<'r> Observer<'r> {
+    /// Watches a run of `s` in `mode`.
+    pub fn new(s: &Scenario, mode: Mode) -> Self {
+        Self {
+            metrics: Metrics::new(s),
+            recording: None,
+            recording_failed: None,
+            synchronous: mode == Mode::Lockstep,
+            last_seq: None,
+            lost: 0,
+            first_ns: None,
+            last_ns: 0,
+            last_seen: false,
+        }
+    }
+
+    /// Records what it takes into `recording`, on the channels of `method`, which begin now.
+    pub fn recording(mut self, recording: Option<&'r mut Recording>, method: Method) -> Self {
+        if let Some(r) = recording {
+            match r.begin(method) {
+                Ok(()) => self.recording = Some(r),
+                Err(e) => self.give_up_recording(e.to_string()),
+            }
+        }
+        self
+    }
+
+    fn give_up_recording(&mut self, why: String) {
+        tracing::error!("{why}; the rest of the run goes unrecorded");
+        self.recording = None;
+        self.recording_failed.get_or_insert(why);
+    }
+
+    /// Runs `f` on the recording, giving it up if it fails.
+    fn record(
+        &mut self,
+        f: impl FnOnce(&mut Recording) -> Result<(), crate::record::recording::RecordError>,
+    ) {
+        if let Some(r) = self.recording.as_deref_mut() {
+            if let Err(e) = f(r) {
+                self.give_up_recording(e.to_string());
+            }
+        }
+    }
+
+    /// One state, by the rules. Stops the run if the stream broke its contract.
+    pub fn state(&mut self, st: &DriveState) -> Result<(), Stop> {
+        if let Some(last) = self.last_seq {
+            if st.seq <= last {
+                return Err(Stop::new(
+                    Outcome::ProcessDied,
+                    format!("the plant published sample {} after sample {last}", st.seq),
+                ));
+            }
+            let gap = st.seq - last - 1;
+            if gap > 0 {
+                if self.synchronous {
+                    return Err(Stop::new(
+                        Outcome::ProcessDied,
+                        format!(
+                            "monitor expected sample {}, got {}: samples were lost",
+                            last + 1,
+                            st.seq
+                        ),
+                    ));
+                }
+                self.lost += gap;
+                self.record(|r| {
+                    r.lost(gap);
+                    Ok(())
+                });
+            }
+        }
+        self.last_seq = Some(st.seq);
+        self.first_ns.get_or_insert(st.publish_time_ns);
+        self.last_ns = st.publish_time_ns;
+        self.metrics.push(st);
+        self.record(|r| r.state(st));
+        self.last_seen |= st.flags & state_flags::LAST != 0;
+        Ok(())
+    }
+
+    pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
+        self.record(|r| r.setpoint(sp));
+    }
+
+    pub fn command(&mut self, c: &DriveCommand) {
+        self.record(|r| r.command(c));
+    }
+
+    pub fn plan(&mut self, p: &DrivePlan) {
+        self.record(|r| r.plan(p));
+    }
+
+    pub fn stats(&mut self, report: &StatsReport) {
+        self.record(|r| r.stats(report));
+    }
+
+    /// The emulated drive's true rotor state, recorded after the run.
+    pub fn truth(&mut self, rows: &[stepdrive_emulated_drive::truth::TruthRow]) {
+        self.record(|r| r.truth(rows));
+    }
+
+    /// The run's last state has been seen.
+    pub fn last_seen(&self) -> bool {
+        self.last_seen
+    }
+
+    pub fn metrics(&self) -> &Metrics {
+        &self.metrics
+    }
+
+    /// The index of the newest state seen, if any.
+    pub fn last_seq(&self) -> Option<u64> {
+        self.last_seq
+    }
+
+    /// States never seen after the first.
+    pub fn lost(&self) -> u64 {
+        self.lost
+    }
+
+    /// Wall time between the first and the last state seen, s.
+    pub fn wall_s(&self) -> f64 {
+        self.first_ns
+            .map_or(0.0, |f| self.last_ns.saturating_sub(f) as f64 * 1e-9)
+    }
+
+    /// Why the recording is incomplete, if it is.
+    pub fn recording_failed(&self) -> Option<&str> {
+        self.recording_failed.as_deref()
+    }
+
+    /// The run's report: complete, or stopped by `stop` with what ran before.
+    pub fn report(&self, method: Method, mode: &str, wall_s: f64, stop: Option<Stop>) -> RunReport {
+        let mut report = match stop {
+            None => self.metrics.finish(method, mode, wall_s),
+            Some(s) => self
+                .metrics
+                .finish_early(method, mode, wall_s, s.outcome, s.because),
+        };
+        report.recording_error = self.recording_failed.clone();
+        report
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state(seq: u64) -> DriveState {
+        DriveState {
+            seq,
+            sample_time_s: seq as f64 * 50e-6,
+            ..Default::default()
+        }
+    }
+
+    #[test]
+    fn a_sample_after_a_newer_one_stops_the_run_in_every_mode() {
+        for mode in [Mode::Lockstep, Mode::Realtime] {
+            let s = Scenario::default();
+            let mut o = Observer::new(&s, mode);
+            o.state(&state(5)).expect("the first may be any");
+            o.state(&state(6)).expect("the next");
+            let stop = o.state(&state(6)).expect_err("repeated");
+            assert_eq!(stop.outcome, Outcome::ProcessDied);
+            assert!(stop.because.contains("sample 6 after sample 6"), "{stop:?}");
+        }
+    }
+
+    #[test]
+    fn a_gap_stops_lockstep_and_is_counted_on_the_wall_clock() {
+        let s = Scenario::default();
+        let mut o = Observer::new(&s, Mode::Lockstep);
+        o.state(&state(0)).expect("first");
+        let stop = o.state(&state(3)).expect_err("a gap in lockstep");
+        assert!(
+            stop.because.contains("expected sample 1, got 3"),
+            "{stop:?}"
+        );
+
+        let mut o = Observer::new(&s, Mode::Realtime);
+        o.state(&state(10)).expect("first");
+        o.state(&state(13)).expect("a gap is counted");
+        o.state(&state(20)).expect("a gap is counted");
+        assert_eq!(o.lost(), 8);
+        assert_eq!(o.last_seq(), Some(20));
+    }
+}

@@ -1,0 +1,466 @@
+//! The one supervisor: what happens while a stack runs, whoever started it. `run`,
+//! `latency`, `identify` and `serve` launch a stack and supervise it with its children;
+//! `monitor` and `record` attach to one and supervise it without. Every message goes
+//! through the [`Observer`]'s rules; around them the supervisor watches the children, the
+//! termination flag and the stream's liveness, gathers every loop's statistics, and shows
+//! progress.
+
+use crate::report::timing::{rss_kib, Resources, Rss, TimingReport};
+use crate::supervise::children::{RunFiles, Supervised};
+use crate::supervise::observer::{Observer, Stop};
+use std::time::{Duration, Instant};
+use stepdrive_runtime::poll::termination_requested;
+use stepdrive_runtime::port::Subscribe;
+use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
+use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::stack::{Role, Slot};
+use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::Scenario;
+
+/// What the supervisor reads of a stack.
+pub struct Feeds {
+    pub states: Box<dyn Subscribe<DriveState>>,
+    pub stats: Box<dyn Subscribe<StatsReport>>,
+    /// When recording: the setpoints, commands and (realtime) plans.
+    pub controls: Option<Controls>,
+}
+
+/// What a recorder takes besides the states.
+pub struct Controls {
+    pub setpoints: Box<dyn Subscribe<TorqueSetpoint>>,
+    pub commands: Box<dyn Subscribe<DriveCommand>>,
+    /// The plan topic has room for the device and one reader: a second recorder goes
+    /// without.
+    pub plans: Option<Box<dyn Subscribe<DrivePlan>>>,
+}
+
+/// Every loop's latest and final statistics, by its place in the stack.
+#[derive(Default)]
+pub struct Finals {
+    latest: [Option<StatsReport>; 3],
+    finals: [Option<StatsReport>; 3],
+}
+
+impl Finals {
+    fn take(&mut self, r: &StatsReport) {
+        let Some(slot) = Role::from_code(r.role).and_then(Role::slot) else {
+            return;
+        };
+        let i = slot.index();
+        if r.is_final != 0 {
+            self.finals[i] = Some(*r);
+        }
+        self.latest[i] = Some(*r);
+    }
+
+    /// The device's deadline misses so far.
+    pub fn device_misses(&self) -> u64 {
+        self.latest[Slot::Device.index()].map_or(0, |p| p.misses)
+    }
+
+    /// The timing report from each loop's final statistics (or its last, said once).
+    pub fn timing(&self, s: &Scenario, monitor_lost: u64, mode: Mode) -> TimingReport {
+        let missing: Vec<&str> = Slot::ALL
+            .iter()
+            .filter(|slot| self.finals[slot.index()].is_none())
+            .map(|slot| match slot {
+                Slot::Device => "device",
+                Slot::Current => "current loop",
+                Slot::Position => "position loop",
+            })
+            .collect();
+        if !missing.is_empty() {
+            tracing::warn!(
+                ?missing,
+                "no final statistics from some processes; using their last report"
+            );
+        }
+        let pick = |slot: Slot| {
+            let i = slot.index();
+            self.finals[i].or(self.latest[i]).map(Box::new)
+        };
+        TimingReport::new(
+            s,
+            pick(Slot::Device),
+            pick(Slot::Current),
+            pick(Slot::Position),
+            monitor_lost,
+            // In hardware mode the loop sleeps on the bridge's event, whose length it does
+            // not choose, so it cannot tell a hold from a wait.
+            mode == Mode::Realtime,
+        )
+    }
+}
+
+/// When supervision ends by itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Until {
+    /// At the run's last sample.
+    LastSample,
+    /// Never: a stack that serves until Ctrl-C (or until it breaks).
+    Interrupted,
+}
+
+/// How supervision ended.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Ending {
+    /// The last sample arrived.
+    Last,
+    /// The run stopped early, or was stopped.
+    Stopped(Stop),
+}
+
+/// The children's resident memory at the first sample and at the last reading each
+/// answered, and the device's misses minute by minute.
+#[derive(Default)]
+struct Resource {
+    rss_start: Vec<(&'static str, u32, u64)>,
+    rss_end: Vec<u64>,
+    misses_per_minute: Vec<u64>,
+}
+
+impl Resource {
+    fn start(&mut self, children: &[Supervised]) {
+        let me = std::process::id();
+        self.rss_start = children
+            .iter()
+            .map(|c| (c.role().id(), c.pid()))
+            .chain([("monitor", me)])
+            .map(|(role, pid)| (role, pid, rss_kib(pid).unwrap_or(0)))
+            .collect();
+    }
+
+    fn read_end(&mut self) {
+        self.rss_end.resize(self.rss_start.len(), 0);
+        for (end, &(_, pid, _)) in self.rss_end.iter_mut().zip(&self.rss_start) {
+            if let Some(kib) = rss_kib(pid) {
+                *end = kib;
+            }
+        }
+    }
+}
+
+/// One supervision: a stack, how it is watched, what was gathered.
+pub struct Supervisor<'a, 'r> {
+    s: &'a Scenario,
+    mode: Mode,
+    /// Names the run in progress lines ("proposed", "identify", ...).
+    label: String,
+    feeds: Feeds,
+    pub observer: Observer<'r>,
+    pub finals: Finals,
+    /// The stack's processes, when this supervisor launched them.
+    children: &'a mut [Supervised],
+    /// Files the children read, removed once they all run.
+    files: Option<&'a RunFiles>,
+    startup_timeout: Duration,
+    peer_timeout: Duration,
+    resource: Resource,
+}
+
+impl<'a, 'r> Supervisor<'a, 'r> {
+    #[allow(clippy::too_many_arguments)]
+    pub fn new(
+        s: &'a Scenario,
+        mode: Mode,
+        label: impl Into<String>,
+        feeds: Feeds,
+        observer: Observer<'r>,
+        children: &'a mut [Supervised],
+        files: Option<&'a RunFiles>,
+        timeouts: (Duration, Duration),
+    ) -> Self {
+        Self {
+            s,
+            mode,
+            label: label.into(),
+            feeds,
+            observer,
+            finals: Finals::default(),
+            children,
+            files,
+            startup_timeout: timeouts.0,
+            peer_timeout: timeouts.1,
+            resource: Resource::default(),
+        }
+    }
+
+    /// Takes what arrived: statistics, states (by the observer's rules), and the controls
+    /// when recording. True if a state came.
+    fn drain(&mut self) -> Result<Result<bool, Stop>, stepdrive_runtime::port::PortError> {
+        while let Some(r) = self.feeds.stats.receive()? {
+            self.finals.take(&r);
+            self.observer.stats(&r);
+        }
+        let mut got = false;
+        while let Some(st) = self.feeds.states.receive()? {
+            got = true;
+            if let Err(stop) = self.observer.state(&st) {
+                return Ok(Err(stop));
+            }
+            if self.observer.last_seen() {
+                break;
+            }
+        }
+        self.drain_controls()?;
+        Ok(Ok(got))
+    }
+
+    /// Records the setpoints, commands and plans that arrived.
+    pub fn drain_controls(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
+        let Some(c) = self.feeds.controls.as_mut() else {
+            return Ok(());
+        };
+        while let Some(sp) = c.setpoints.receive()? {
+            self.observer.setpoint(&sp);
+        }
+        while let Some(cmd) = c.commands.receive()? {
+            self.observer.command(&cmd);
+        }
+        if let Some(plans) = c.plans.as_mut() {
+            while let Some(p) = plans.receive()? {
+                self.observer.plan(&p);
+            }
+        }
+        Ok(())
+    }
+
+    /// The statistics that arrived since (the final ones, after the children exit).
+    pub fn drain_stats(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
+        while let Some(r) = self.feeds.stats.receive()? {
+            self.finals.take(&r);
+            self.observer.stats(&r);
+        }
+        Ok(())
+    }
+
+    /// Supervises until `until`, a child's death, Ctrl-C, or the stack's silence.
+    pub fn run(&mut self, until: Until) -> anyhow::Result<Ending> {
+        let total = self.s.sample_count();
+        let duration = self.s.duration_s();
+        let realtime = self.mode != Mode::Lockstep;
+        let started = Instant::now();
+        let mut last_sample_at = Instant::now();
+        let mut next_progress = Instant::now() + Duration::from_secs(1);
+        let mut next_minute = Instant::now() + Duration::from_secs(60);
+        let mut misses_at_minute = 0;
+        let mut running = false;
+        let progress = Progress::new(&self.label, total);
+        let ending = loop {
+            let got = match self.drain()? {
+                Ok(got) => got,
+                Err(stop) => break Ending::Stopped(stop),
+            };
+            if until == Until::LastSample && self.observer.last_seen() {
+                break Ending::Last;
+            }
+            if got {
+                if !running {
+                    // A sample means every child is up, with its files read.
+                    running = true;
+                    if let Some(files) = self.files {
+                        files.remove();
+                    }
+                    self.resource.start(self.children);
+                }
+                last_sample_at = Instant::now();
+            }
+            if let Some(stop) = self.dead_child()? {
+                break Ending::Stopped(stop);
+            }
+            if termination_requested() {
+                break Ending::Stopped(Stop::new(
+                    crate::report::outcome::Outcome::Interrupted,
+                    "interrupted (SIGINT/SIGTERM); all stack processes were stopped",
+                ));
+            }
+            let limit = if self.observer.metrics().samples() == 0 {
+                self.startup_timeout
+            } else {
+                self.peer_timeout
+            } + Duration::from_secs(1);
+            if last_sample_at.elapsed() > limit {
+                break Ending::Stopped(Stop::new(
+                    crate::report::outcome::Outcome::ProcessDied,
+                    format!(
+                        "no state sample for {:.1} s (after {} samples); the stack is stuck",
+                        last_sample_at.elapsed().as_secs_f64(),
+                        self.observer.metrics().samples()
+                    ),
+                ));
+            }
+            let now = Instant::now();
+            if realtime && now >= next_minute {
+                let misses = self.finals.device_misses();
+                self.resource
+                    .misses_per_minute
+                    .push(misses.saturating_sub(misses_at_minute));
+                misses_at_minute = misses;
+                next_minute += Duration::from_secs(60);
+            }
+            let k = self.observer.last_seq().map_or(0, |q| q + 1);
+            let misses = realtime.then(|| self.finals.device_misses());
+            let faulted = self.observer.metrics().faulted_samples();
+            progress.show(
+                k,
+                k as f64 / self.s.rates.current_loop_hz,
+                duration,
+                misses,
+                faulted,
+            );
+            if now >= next_progress {
+                progress.line(
+                    k,
+                    total,
+                    duration,
+                    self.s.rates.current_loop_hz,
+                    started.elapsed(),
+                    misses,
+                );
+                next_progress += Duration::from_secs(if realtime { 5 } else { 1 });
+                // The last reading while every child lives: one that has exited has none.
+                self.resource.read_end();
+            }
+            std::thread::sleep(Duration::from_micros(if realtime { 1000 } else { 500 }));
+        };
+        progress.finish();
+        self.resource.read_end();
+        Ok(ending)
+    }
+
+    /// A child that exited before the run's end: the run stops, naming it.
+    fn dead_child(&mut self) -> anyhow::Result<Option<Stop>> {
+        for child in self.children.iter_mut() {
+            if let Some(status) = child.poll_exit()? {
+                return Ok(Some(Stop::new(
+                    crate::report::outcome::Outcome::ProcessDied,
+                    child.describe_failure(status),
+                )));
+            }
+        }
+        Ok(None)
+    }
+
+    /// The processes' memory and the misses per minute, for the timing report.
+    pub fn resources(&self) -> Resources {
+        let r = &self.resource;
+        Resources {
+            rss: r
+                .rss_start
+                .iter()
+                .zip(&r.rss_end)
+                .map(|(&(process, _, start_kib), &end_kib)| Rss {
+                    process: process.to_string(),
+                    start_kib,
+                    end_kib,
+                })
+                .collect(),
+            misses_per_minute: r.misses_per_minute.clone(),
+        }
+    }
+
+    /// After the last sample: every child exits by itself (the emulated drive, which runs
+    /// until told, is told first); returns the failures of those whose exit was not a
+    /// verdict on the run (a latched fault or a step-out is judged from the stream).
+    pub fn stop_children(&mut self, drive_first: bool) -> anyhow::Result<Vec<String>> {
+        if drive_first {
+            if let Some(drive) = self.children.first() {
+                drive.signal(libc::SIGTERM);
+            }
+        }
+        let mut failures = Vec::new();
+        for i in 0..self.children.len() {
+            let status = self.children[i].finish(Duration::from_secs(10));
+            self.drain_stats()?;
+            let verdict = status.code().is_some_and(|c| [3, 4].contains(&c));
+            if !status.success() && !verdict {
+                failures.push(self.children[i].describe_failure(status));
+            }
+        }
+        Ok(failures)
+    }
+
+    pub fn children_mut(&mut self) -> &mut [Supervised] {
+        self.children
+    }
+
+    /// Stops reading the controls (their publishers are about to go).
+    pub fn close_controls(&mut self) {
+        self.feeds.controls = None;
+    }
+}
+
+/// Progress of a run: a bar on a terminal (simulated time, misses, faults), plain lines
+/// otherwise (a log, CI).
+struct Progress {
+    label: String,
+    bar: Option<indicatif::ProgressBar>,
+    next_bar: std::cell::Cell<Instant>,
+}
+
+impl Progress {
+    fn new(label: &str, total: u64) -> Self {
+        let bar = std::io::IsTerminal::is_terminal(&std::io::stderr()).then(|| {
+            let bar = indicatif::ProgressBar::new(total);
+            bar.set_style(
+                indicatif::ProgressStyle::with_template(
+                    "{prefix} [{bar:30}] {percent:>3} % {msg} ({elapsed})",
+                )
+                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar())
+                .progress_chars("=> "),
+            );
+            bar.set_prefix(label.to_string());
+            bar
+        });
+        Self {
+            label: label.to_string(),
+            bar,
+            next_bar: std::cell::Cell::new(Instant::now()),
+        }
+    }
+
+    fn show(&self, k: u64, done_s: f64, duration: f64, misses: Option<u64>, faulted: u64) {
+        let Some(bar) = &self.bar else { return };
+        if Instant::now() < self.next_bar.get() {
+            return;
+        }
+        let mut msg = format!("{done_s:.2} of {duration:.2} s");
+        if let Some(m) = misses {
+            msg += &format!(", {m} misses");
+        }
+        msg += &format!(", {faulted} faulted samples");
+        bar.set_position(k);
+        bar.set_message(msg);
+        self.next_bar
+            .set(Instant::now() + Duration::from_millis(200));
+    }
+
+    fn line(
+        &self,
+        k: u64,
+        total: u64,
+        duration: f64,
+        rate_hz: f64,
+        elapsed: Duration,
+        misses: Option<u64>,
+    ) {
+        if self.bar.is_some() {
+            return;
+        }
+        tracing::info!(
+            "{}: {:.2} of {duration:.2} s ({:.0} %), {:.1} s elapsed{}",
+            self.label,
+            k as f64 / rate_hz,
+            100.0 * k as f64 / total.max(1) as f64,
+            elapsed.as_secs_f64(),
+            misses.map_or(String::new(), |m| format!(", {m} deadline misses so far"))
+        );
+    }
+
+    fn finish(&self) {
+        if let Some(bar) = &self.bar {
+            // The whole run shown as done when it reached its end.
+            bar.finish_and_clear();
+        }
+    }
+}

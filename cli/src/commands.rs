@@ -11,13 +11,14 @@ use stepdrive_monitor::report::metrics::RunReport;
 use stepdrive_monitor::report::outcome::Outcome;
 use stepdrive_monitor::report::table::{document, headline, overall, table};
 use stepdrive_monitor::studies::simulate::{simulate as simulate_run, simulate_stalls};
-use stepdrive_monitor::supervise::attach::ResetResult;
+use stepdrive_monitor::supervise::attach::{attach_reader, watch, ResetResult};
 use stepdrive_monitor::supervise::launcher::{run_stack, LaunchOptions};
 use stepdrive_monitor::supervise::throttling::ThrottlingLifted;
 use stepdrive_runtime::deploy::Deployment;
 use stepdrive_runtime::rt::rt_runtime_us;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::DEFAULT_INSTANCE;
+use stepdrive_shared::stack::Role;
 use stepdrive_shared::{Method, Scenario};
 
 /// What a run or simulation computes and where its results go.
@@ -122,7 +123,8 @@ pub struct MonitorArgs {
     /// The stack's instance name.
     #[arg(long, default_value = DEFAULT_INSTANCE)]
     instance: String,
-    /// The stack's scenario (its fingerprint must match the stack's).
+    /// The stack's scenario (default: the one the stack announces; given, it must be the
+    /// stack's, and the fields that differ are named).
     #[command(flatten)]
     scenario: ScenarioOpt,
     /// The method the stack's current loop runs (a label for the report).
@@ -389,15 +391,10 @@ pub fn reset(a: ResetArgs) -> Result<()> {
 }
 
 pub fn monitor(a: MonitorArgs) -> Result<()> {
-    let s = a.scenario.load()?;
+    let given = a.scenario.given()?;
     let json = JsonOut::create(a.json.as_ref())?;
-    let report = stepdrive_monitor::supervise::attach::watch(
-        &a.instance,
-        &s,
-        a.method,
-        a.peer_timeout_s,
-        None,
-    )?;
+    let (bus, s) = attach_reader(&a.instance, Role::Monitor.id(), given.as_ref())?;
+    let report = watch(bus, &a.instance, &s, a.method, a.peer_timeout_s, None)?;
     conclude(&s, &[report], json)
 }
 
@@ -413,10 +410,12 @@ pub struct RecordArgs {
 /// records until its last sample, Ctrl-C, or its silence; the file is finished on each.
 pub fn record(a: RecordArgs) -> Result<()> {
     let w = a.watch;
-    let s = w.scenario.load()?;
+    let given = w.scenario.given()?;
     let json = JsonOut::create(w.json.as_ref())?;
+    let (bus, s) = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref())?;
     let mut recording = Recording::create(&a.file, &s)?;
-    let report = stepdrive_monitor::supervise::attach::watch(
+    let report = watch(
+        bus,
         &w.instance,
         &s,
         w.method,
@@ -499,14 +498,14 @@ pub struct ScopeArgs {
     /// The stack's instance name.
     #[arg(long, default_value = DEFAULT_INSTANCE)]
     instance: String,
-    /// The stack's scenario (its fingerprint must match the stack's).
+    /// The stack's scenario (default: the one the stack announces).
     #[command(flatten)]
     scenario: ScenarioOpt,
 }
 
 pub fn scope(a: ScopeArgs) -> Result<()> {
-    let s = a.scenario.load()?;
-    stepdrive_monitor::record::scope::run_scope(&a.instance, &s)
+    let given = a.scenario.given()?;
+    stepdrive_monitor::record::scope::run_scope(&a.instance, given.as_ref())
 }
 
 #[derive(Args, Debug)]

@@ -74,6 +74,14 @@ pub struct ScenarioOpt {
 }
 
 impl ScenarioOpt {
+    /// The scenario file given, if one was.
+    pub fn given(&self) -> Result<Option<Scenario>> {
+        match &self.scenario {
+            Some(path) => Ok(Some(Scenario::from_toml_file(path)?)),
+            None => Ok(None),
+        }
+    }
+
     pub fn load(&self) -> Result<Scenario> {
         match &self.scenario {
             Some(path) => Ok(Scenario::from_toml_file(path)?),

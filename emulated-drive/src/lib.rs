@@ -1,85 +1,30 @@
 //! `stepdrive emulate-drive`: a stand-in driver board. The motor model of eq. (1) behind the
-//! wire protocol of `docs/drive-protocol.md`, with its own sample clock, in drive units
-//! (encoder counts, ADC counts, duties), a command watchdog, and fault injection for tests.
+//! wire protocol of `docs/drive-protocol.md`, in drive units (encoder counts, ADC counts,
+//! duties), with a command watchdog: the drive's logic without sockets or clocks
+//! ([`DriveCore`]), run by the stack's runner on its own sample clock ([`node`]), with fault
+//! injection for tests as a type of its own ([`inject`]).
 
+pub mod inject;
+pub mod node;
 pub mod truth;
+
+pub use inject::{AlignFault, FaultInjection, Injector};
 
 use std::net::SocketAddr;
 use std::time::Duration;
 use stepdrive_drive_protocol::transport::Wire;
 use stepdrive_drive_protocol::units::{default_config, volts_for, Scaling};
 use stepdrive_drive_protocol::{
-    decode, encode, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport,
-    Frame, Message, Plan, Sample, MAX_DUTY, MAX_FRAME, MAX_PLAN_ENTRIES,
+    decode, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport, Frame,
+    Message, Plan, Sample, MAX_DUTY, MAX_PLAN_ENTRIES,
 };
 use stepdrive_plant::sim::PlantSim;
-use stepdrive_runtime::clock::monotonic_ns;
-use stepdrive_runtime::pacer::{sleep_until, Pacer, WaitStrategy};
-use stepdrive_runtime::poll::termination_requested;
+use stepdrive_runtime::pacer::WaitStrategy;
 use stepdrive_runtime::rt::RtOptions;
+use stepdrive_runtime::runner::{Runner, Settings};
+use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::DriveCommand;
 use stepdrive_shared::Scenario;
-
-/// Faults the emulator can inject (0 / `None` = off).
-#[derive(Debug, Clone, Default)]
-pub struct FaultInjection {
-    /// Drop every N-th outgoing SAMPLE.
-    pub drop_every: u64,
-    /// Flip one bit in every N-th outgoing SAMPLE.
-    pub corrupt_every: u64,
-    /// Send every N-th SAMPLE after the next one.
-    pub reorder_every: u64,
-    /// Hold every N-th SAMPLE for `delay_ns` before sending it (longer than a period: it
-    /// arrives after newer ones).
-    pub delay_every: u64,
-    pub delay_ns: u64,
-    /// Send every N-th SAMPLE twice.
-    pub duplicate_every: u64,
-    /// Stop sending samples (but keep running) after this many seconds.
-    pub stop_after_s: Option<f64>,
-    /// Latch an over-current fault after this many seconds.
-    pub overcurrent_after_s: Option<f64>,
-    /// Freeze the drive once, at this many seconds, for `freeze_ns`: no frames, its clock
-    /// paused, as when the host stops its process.
-    pub freeze_at_s: Option<f64>,
-    pub freeze_ns: u64,
-    /// Drop (corrupt) each SAMPLE with this probability, from a fixed seed.
-    pub drop_fraction: f64,
-    pub corrupt_fraction: f64,
-    /// Drop `dropout_samples` SAMPLEs in a row from this many seconds on (a link outage).
-    pub dropout_at_s: Option<f64>,
-    pub dropout_samples: u64,
-    /// A broken alignment (§7): never finishing, or aligning the wrong way.
-    pub align: AlignFault,
-}
-
-/// How an ALIGN can go wrong on a real board.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub enum AlignFault {
-    #[default]
-    None,
-    /// ALIGNING stays set: the alignment never ends.
-    Stuck,
-    /// Phase A energized the wrong way: the rotor rests half an electrical period from
-    /// the zero the host then assumes.
-    Reversed,
-}
-
-/// A xorshift64* generator: the injected losses are the same in every run.
-struct Dice(u64);
-
-impl Dice {
-    fn roll(&mut self, p: f64) -> bool {
-        if p <= 0.0 {
-            return false;
-        }
-        self.0 ^= self.0 >> 12;
-        self.0 ^= self.0 << 25;
-        self.0 ^= self.0 >> 27;
-        let u = (self.0.wrapping_mul(0x2545_F491_4F6C_DD1D) >> 11) as f64 / (1u64 << 53) as f64;
-        u < p
-    }
-}
 
 /// Counters of what the drive received.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -547,6 +492,8 @@ pub enum EmulatorError {
     },
     #[error(transparent)]
     Rt(#[from] stepdrive_runtime::rt::RtError),
+    #[error(transparent)]
+    Run(stepdrive_runtime::RunError),
     #[error("cannot write the truth file {path}")]
     Truth {
         path: std::path::PathBuf,
@@ -563,17 +510,8 @@ fn align_duty(s: &Scenario, current_ma: u16) -> i16 {
         .clamp(0.0, f64::from(MAX_DUTY)) as i16
 }
 
-/// The kind byte of HELLO (frame offset 3).
-const HELLO_KIND: u8 = 6;
-
-fn send_frame(wire: &mut Wire, frame: &Frame, buf: &mut [u8; MAX_FRAME]) {
-    let n = encode(frame, buf);
-    // A full socket or line buffer drops the frame, as a wire would.
-    wire.send(&buf[..n]);
-}
-
-pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError> {
-    let mut wire = match &o.serial {
+pub fn run_emulator(o: &EmulatorOptions) -> Result<(), EmulatorError> {
+    let wire = match &o.serial {
         Some(path) => Wire::open_serial(path).map_err(|source| EmulatorError::Open {
             what: format!("serial line {}", path.display()),
             source,
@@ -583,162 +521,36 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<DriveCounters, EmulatorError>
             source,
         })?,
     };
-    let truth_error = |path: &std::path::Path| {
-        let path = path.to_path_buf();
-        move |source| EmulatorError::Truth { path, source }
-    };
-    let mut truth = match &o.truth {
-        Some(p) => Some(truth::TruthWriter::create(p).map_err(truth_error(p))?),
+    let truth = match &o.truth {
+        Some(p) => Some(
+            truth::TruthWriter::create(p).map_err(|source| EmulatorError::Truth {
+                path: p.clone(),
+                source,
+            })?,
+        ),
         None => None,
     };
     o.rt.apply()?;
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
     core.set_alignment(&o.scenario, o.align_ma, o.align_ms);
     core.set_align_fault(o.inject.align);
-    let period_ns = o.scenario.sample_period_ns();
-    let mut buf = [0u8; MAX_FRAME];
-    // One byte more than the largest frame: a longer datagram arrives truncated to a length
-    // the decoder rejects, instead of fitting by accident.
-    let mut rx = [0u8; MAX_FRAME + 1];
     tracing::info!(listen = %o.listen, serial = ?o.serial, "emulated drive up; waiting for HELLO");
-    // The host announces itself with HELLO; on UDP samples go to whoever sent the last one.
-    let started = monotonic_ns();
-    let mut pacer = Pacer::new(started + period_ns, period_ns, o.wait);
-    let mut reordered: Option<Frame> = None;
-    let mut delayed: Option<(Frame, u64)> = None;
-    let mut froze = false;
-    let mut sample_seq: u32 = 0;
-    let mut running_since: Option<u64> = None;
-    let mut dice = Dice(0x9E37_79B9_7F4A_7C15);
-    let mut dropout_left: Option<u64> = None;
-    loop {
-        if termination_requested() {
-            break;
-        }
-        let tick = pacer.wait();
-        if let Some(d) = o.duration {
-            if tick.woke_ns - started > d.as_nanos() as u64 {
-                break;
-            }
-        }
-        // A peer that went away is no error for a drive: it waits for the next HELLO.
-        while let Ok(Some((n, from))) = wire.recv(&mut rx, 0) {
-            // §2: once a host said HELLO, frames from any other address are not its
-            // (only a new HELLO moves the session).
-            if let (Wire::Udp { peer: Some(p), .. }, Some(from)) = (&wire, from) {
-                if from != *p && rx.get(3) != Some(&HELLO_KIND) {
-                    core.counters.foreign_frames += 1;
-                    continue;
-                }
-            }
-            if let Some(Reply::Config(c)) = core.on_frame(&rx[..n]) {
-                if let (Wire::Udp { peer, .. }, Some(from)) = (&mut wire, from) {
-                    *peer = Some(from);
-                }
-                running_since = None;
-                let f = Frame {
-                    seq: core.report_seq(),
-                    timestamp_ns: monotonic_ns(),
-                    message: Message::Config(c),
-                };
-                send_frame(&mut wire, &f, &mut buf);
-            }
-        }
-        if !core.in_session() {
-            pacer.skip_to(monotonic_ns());
-            continue;
-        }
-        // Injection times count from the session's ENABLE (the run's start), not from the
-        // HELLO: the alignment and the stack's start-up before it take varying time.
-        if running_since.is_none() && core.outputs_on() {
-            running_since = Some(tick.woke_ns);
-        }
-        let t_s = running_since.map_or(-1.0, |since| (tick.woke_ns - since) as f64 * 1e-9);
-        if o.inject.overcurrent_after_s.is_some_and(|a| t_s >= a)
-            && core.latched_faults() & faults::OVERCURRENT == 0
-        {
-            core.trip(faults::OVERCURRENT);
-            tracing::warn!("injected over-current: outputs off, fault latched");
-        }
-        if let Some(at) = o.inject.freeze_at_s.filter(|&a| t_s >= a && !froze) {
-            froze = true;
-            tracing::warn!(at, ms = o.inject.freeze_ns as f64 * 1e-6, "injected freeze");
-            sleep_until(monotonic_ns() + o.inject.freeze_ns);
-            // Its time paused with it, as after any host stall (see below).
-            pacer.pause_if_late(u64::from(sample_seq), monotonic_ns());
-            continue;
-        }
-        let frame = core.sample_frame(monotonic_ns());
-        if let (Some(w), Some(row)) = (truth.as_mut(), core.truth(frame.seq)) {
-            w.push(row);
-        }
-        let k = u64::from(sample_seq) + 1;
-        let mut silent = o.inject.stop_after_s.is_some_and(|s| t_s >= s);
-        if o.inject.dropout_at_s.is_some_and(|s| t_s >= s) {
-            let left = dropout_left.get_or_insert(o.inject.dropout_samples);
-            if *left > 0 {
-                *left -= 1;
-                silent = true;
-            }
-        }
-        let every = |n: u64| n > 0 && k % n == 0;
-        let dropped = every(o.inject.drop_every) || dice.roll(o.inject.drop_fraction);
-        if !silent && !dropped {
-            if every(o.inject.corrupt_every) || dice.roll(o.inject.corrupt_fraction) {
-                let n = encode(&frame, &mut buf);
-                buf[n / 2] ^= 0x10;
-                wire.send(&buf[..n]);
-            } else if every(o.inject.reorder_every) {
-                reordered = Some(frame);
-            } else if every(o.inject.delay_every) && delayed.is_none() {
-                delayed = Some((frame, monotonic_ns() + o.inject.delay_ns));
-            } else {
-                send_frame(&mut wire, &frame, &mut buf);
-                if let Some(late) = reordered.take() {
-                    send_frame(&mut wire, &late, &mut buf);
-                }
-                if every(o.inject.duplicate_every) {
-                    send_frame(&mut wire, &frame, &mut buf);
-                }
-            }
-        }
-        if let Some(report) = core.run_period(frame.seq) {
-            tracing::warn!(
-                faults = report.fault_bits,
-                "drive fault latched: outputs off until RESET"
-            );
-            let f = Frame {
-                seq: core.report_seq(),
-                timestamp_ns: monotonic_ns(),
-                message: Message::FaultReport(report),
-            };
-            send_frame(&mut wire, &f, &mut buf);
-        }
-        sample_seq = sample_seq.wrapping_add(1);
-        // A delayed frame leaves when its time comes, within this period or a later one;
-        // the drive's clock never waits for it past the next deadline.
-        if let Some((frame, at)) = delayed {
-            if at < pacer.deadline(u64::from(sample_seq)) {
-                sleep_until(at);
-                send_frame(&mut wire, &frame, &mut buf);
-                delayed = None;
-            }
-        }
-        // Like the simulated plant: a host stall pauses the drive's time (`Late::Pause`).
-        pacer.pause_if_late(u64::from(sample_seq), monotonic_ns());
+    let node = node::DriveNode::new(&o.scenario, core, Injector::new(o.inject.clone()), truth)
+        .lasting(o.duration);
+    // A drive has no peer to time out: it waits for a host as long as it runs.
+    let forever = Duration::from_secs(1_000_000_000);
+    let settings = Settings {
+        wait: o.wait,
+        startup_timeout: forever,
+        peer_timeout: forever,
+        account_host_holds: false,
+        linger: Duration::ZERO,
+    };
+    match Runner::new(node, wire, settings, None).run() {
+        // SIGINT/SIGTERM is how a drive is switched off.
+        Ok(_) | Err(RunError::Terminated) => Ok(()),
+        Err(e) => Err(EmulatorError::Run(e)),
     }
-    let c = core.counters;
-    tracing::info!(?c, faults = core.latched_faults(), "emulated drive stopped");
-    if let Some(w) = truth {
-        let (path, dropped) = (w.path().to_path_buf(), w.dropped);
-        let rows = w.finish().map_err(truth_error(&path))?;
-        tracing::info!(rows, dropped, path = %path.display(), "truth written");
-    }
-    eprintln!(
-        "drive: frames ok {}, CRC errors {}, bad {}, stale {}, foreign {}, commands applied {}, late commands discarded {}, periods without their command {} (PLAN entry applied in {}), controls ignored {}, latched faults {:#06x}",
-        c.frames_ok, c.crc_errors, c.bad_frames, c.stale_frames, c.foreign_frames, c.commands_applied, c.commands_late, c.periods_held, c.periods_planned, c.ignored_controls, core.latched_faults()
-    );
-    Ok(c)
 }
 
 #[cfg(test)]

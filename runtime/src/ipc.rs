@@ -10,14 +10,16 @@ use crate::port::{
 use iceoryx2::port::listener::ListenerWaitError;
 use iceoryx2::port::update_connections::UpdateConnections;
 use iceoryx2::prelude::*;
-use iceoryx2::service::attribute::{AttributeKey, AttributeValue, AttributeVerifier};
+use iceoryx2::service::attribute::{
+    AttributeKey, AttributeSpecifier, AttributeValue, AttributeVerifier,
+};
 use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
 use iceoryx2::service::builder::publish_subscribe::{
     PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
 };
 use iceoryx2::service::port_factory::PortFactory as _;
 use std::time::{Duration, Instant};
-use stepdrive_shared::messages::ResetRequest;
+use stepdrive_shared::messages::{ResetRequest, StackScenario};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Message, ServiceNames, Topic};
 use stepdrive_shared::stats::StatsReport;
@@ -362,6 +364,88 @@ impl PortFactory for IpcBus {
             stats: self.topic::<StatsReport>()?.1,
             reset: self.topic::<ResetRequest>()?.1,
         }))
+    }
+}
+
+/// The blackboard on which the device announces the stack's scenario to anyone attaching;
+/// it stands as long as this value lives.
+pub struct ScenarioBoard {
+    _board: iceoryx2::service::port_factory::blackboard::PortFactory<Ipc, u32>,
+}
+
+/// The blackboard's one key.
+const BOARD_KEY: u32 = 0;
+
+impl IpcBus {
+    /// The stamp as the attributes of a service this process creates.
+    fn specifier(&self) -> Result<AttributeSpecifier, BoxedError> {
+        let mode_key = AttributeKey::try_from(MODE_KEY).map_err(boxed)?;
+        let mode = AttributeValue::try_from(self.stamp.mode.as_str()).map_err(boxed)?;
+        let scenario_key = AttributeKey::try_from(SCENARIO_KEY).map_err(boxed)?;
+        let scenario = AttributeValue::try_from(self.stamp.scenario.as_str()).map_err(boxed)?;
+        AttributeSpecifier::new()
+            .define(&mode_key, &mode)
+            .and_then(|s| s.define(&scenario_key, &scenario))
+            .map_err(boxed)
+    }
+
+    fn scenario_board_name(&self) -> Result<ServiceName, PortError> {
+        let name = format!("{}/stack/scenario", self.names.instance);
+        name.as_str().try_into().map_err(|e| PortError::Open {
+            service: name.clone(),
+            source: boxed(e),
+        })
+    }
+
+    /// The device's announcement of `scenario` (its TOML as every process reads it).
+    pub fn announce_scenario(&self, scenario: &Scenario) -> Result<ScenarioBoard, PortError> {
+        let name = self.scenario_board_name()?;
+        let error = |source: BoxedError| PortError::Create {
+            service: name.to_string(),
+            port: "blackboard",
+            what: "stack/scenario",
+            source,
+        };
+        let text = scenario.to_toml_string().map_err(|e| error(boxed(e)))?;
+        let value = StackScenario::new(&text).map_err(|e| error(boxed(e)))?;
+        let board = self
+            .node
+            .service_builder(&name)
+            .blackboard_creator::<u32>()
+            .max_readers(8)
+            .add::<StackScenario>(BOARD_KEY, value)
+            .create_with_attributes(&self.specifier().map_err(error)?)
+            .map_err(|e| error(boxed(e)))?;
+        Ok(ScenarioBoard { _board: board })
+    }
+
+    /// The scenario the stack on this instance announced, if its device announces one.
+    pub fn stack_scenario(&self) -> Result<Option<StackScenario>, PortError> {
+        let name = self.scenario_board_name()?;
+        let error = |source: BoxedError| PortError::Open {
+            service: name.to_string(),
+            source,
+        };
+        let board = match self
+            .node
+            .service_builder(&name)
+            .blackboard_opener::<u32>()
+            .open_with_attributes(&self.verifier)
+        {
+            Ok(b) => b,
+            Err(e) => {
+                tracing::debug!(error = ?e, "no scenario announced");
+                return Ok(None);
+            }
+        };
+        let reader = board
+            .reader_builder()
+            .create()
+            .map_err(|e| error(boxed(e)))?;
+        let entry = reader
+            .entry::<StackScenario>(&BOARD_KEY)
+            .map_err(|e| error(boxed(e)))?;
+        Ok(Some(*entry.get()))
     }
 }
 

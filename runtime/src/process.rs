@@ -4,12 +4,13 @@
 
 use crate::deploy::Deployment;
 use crate::error::RunError;
-use crate::ipc::{IpcBus, Stamp};
+use crate::ipc::{IpcBus, ScenarioBoard, Stamp};
 use crate::node::{Node, Role};
 use crate::port::PortFactory;
 use crate::runner::{Finished, Runner, Settings};
 use std::time::Duration;
 use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::stack::Slot;
 use stepdrive_shared::Scenario;
 
 /// Which process of which stack this is.
@@ -34,6 +35,9 @@ const STATS_LINGER: Duration = Duration::from_millis(200);
 pub struct Process<'a> {
     spec: &'a ProcessSpec<'a>,
     stats: Option<Box<dyn crate::port::Publish<stepdrive_shared::stats::StatsReport>>>,
+    /// The device announces the stack's scenario to anyone attaching, for as long as it
+    /// runs.
+    _scenario: Option<ScenarioBoard>,
 }
 
 impl<'a> Process<'a> {
@@ -50,7 +54,18 @@ impl<'a> Process<'a> {
             Mode::Lockstep => None,
             _ => Some(bus.publisher()?),
         };
-        Ok((Self { spec, stats }, bus))
+        let scenario = match spec.role.slot() {
+            Some(Slot::Device) => Some(bus.announce_scenario(spec.scenario)?),
+            _ => None,
+        };
+        Ok((
+            Self {
+                spec,
+                stats,
+                _scenario: scenario,
+            },
+            bus,
+        ))
     }
 
     /// Runs `node` to the end of the run. Returns it and its final statistics.

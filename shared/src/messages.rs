@@ -233,3 +233,57 @@ impl TorqueSetpoint {
         self.theta_d_rad + self.omega_d_rad_s * dt + 0.5 * self.alpha_d_rad_s2 * dt * dt
     }
 }
+
+/// The longest scenario TOML a stack can announce, bytes.
+pub const SCENARIO_BYTES: usize = 16 * 1024;
+
+/// The device → anyone attaching (a monitor, a recorder, a scope): the scenario the stack
+/// runs, as its TOML, so that a reader takes it from the stack instead of being told it.
+#[derive(Clone, Copy, PartialEq)]
+#[cfg_attr(
+    feature = "ipc",
+    derive(ZeroCopySend),
+    type_name("stepdrive.StackScenario.v1")
+)]
+#[repr(C)]
+pub struct StackScenario {
+    /// Bytes of `toml` in use.
+    pub len: u32,
+    pub _reserved: u32,
+    pub toml: [u8; SCENARIO_BYTES],
+}
+
+impl std::fmt::Debug for StackScenario {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StackScenario")
+            .field("len", &self.len)
+            .finish()
+    }
+}
+
+/// A scenario whose TOML does not fit a [`StackScenario`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("the scenario's TOML is {0} bytes; a stack announces at most {SCENARIO_BYTES}")]
+pub struct ScenarioTooLong(pub usize);
+
+impl StackScenario {
+    pub fn new(toml: &str) -> Result<Self, ScenarioTooLong> {
+        let bytes = toml.as_bytes();
+        if bytes.len() > SCENARIO_BYTES {
+            return Err(ScenarioTooLong(bytes.len()));
+        }
+        let mut out = Self {
+            len: bytes.len() as u32,
+            _reserved: 0,
+            toml: [0; SCENARIO_BYTES],
+        };
+        out.toml[..bytes.len()].copy_from_slice(bytes);
+        Ok(out)
+    }
+
+    /// The TOML, if it is text.
+    pub fn text(&self) -> Option<&str> {
+        let len = (self.len as usize).min(SCENARIO_BYTES);
+        std::str::from_utf8(&self.toml[..len]).ok()
+    }
+}

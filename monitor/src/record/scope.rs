@@ -267,11 +267,12 @@ pub fn render(f: &mut Frame, v: &View) {
     }
 }
 
-/// Attaches to `instance` (whose scenario must be `s`) and shows it until `q`, Ctrl-C, or
-/// the stack's end.
-pub fn run_scope(instance: &str, s: &Scenario) -> Result<()> {
+/// Attaches to `instance` (running `given`, or the scenario it announces) and shows it until
+/// `q`, Ctrl-C, or the stack's end.
+pub fn run_scope(instance: &str, given: Option<&Scenario>) -> Result<()> {
     use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
-    let mut bus = crate::supervise::attach::attach_reader(instance, "scope", s)?;
+    let (mut bus, scenario) = crate::supervise::attach::attach_reader(instance, "scope", given)?;
+    let s = &scenario;
     let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let mut stats = bus.subscriber::<StatsReport>(4)?;
     let rate = s.rates.current_loop_hz;

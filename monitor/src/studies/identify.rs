@@ -2,16 +2,18 @@
 //! the plant (its `[plant]` section is the motor on the bench), then the fits, and the
 //! scenario file that makes the controller use what was found.
 
+use crate::assemble::{self, Setup};
 use serde::Serialize;
 use std::time::Duration;
 use stepdrive_control::identify::{fit, BoundHit, Bounds, Estimates, FitError, Sequence};
-use stepdrive_controller::identify_node::{IdentifyNode, IdentifyPorts};
-use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
+use stepdrive_controller::identify_node::IdentifyNode;
+use stepdrive_runtime::deploy::Deployment;
 use stepdrive_runtime::memory::MemoryBus;
 use stepdrive_runtime::runner::{Runner, Settings};
 use stepdrive_runtime::simulation;
 use stepdrive_runtime::RunError;
 use stepdrive_shared::scenario::{Mode, MotorParams};
+use stepdrive_shared::stack::{stack, Purpose};
 use stepdrive_shared::Scenario;
 
 #[derive(Debug, thiserror::Error)]
@@ -56,35 +58,22 @@ pub fn default_max_speed(s: &Scenario) -> f64 {
 /// Virtual time has no timeouts worth the name.
 const NEVER: Duration = Duration::from_secs(1_000_000_000);
 
-/// Runs the sequence in lockstep against the simulated plant of `s` and fits it.
+/// Runs the sequence in lockstep against the simulated plant of `s` and fits it: the
+/// identification stack of the declaration, stepped in one thread.
 pub fn identify_simulated(s: &Scenario, bounds: Bounds) -> Result<Identified, IdentifyError> {
     let mut run = s.clone();
     run.run.duration_s = Some(Sequence::duration_s());
     let mode = Mode::Lockstep;
+    let stack = stack(mode, Purpose::Identify);
+    let deployment = Deployment::default();
+    let mut setup = Setup::new(&run, &stack, &deployment, 0, false);
+    setup.bounds = bounds;
     let mut bus = MemoryBus::new(mode);
     let settings = Settings::lockstep(NEVER, NEVER);
-    let plant = PlantNode::new(
-        &run,
-        PlantSettings {
-            mode,
-            wait_subscribers: 1,
-            wait_position_loop: false,
-            watchdog_periods: u32::MAX,
-            start_delay_ns: 0,
-        },
-    );
-    let mut plant = Runner::new(
-        plant,
-        PlantPorts::open(&mut bus, mode).map_err(RunError::from)?,
-        settings.clone(),
-        None,
-    );
-    let mut node = Runner::new(
-        IdentifyNode::new(&run, bounds, mode),
-        IdentifyPorts::open(&mut bus, Mode::Lockstep, false).map_err(RunError::from)?,
-        settings,
-        None,
-    );
+    let (plant, ports) = assemble::plant(&setup, &mut bus)?;
+    let mut plant = Runner::new(plant, ports, settings.clone(), None);
+    let (node, ports) = assemble::identify(&setup, &mut bus)?;
+    let mut node = Runner::new(node, ports, settings, None);
     simulation::run(&mut [&mut plant, &mut node], &[])?;
     conclude(s, node.node(), s.sample_period_s())
 }

@@ -11,7 +11,7 @@ use crate::report::metrics::RunReport;
 use crate::report::outcome::{fault_names, Outcome, LATCHED};
 use crate::supervise::observer::Observer;
 use crate::supervise::supervisor::{Controls, Ending, Feeds, Supervisor, Until};
-use anyhow::{bail, Result};
+use anyhow::{bail, Context, Result};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::clock::monotonic_ns;
 use stepdrive_runtime::ipc::{IpcBus, Stamp};
@@ -21,7 +21,6 @@ use stepdrive_shared::messages::{
 };
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER, MONITOR_BUFFER};
-use stepdrive_shared::stack::Role;
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{Method, Scenario};
 
@@ -91,35 +90,114 @@ pub fn describe(r: &ResetResult) -> String {
     }
 }
 
-/// Attaches a reader (a monitor, a scope) to the stack on `instance`, waiting up to 30 s
-/// for it to appear (a reader may be started before the stack), and checks that the stack
-/// runs `scenario`: the reader's figures would mean nothing for another.
-pub fn attach_reader(instance: &str, role: &str, scenario: &Scenario) -> Result<IpcBus> {
-    let bus = IpcBus::attach(instance, role, Duration::from_secs(30))?;
-    let ours = Stamp::new(bus.mode(), scenario);
-    if bus.stamp() != &ours {
-        bail!(
-            "instance `{instance}` runs scenario {}; the scenario given is {}",
-            bus.stamp().scenario,
-            ours.scenario
-        );
+/// Attaches a reader (a monitor, a recorder, a scope) to the stack on `instance`, waiting
+/// up to 30 s for it to appear (a reader may be started before the stack). The scenario is
+/// the stack's to say: without `given` it is the one the stack announces; with it, it must
+/// be the stack's (the reader's figures would mean nothing for another), and the fields
+/// that differ are named.
+pub fn attach_reader(
+    instance: &str,
+    role: &str,
+    given: Option<&Scenario>,
+) -> Result<(IpcBus, Scenario)> {
+    let wait = Duration::from_secs(30);
+    let deadline = Instant::now() + wait;
+    let mut bus = IpcBus::attach(instance, role, wait)?;
+    // The device announces before it publishes its first state (a launcher's monitor may
+    // have created the stack's services before the device came up).
+    let presence = bus.presence()?;
+    while presence.publishers(Topic::State) == 0 && Instant::now() < deadline {
+        if stepdrive_runtime::poll::termination_requested() {
+            bail!("interrupted while waiting for the stack on instance `{instance}`");
+        }
+        std::thread::sleep(Duration::from_millis(10));
     }
-    Ok(bus)
+    let announced = match bus.stack_scenario()? {
+        Some(a) => {
+            let text = a
+                .text()
+                .context("the stack's announced scenario is not text")?;
+            Some(Scenario::from_toml_str(text).context("the stack's announced scenario")?)
+        }
+        None => None,
+    };
+    match (given, announced) {
+        (None, Some(theirs)) => Ok((bus, theirs)),
+        (None, None) => bail!(
+            "the stack on instance `{instance}` ({}) does not announce its scenario (a stack \
+             of an older stepdrive): give it with --scenario",
+            bus.stamp().scenario
+        ),
+        (Some(ours), theirs) => {
+            if bus.stamp() == &Stamp::new(bus.mode(), ours) {
+                return Ok((bus, ours.clone()));
+            }
+            let differ = match &theirs {
+                Some(t) => differing_fields(t, ours)
+                    .unwrap_or_else(|e| vec![format!("(cannot compare: {e})")])
+                    .join("; "),
+                None => "the stack does not say which fields".to_string(),
+            };
+            bail!(
+                "instance `{instance}` runs scenario {}; the scenario given is {}: {differ}. \
+                 Leave out --scenario to take the stack's",
+                bus.stamp().scenario,
+                Stamp::new(bus.mode(), ours).scenario
+            )
+        }
+    }
 }
 
-/// Computes the figures of the run on `instance` from its state stream, until its last
-/// sample, the stack going silent for `peer_timeout`, or Ctrl-C: the one supervisor, with
-/// no children of its own. `scenario` must be the stack's (its fingerprint is checked);
-/// `method` labels the report. With `recording`, every sample seen goes to the file, with
+/// The dotted names of the fields in which two scenarios differ, with both values
+/// (`run.duration_s: the stack's 60, the one given none`).
+pub fn differing_fields(stack: &Scenario, given: &Scenario) -> Result<Vec<String>> {
+    fn walk(path: &str, a: Option<&toml::Value>, b: Option<&toml::Value>, out: &mut Vec<String>) {
+        match (a, b) {
+            (Some(toml::Value::Table(ta)), Some(toml::Value::Table(tb))) => {
+                let mut keys: Vec<&String> = ta.keys().chain(tb.keys()).collect();
+                keys.sort();
+                keys.dedup();
+                for k in keys {
+                    let p = if path.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{path}.{k}")
+                    };
+                    walk(&p, ta.get(k), tb.get(k), out);
+                }
+            }
+            (a, b) if a != b => {
+                let show =
+                    |v: Option<&toml::Value>| v.map_or("none".to_string(), |v| v.to_string());
+                out.push(format!(
+                    "{path}: the stack's {}, the one given {}",
+                    show(a),
+                    show(b)
+                ));
+            }
+            _ => {}
+        }
+    }
+    let a: toml::Value = toml::from_str(&stack.to_toml_string()?)?;
+    let b: toml::Value = toml::from_str(&given.to_toml_string()?)?;
+    let mut out = Vec::new();
+    walk("", Some(&a), Some(&b), &mut out);
+    Ok(out)
+}
+
+/// Computes the figures of the run on `instance` (attached as `bus`, running `scenario`:
+/// [`attach_reader`]) from its state stream, until its last sample, the stack going silent
+/// for `peer_timeout`, or Ctrl-C: the one supervisor, with no children of its own. `method`
+/// labels the report. With `recording`, every sample seen goes to the file, with
 /// the setpoints, commands and (realtime) plans, and those missed are counted.
 pub fn watch(
+    mut bus: IpcBus,
     instance: &str,
     scenario: &Scenario,
     method: Method,
     peer_timeout: Duration,
     recording: Option<&mut Recording>,
 ) -> Result<RunReport> {
-    let mut bus = attach_reader(instance, Role::Monitor.id(), scenario)?;
     let mode = bus.mode();
     let controls = match recording {
         Some(_) => Some(Controls {

@@ -1,9 +1,10 @@
 //! The stack against a drive it did not write: `tests/stranger-drive/` was written from
-//! `docs/drive-protocol.md`, the README and the paper's notes alone (no line of the host,
-//! the codec or the emulated drive read), with its own codec, CRC, calibration (400 000
-//! counts per revolution, 153 µA per count about 31 744, 7 mV per bus count), alignment and
-//! motor model. Its questions about the spec are in its SPEC-QUESTIONS.md. If these runs
-//! pass, a stranger could build the other side from the document.
+//! `docs/drive-protocol.md`, the README and the paper's notes (now `docs/paper.md`) alone
+//! (no line of the host, the codec or the emulated drive read), with its own codec, CRC,
+//! calibration (400 000 counts per revolution, 153 µA per count about 31 744, 7 mV per bus
+//! count), alignment and motor model. Its questions about the spec are in its
+//! SPEC-QUESTIONS.md. If these runs pass, a stranger could build the other side from the
+//! document.
 
 mod common;
 

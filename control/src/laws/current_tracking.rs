@@ -300,7 +300,7 @@ mod tests {
     }
 
     /// The reason for the sampled design: Euler-sampled (22) with one period of delay
-    /// diverges on the same plant (NOTES.md).
+    /// diverges on the same plant (docs/paper.md).
     #[test]
     fn euler_sampled_eq22_with_delay_is_unstable() {
         let m = Motor {

@@ -1,5 +1,5 @@
 //! The baselines' references: microstepping voltages, eq. (2), and the desired currents of
-//! the Lyapunov microstepping controller, eq. (39) (read as i^d = v^d / R; see NOTES.md).
+//! the Lyapunov microstepping controller, eq. (39) (read as i^d = v^d / R; see docs/paper.md).
 
 /// Eq. (2): v_a = V_max cos(N_r θ_d), v_b = V_max sin(N_r θ_d).
 pub fn microstep_voltages(theta_d: f64, v_max: f64, n_r: f64) -> [f64; 2] {

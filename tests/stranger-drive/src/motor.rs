@@ -1,4 +1,4 @@
-//! Two-phase PM stepper, eq. (1) of NOTES.md with Table I, integrated with RK4.
+//! Two-phase PM stepper, eq. (1) of the paper (docs/paper.md) with Table I, integrated with RK4.
 //!
 //! Each phase is driven by an H-bridge: `Drive::Volts(v)` (duty × bus; duty 0 shorts the
 //! winding) or `Drive::Off` (every switch open: the current freewheels into the bus through

@@ -104,7 +104,7 @@ pub struct BridgeCore {
     sent_at: [(u32, u64); 64],
     /// The newest sample a command has answered.
     answered: Option<u64>,
-    /// The newest plan received (~2 KB, kept in place), and the sample the last PLAN sent
+    /// The newest plan received (~8 KB, kept in place), and the sample the last PLAN sent
     /// continued from.
     plan: Box<DrivePlan>,
     plan_sent: Option<u64>,

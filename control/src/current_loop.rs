@@ -36,7 +36,7 @@ pub struct CurrentLoop {
     /// Where the plan for the last command starts (set by `on_sample`, used by `plan`),
     /// and the bus voltage its voltages are clamped to.
     seed: Option<(Seed, f64)>,
-    /// The last plan, built in place (~2 KB); `len` 0 until one is made.
+    /// The last plan, built in place (~8 KB); `len` 0 until one is made.
     plan: DrivePlan,
 }
 

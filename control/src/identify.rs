@@ -2,7 +2,7 @@
 //! of phase voltages and the states it produces. Pure: the sequence maps a state to the
 //! voltages for the next period; the fits map the recorded states to estimates.
 //!
-//! The sequence (`docs`: README, "Identifying a motor"):
+//! The sequence (docs/real-motors.md, "Identifying a motor"):
 //! 1. **R and L, phase a**, rotor held by phase a's own field: four DC voltage levels, each
 //!    held long enough to settle. R is the slope of V against I over the settled ends of
 //!    the levels (an offset in either cancels); L is the time constant of the steps between

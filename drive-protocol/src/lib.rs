@@ -226,7 +226,7 @@ impl Config {
     }
 }
 
-// A Message lives on the stack of the wire path, which must not allocate: the 1 KB PLAN
+// A Message lives on the stack of the wire path, which must not allocate: the 4 KB PLAN
 // variant stays inline rather than boxed.
 #[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -219,7 +219,7 @@ pub enum Selection {
 pub struct CommandSlot {
     delay: u64,
     pending: [Option<DriveCommand>; 8],
-    /// The plan continuing the newest command (~2 KB, kept in place).
+    /// The plan continuing the newest command (~8 KB, kept in place).
     freshest: DrivePlan,
     /// Periods whose command was missing.
     pub misses: u64,

@@ -4,7 +4,7 @@
 //! TOML file that every child reads (`--deploy FILE`), and a process started by hand gets
 //! the same defaults, so the two behave the same. `stepdrive deploy` prints them.
 //!
-//! The defaults are this project's measured choice for two cores (see the README's
+//! The defaults are this project's measured choice for two cores (see docs/design.md's
 //! realtime section): the plant and position loop (or the emulated drive) share CPU 0, the
 //! current loop (and in hardware mode the bridge, one priority below it) has CPU 1.
 
@@ -21,7 +21,7 @@ use stepdrive_shared::stack::Role;
 #[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct Placement {
-    /// `sleep`, `spin`, `hybrid:<µs>` or `event` (see the README's wait strategies).
+    /// `sleep`, `spin`, `hybrid:<µs>` or `event` (see docs/design.md's wait strategies).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub wait: Option<WaitStrategy>,
     /// SCHED_FIFO priority 1-99; 0: SCHED_OTHER.
@@ -107,7 +107,7 @@ pub struct Deployment {
 /// above the plant (below it, it would only get the gaps between the plant's spins); the
 /// bridge one below the current loop, which preempts it to answer; the monitor at 1 (an
 /// ordinary task waking at 1 kHz is run ahead of SCHED_FIFO tasks by the kernel's fair
-/// server, and delays them). The README's realtime section has the measurements.
+/// server, and delays them). docs/design.md has the measurements.
 pub const DEFAULT_PRIORITY: u8 = 80;
 
 impl Default for Deployment {

@@ -11,7 +11,7 @@ use std::str::FromStr;
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum WaitStrategy {
     /// clock_nanosleep to the deadline: no CPU burnt, the kernel timer's wake-up latency
-    /// (tens of µs on a VM; see the README's wait strategies).
+    /// (tens of µs on a VM; see docs/design.md's wait strategies).
     Sleep,
     /// Busy-wait: microsecond-exact, one whole core. On 2 cores only one process can.
     Spin,

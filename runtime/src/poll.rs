@@ -42,7 +42,7 @@ pub enum WaitError<E> {
 
 /// Spin this many polls before yielding the CPU. In lockstep three processes wait on each
 /// other, on two cores in this project's target, so a long spin starves the very peer being
-/// waited for (the README's lockstep section has the measurement).
+/// waited for (docs/measurements.md has the measurement).
 const SPIN_POLLS: u32 = 16;
 /// Yield for this long before falling back to short sleeps, so an idle process does not
 /// burn a core that its peers need.

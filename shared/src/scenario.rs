@@ -279,7 +279,7 @@ pub struct ControlParams {
     /// Bandwidth λ of the load-torque observer, rad/s: its estimate of a step settles like
     /// 1 − e^{−λt} after one position-loop period of measurement delay. Absent: 2 ×
     /// `rates.position_loop_hz` (4000 rad/s at 2 kHz: pole e^{−2} per tick; see
-    /// `controller/src/laws/load_observer.rs` for why).
+    /// `control/src/laws/load_observer.rs` for why).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub observer_bandwidth_rad_s: Option<f64>,
     /// ω_c of the industrial baseline's PI current loops (`--method pi`), rad/s: K_p = ω_c L,

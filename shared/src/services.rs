@@ -27,7 +27,8 @@ pub enum Topic {
     State,
     /// Current loop → plant, every sample.
     Command,
-    /// Current loop → plant, after each command (realtime): the voltage plan.
+    /// Current loop → plant, after every tenth command and after a gap (realtime): the
+    /// voltage plan.
     Plan,
     /// Position loop → current loop, every tick.
     Setpoint,
@@ -66,7 +67,7 @@ impl Topic {
                 safe_overflow,
             },
             // Only the plant reads plans, and only the newest matters: a short queue keeps
-            // the ~2 KB samples' shared memory small.
+            // the ~8 KB samples' shared memory small.
             Topic::Plan => Qos {
                 max_publishers: 1,
                 max_subscribers: 2,

@@ -1,5 +1,5 @@
 //! Sinusoids sampled on a period grid, stepped by complex multiplication instead of a
-//! sin/cos per sample: what makes a 200-period voltage plan cost about a microsecond.
+//! sin/cos per sample: what makes a 1000-period voltage plan cost about 9 µs.
 //!
 //! A phase-a/phase-b pair (x_a, x_b) is the complex number x_a + j x_b, so a quantity that
 //! turns with the electrical angle is a fixed complex amplitude times e^{jφ}.

@@ -306,7 +306,7 @@ impl Recording {
             source,
         })?;
         let wrap = write_error(path);
-        // Uncompressed: the codecs the mcap crate offers are C libraries (see the README).
+        // Uncompressed: the codecs the mcap crate offers are C libraries (see docs/recording.md).
         let mut writer = mcap::WriteOptions::new()
             .compression(None)
             .profile("")

@@ -249,7 +249,7 @@ impl Drop for RunFiles {
 
 /// An emulated drive on `addr` for a run's files. It stands for separate hardware: it
 /// keeps the plant's CPU; the bridge shares the current loop's, one priority below it (see
-/// the README's hardware section). With `truth`, it writes the true rotor state there.
+/// docs/hardware.md). With `truth`, it writes the true rotor state there.
 pub fn spawn_emulated_drive(
     addr: &str,
     files: &RunFiles,

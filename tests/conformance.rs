@@ -1,6 +1,6 @@
 //! Drive protocol conformance (docs/drive-protocol.md §8 and §9), written from the document:
 //! its test vectors are read from the file itself, and each numbered item of §9 is one
-//! scripted exchange, played against the emulated drive's core (D1–D17) or the bridge's
+//! scripted exchange, played against the emulated drive's core (D1–D23) or the bridge's
 //! link (H1–H8). No clock, no sockets: frames in, frames out.
 
 use std::f64::consts::{FRAC_PI_2, TAU};
@@ -586,6 +586,188 @@ fn d17_an_enable_during_align_waits_for_its_end_and_commands_are_not_applied() {
     }
     let (_, s) = period(&mut d);
     assert_eq!(s.status & status::ALIGNING, 0, "clear after n samples");
+}
+
+/// Runs periods until the drive's SAMPLE shows ALIGNING clear; returns that SAMPLE.
+fn until_aligned(d: &mut DriveCore) -> (u32, Sample) {
+    for _ in 0..100_000 {
+        let (k, s) = period(d);
+        if s.status & status::ALIGNING == 0 {
+            return (k, s);
+        }
+    }
+    panic!("ALIGNING never cleared")
+}
+
+#[test]
+fn d18_the_run_starts_at_the_first_enabled_sample_with_aligning_clear() {
+    let mut d = drive();
+    let mut h = Host(0);
+    let config = hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    h.control(&mut d, Action::Enable);
+    let n = u32::from(config.align_ms) * config.sample_rate_hz / 1000;
+    for i in 0..n {
+        let f = d.sample_frame(0);
+        assert!(
+            d.truth(f.seq).is_none(),
+            "sample {i}: no run while aligning"
+        );
+        d.run_period(f.seq);
+    }
+    let f = d.sample_frame(0);
+    let Message::Sample(s) = f.message else {
+        panic!("a SAMPLE")
+    };
+    assert_eq!(
+        s.status & (status::ENABLED | status::ALIGNING),
+        status::ENABLED
+    );
+    assert_eq!(
+        d.truth(f.seq).map(|t| t.k),
+        Some(0),
+        "the host's k = 0 is the drive's"
+    );
+}
+
+#[test]
+fn d19_no_plan_entry_applies_while_the_aligned_rotor_is_held() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    until_aligned(&mut d);
+    h.control(&mut d, Action::Enable);
+    let (s, held) = period(&mut d);
+    let align_duty = held.duty_a;
+    assert!(align_duty > 0);
+    // A PLAN without its COMMAND (lost on the way): entry 0 is for period s + 2.
+    h.send(&mut d, plan(s, &[3000, 4000, 5000]));
+    period(&mut d);
+    period(&mut d);
+    let (_, got) = period(&mut d); // reports period s + 2
+    assert_eq!(
+        got.status,
+        status::ENABLED | status::COMMAND_HELD,
+        "held, not planned"
+    );
+    assert_eq!(
+        (got.duty_a, got.duty_b, got.applied_command_seq),
+        (align_duty, 0, 0)
+    );
+}
+
+#[test]
+fn d20_disable_reset_and_hello_show_at_once_and_in_the_duties_a_period_later() {
+    for stop in ["DISABLE", "RESET", "HELLO"] {
+        let mut d = drive();
+        let mut h = following(&mut d);
+        let (k, _) = period(&mut d);
+        let c = h.command(&mut d, k, 2000);
+        period(&mut d); // S(k + 1): period k + 1 applies C(k)
+        match stop {
+            "DISABLE" => h.control(&mut d, Action::Disable),
+            "RESET" => h.control(&mut d, Action::Reset),
+            _ => {
+                h.send(&mut d, Message::Hello);
+            }
+        }
+        let (_, s) = period(&mut d); // S(k + 2) reports period k + 1
+        assert_eq!(
+            s.status & status::ENABLED,
+            0,
+            "{stop}: ENABLED clear at once"
+        );
+        assert_eq!(
+            (s.duty_a, s.applied_command_seq),
+            (2000, c),
+            "{stop}: period k + 1 ran with C(k)"
+        );
+        let (_, s) = period(&mut d);
+        assert_eq!(
+            (s.duty_a, s.duty_b, s.applied_command_seq),
+            (0, 0, 0),
+            "{stop}: outputs off from period k + 2"
+        );
+    }
+}
+
+#[test]
+fn d21_a_live_session_is_not_taken_over_by_another_address() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    // Another host (its own frame numbers) says HELLO while this one commands the motor.
+    assert!(d
+        .on_frame_from(&frame_bytes(1, Message::Hello), false)
+        .is_none());
+    assert_eq!(d.counters.foreign_frames, 1);
+    assert!(d.outputs_on(), "the motor is still this host's");
+    let (k, _) = period(&mut d);
+    let c = h.command(&mut d, k, 1500);
+    period(&mut d);
+    assert_eq!(period(&mut d).1.applied_command_seq, c);
+    // Once this host lets go (DISABLE), the next one is taken.
+    h.control(&mut d, Action::Disable);
+    assert!(matches!(
+        d.on_frame_from(&frame_bytes(1, Message::Hello), false),
+        Some(Reply::Config(_))
+    ));
+    // A host gone silent while its drive holds the aligned rotor (the watchdog is not armed
+    // before a COMMAND): after the watchdog's periods of silence, the next one is taken.
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    until_aligned(&mut d);
+    h.control(&mut d, Action::Enable);
+    for _ in 0..WATCHDOG - 1 {
+        period(&mut d);
+    }
+    assert!(d
+        .on_frame_from(&frame_bytes(1, Message::Hello), false)
+        .is_none());
+    period(&mut d);
+    assert!(matches!(
+        d.on_frame_from(&frame_bytes(1, Message::Hello), false),
+        Some(Reply::Config(_))
+    ));
+    assert!(!d.outputs_on(), "a new session starts with outputs off");
+}
+
+#[test]
+fn d22_hello_stops_an_align() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    period(&mut d);
+    assert_ne!(period(&mut d).1.status & status::ALIGNING, 0);
+    h.send(&mut d, Message::Hello);
+    let (_, s) = period(&mut d);
+    assert_eq!(s.status & status::ALIGNING, 0, "ALIGNING clear at once");
+    let (_, s) = period(&mut d);
+    assert_eq!(
+        (s.duty_a, s.duty_b),
+        (0, 0),
+        "phase A off from the next period"
+    );
+}
+
+#[test]
+fn d23_past_a_plans_end_the_last_duties_are_held_and_not_planned() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    let (s, _) = period(&mut d);
+    h.command(&mut d, s, 1000);
+    h.send(&mut d, plan(s, &[2000, 3000]));
+    let plan_seq = h.0;
+    period(&mut d); // s + 1: C(s)
+    period(&mut d); // s + 2: entry 0
+    period(&mut d); // s + 3: entry 1
+    period(&mut d); // s + 4: past the end
+    let (_, got) = period(&mut d);
+    assert_eq!(got.status, status::ENABLED | status::COMMAND_HELD);
+    assert_eq!((got.duty_a, got.applied_command_seq), (3000, plan_seq));
 }
 
 // ---- the host (H1–H8), against the bridge's link ----

@@ -1,16 +1,20 @@
 //! Drive protocol conformance (docs/drive-protocol.md §8 and §9), written from the document:
 //! its test vectors are read from the file itself, and each numbered item of §9 is one
-//! scripted exchange, played against the emulated drive's core (D1–D17) or the bridge's
-//! link (H1–H8). No clock, no sockets: frames in, frames out.
+//! scripted exchange, played against the emulated drive's core (D1–D23) or the bridge's
+//! link and core (H1–H17; H11–H13 play the bridge's start-up against the emulated drive's
+//! core). No clock, no sockets: frames in, frames out.
 
 use std::f64::consts::{FRAC_PI_2, TAU};
-use stepdrive_bridge::core::holds_phase_a;
-use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event, HeldLoad};
+use stepdrive_bridge::core::{
+    holds_phase_a, BridgeCore, CoreSettings, Received, Refusal, StartStep, HANDSHAKE_NS,
+};
+use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event, HeldLoad, HOLD_SAMPLES};
 use stepdrive_drive_protocol::{
     crc32, decode, encode, faults, frame_bytes, reseal, status, Action, Command, Config,
     FaultReport, Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
-use stepdrive_emulated_drive::{DriveCore, Reply};
+use stepdrive_emulated_drive::{AlignFault, DriveCore, Reply};
+use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
 const SPEC: &str = include_str!("../docs/drive-protocol.md");
@@ -588,7 +592,189 @@ fn d17_an_enable_during_align_waits_for_its_end_and_commands_are_not_applied() {
     assert_eq!(s.status & status::ALIGNING, 0, "clear after n samples");
 }
 
-// ---- the host (H1–H8), against the bridge's link ----
+/// Runs periods until the drive's SAMPLE shows ALIGNING clear; returns that SAMPLE.
+fn until_aligned(d: &mut DriveCore) -> (u32, Sample) {
+    for _ in 0..100_000 {
+        let (k, s) = period(d);
+        if s.status & status::ALIGNING == 0 {
+            return (k, s);
+        }
+    }
+    panic!("ALIGNING never cleared")
+}
+
+#[test]
+fn d18_the_run_starts_at_the_first_enabled_sample_with_aligning_clear() {
+    let mut d = drive();
+    let mut h = Host(0);
+    let config = hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    h.control(&mut d, Action::Enable);
+    let n = u32::from(config.align_ms) * config.sample_rate_hz / 1000;
+    for i in 0..n {
+        let f = d.sample_frame(0);
+        assert!(
+            d.truth(f.seq).is_none(),
+            "sample {i}: no run while aligning"
+        );
+        d.run_period(f.seq);
+    }
+    let f = d.sample_frame(0);
+    let Message::Sample(s) = f.message else {
+        panic!("a SAMPLE")
+    };
+    assert_eq!(
+        s.status & (status::ENABLED | status::ALIGNING),
+        status::ENABLED
+    );
+    assert_eq!(
+        d.truth(f.seq).map(|t| t.k),
+        Some(0),
+        "the host's k = 0 is the drive's"
+    );
+}
+
+#[test]
+fn d19_no_plan_entry_applies_while_the_aligned_rotor_is_held() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    until_aligned(&mut d);
+    h.control(&mut d, Action::Enable);
+    let (s, held) = period(&mut d);
+    let align_duty = held.duty_a;
+    assert!(align_duty > 0);
+    // A PLAN without its COMMAND (lost on the way): entry 0 is for period s + 2.
+    h.send(&mut d, plan(s, &[3000, 4000, 5000]));
+    period(&mut d);
+    period(&mut d);
+    let (_, got) = period(&mut d); // reports period s + 2
+    assert_eq!(
+        got.status,
+        status::ENABLED | status::COMMAND_HELD,
+        "held, not planned"
+    );
+    assert_eq!(
+        (got.duty_a, got.duty_b, got.applied_command_seq),
+        (align_duty, 0, 0)
+    );
+}
+
+#[test]
+fn d20_disable_reset_and_hello_show_at_once_and_in_the_duties_a_period_later() {
+    for stop in ["DISABLE", "RESET", "HELLO"] {
+        let mut d = drive();
+        let mut h = following(&mut d);
+        let (k, _) = period(&mut d);
+        let c = h.command(&mut d, k, 2000);
+        period(&mut d); // S(k + 1): period k + 1 applies C(k)
+        match stop {
+            "DISABLE" => h.control(&mut d, Action::Disable),
+            "RESET" => h.control(&mut d, Action::Reset),
+            _ => {
+                h.send(&mut d, Message::Hello);
+            }
+        }
+        let (_, s) = period(&mut d); // S(k + 2) reports period k + 1
+        assert_eq!(
+            s.status & status::ENABLED,
+            0,
+            "{stop}: ENABLED clear at once"
+        );
+        assert_eq!(
+            (s.duty_a, s.applied_command_seq),
+            (2000, c),
+            "{stop}: period k + 1 ran with C(k)"
+        );
+        let (_, s) = period(&mut d);
+        assert_eq!(
+            (s.duty_a, s.duty_b, s.applied_command_seq),
+            (0, 0, 0),
+            "{stop}: outputs off from period k + 2"
+        );
+    }
+}
+
+#[test]
+fn d21_a_live_session_is_not_taken_over_by_another_address() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    // Another host (its own frame numbers) says HELLO while this one commands the motor.
+    assert!(d
+        .on_frame_from(&frame_bytes(1, Message::Hello), false)
+        .is_none());
+    assert_eq!(d.counters.foreign_frames, 1);
+    assert!(d.outputs_on(), "the motor is still this host's");
+    let (k, _) = period(&mut d);
+    let c = h.command(&mut d, k, 1500);
+    period(&mut d);
+    assert_eq!(period(&mut d).1.applied_command_seq, c);
+    // Once this host lets go (DISABLE), the next one is taken.
+    h.control(&mut d, Action::Disable);
+    assert!(matches!(
+        d.on_frame_from(&frame_bytes(1, Message::Hello), false),
+        Some(Reply::Config(_))
+    ));
+    // A host gone silent while its drive holds the aligned rotor (the watchdog is not armed
+    // before a COMMAND): after the watchdog's periods of silence, the next one is taken.
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    until_aligned(&mut d);
+    h.control(&mut d, Action::Enable);
+    for _ in 0..WATCHDOG - 1 {
+        period(&mut d);
+    }
+    assert!(d
+        .on_frame_from(&frame_bytes(1, Message::Hello), false)
+        .is_none());
+    period(&mut d);
+    assert!(matches!(
+        d.on_frame_from(&frame_bytes(1, Message::Hello), false),
+        Some(Reply::Config(_))
+    ));
+    assert!(!d.outputs_on(), "a new session starts with outputs off");
+}
+
+#[test]
+fn d22_hello_stops_an_align() {
+    let mut d = drive();
+    let mut h = Host(0);
+    hello(&mut h, &mut d);
+    h.control(&mut d, Action::Align);
+    period(&mut d);
+    assert_ne!(period(&mut d).1.status & status::ALIGNING, 0);
+    h.send(&mut d, Message::Hello);
+    let (_, s) = period(&mut d);
+    assert_eq!(s.status & status::ALIGNING, 0, "ALIGNING clear at once");
+    let (_, s) = period(&mut d);
+    assert_eq!(
+        (s.duty_a, s.duty_b),
+        (0, 0),
+        "phase A off from the next period"
+    );
+}
+
+#[test]
+fn d23_past_a_plans_end_the_last_duties_are_held_and_not_planned() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    let (s, _) = period(&mut d);
+    h.command(&mut d, s, 1000);
+    h.send(&mut d, plan(s, &[2000, 3000]));
+    let plan_seq = h.0;
+    period(&mut d); // s + 1: C(s)
+    period(&mut d); // s + 2: entry 0
+    period(&mut d); // s + 3: entry 1
+    period(&mut d); // s + 4: past the end
+    let (_, got) = period(&mut d);
+    assert_eq!(got.status, status::ENABLED | status::COMMAND_HELD);
+    assert_eq!((got.duty_a, got.applied_command_seq), (3000, plan_seq));
+}
+
+// ---- the host (H1–H17), against the bridge's link and core ----
 
 fn configured_link() -> DriveLink {
     let mut l = DriveLink::new(
@@ -684,6 +870,11 @@ fn h3_a_stale_fault_report_is_dropped() {
     assert_eq!(l.on_frame(&report(5), 0), Event::Dropped);
     assert_eq!(l.stale_reports, 1);
     assert!(matches!(l.on_frame(&report(2000), 0), Event::Fault(_)));
+    // Counted where the run's report shows the drive link's dropped frames (issue 24,
+    // defect 3: it stayed in a counter nothing read).
+    let mut stats = StatsReport::default();
+    l.copy_counters(&mut stats);
+    assert_eq!(stats.bad_frames, 1, "the stale report is a dropped frame");
 }
 
 #[test]
@@ -801,8 +992,22 @@ fn h7_theta_zero_is_the_electrical_zero_after_an_alignment_under_load() {
         st.theta_rad
     );
     assert!((expected + 4.0003e-4).abs() < 1e-8);
-    // Without an alignment there is no offset to take out.
+    // Without an alignment there is no offset to take out. (A fresh link: a second CONFIG
+    // is never applied, H10.)
     config.align_ms = 0;
+    let mut l = DriveLink::new(
+        20_000.0,
+        400.0,
+        EncoderCalibration {
+            offset_counts: None,
+            reverse: false,
+            held_load: Some(HeldLoad {
+                torque_nm: 0.01,
+                torque_constant_nm_per_a: 0.5,
+                rotor_teeth: 50.0,
+            }),
+        },
+    );
     l.on_frame(&frame_bytes(2, Message::Config(config)), 0);
     l.restart();
     let Event::State(st) = l.on_frame(&sample_at(3, 0), 0) else {
@@ -845,4 +1050,459 @@ fn h8_a_drive_that_does_not_hold_phase_a_at_its_align_current_is_refused() {
             "i_a {i_a} A, i_b {i_b} A"
         );
     }
+}
+
+#[test]
+fn h9_an_encoder_offset_is_subtracted_modulo_2_32() {
+    // An absolute encoder (no alignment) at 500 000 counts/rev counting the other way, its
+    // zero 3 648 counts from the ±2^31 wrap.
+    let offset: i64 = -2_147_480_000;
+    let mut l = DriveLink::new(
+        2000.0,
+        400.0,
+        EncoderCalibration {
+            offset_counts: Some(offset),
+            reverse: false,
+            held_load: None,
+        },
+    );
+    let mut config = stepdrive_drive_protocol::units::default_config(2000.0, 100, 99);
+    config.counts_per_rev = 500_000;
+    config.encoder_direction = -1;
+    config.align_ms = 0;
+    assert!(matches!(
+        l.on_frame(&frame_bytes(0, Message::Config(config)), 0),
+        Event::Config(_)
+    ));
+    // The first reading is 7 296 counts below the offset: across the wrap, a positive i32.
+    let first = (offset as i32).wrapping_sub(7296);
+    assert!(first > 2_147_000_000);
+    let Event::State(st) = l.on_frame(&sample_at(1, first), 0) else {
+        panic!("a state")
+    };
+    let rad = |counts: f64| -TAU * counts / 500_000.0;
+    assert!(
+        (st.theta_rad - rad(-7296.0)).abs() < 1e-12,
+        "θ {} (2^32 counts are {} rad)",
+        st.theta_rad,
+        rad(4_294_967_296.0)
+    );
+    // Back across the wrap by differences.
+    let Event::State(st) = l.on_frame(&sample_at(2, first.wrapping_add(7306)), 0) else {
+        panic!("a state")
+    };
+    assert!(
+        (st.theta_rad - rad(10.0)).abs() < 1e-12,
+        "θ {}",
+        st.theta_rad
+    );
+}
+
+/// A link whose CONFIG (1 A / 300 ms alignment) was taken, with the Table I load, and whose
+/// run started: θ at count 0 is θ₀ = −asin(0.02)/50.
+fn running_link_under_load() -> DriveLink {
+    let mut l = DriveLink::new(
+        20_000.0,
+        400.0,
+        EncoderCalibration {
+            offset_counts: None,
+            reverse: false,
+            held_load: Some(HeldLoad {
+                torque_nm: 0.01,
+                torque_constant_nm_per_a: 0.5,
+                rotor_teeth: 50.0,
+            }),
+        },
+    );
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    assert!(matches!(
+        l.on_frame(&frame_bytes(0, Message::Config(config)), 0),
+        Event::Config(_)
+    ));
+    l.restart();
+    l
+}
+
+const THETA_0: f64 = -4.000_266_7e-4;
+
+#[test]
+fn h10_a_config_outside_the_handshake_is_never_applied() {
+    let mut l = running_link_under_load();
+    let theta =
+        |l: &mut DriveLink, seq: u32, counts: i32| match l.on_frame(&sample_at(seq, counts), 0) {
+            Event::State(st) => st.theta_rad,
+            other => panic!("{other:?}"),
+        };
+    let theta_0 = theta(&mut l, 1, 0);
+    assert!((theta_0 - THETA_0).abs() < 1e-9, "θ₀ {theta_0}");
+    // The same CONFIG again (a late answer to a repeated HELLO): dropped and counted.
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    assert_eq!(
+        l.on_frame(&frame_bytes(1, Message::Config(config)), 0),
+        Event::Dropped
+    );
+    assert_eq!(theta(&mut l, 2, 0), theta_0, "θ₀ kept");
+    let mut stats = StatsReport::default();
+    l.copy_counters(&mut stats);
+    assert_eq!(stats.bad_frames, 1);
+    // A different one (half the counts per revolution): not applied; the session must end.
+    let halved = Config {
+        counts_per_rev: 1 << 19,
+        ..config
+    };
+    let Event::ConfigChanged(change) = l.on_frame(&frame_bytes(2, Message::Config(halved)), 0)
+    else {
+        panic!("a changed CONFIG must end the session")
+    };
+    assert_eq!(
+        (change.field, change.was, change.now),
+        ("counts_per_rev", 1 << 20, 1 << 19)
+    );
+    assert!(Refusal::ConfigChanged(change)
+        .to_string()
+        .contains("counts_per_rev was 1048576, now 524288"));
+    let quarter_turn = theta(&mut l, 3, 1 << 18);
+    assert!(
+        (quarter_turn - theta_0 - FRAC_PI_2).abs() < 1e-12,
+        "still 2^20 counts/rev"
+    );
+}
+
+/// The bridge core with the default scenario's motor (Table I) at `hz`, zeroing at the first
+/// sample (or at `offset`).
+fn bridge_core(hz: f64, offset: Option<i64>) -> BridgeCore {
+    let s = Scenario::default();
+    BridgeCore::new(CoreSettings {
+        sample_hz: hz,
+        samples: 1000,
+        silence_periods: 200,
+        plan_every: 1,
+        observer_hz: 400.0,
+        calibration: EncoderCalibration {
+            offset_counts: offset,
+            reverse: false,
+            held_load: Some(HeldLoad {
+                torque_nm: s.load.torque_nm,
+                torque_constant_nm_per_a: s.motor.torque_constant_nm_per_a,
+                rotor_teeth: s.motor.n_r(),
+            }),
+        },
+        resistance_ohm: s.motor.resistance_ohm,
+        rotor_teeth: s.motor.n_r(),
+    })
+}
+
+fn wire(f: &Frame) -> Vec<u8> {
+    let mut b = [0u8; MAX_FRAME];
+    let n = encode(f, &mut b);
+    b[..n].to_vec()
+}
+
+/// One look of the start-up at `now` (the stack there), with the frames it sent.
+fn look(c: &mut BridgeCore, now: u64) -> (Result<StartStep, Refusal>, Vec<Frame>) {
+    let mut sent = Vec::new();
+    let step = c.startup(now, true, &mut |f| sent.push(*f));
+    (step, sent)
+}
+
+#[test]
+fn h11_every_exit_after_a_hello_sends_disable() {
+    let mut c = bridge_core(20_000.0, None);
+    assert!(
+        c.farewell(0).is_none(),
+        "before a HELLO there is nobody to tell"
+    );
+    let (step, sent) = look(&mut c, 0);
+    assert_eq!(step, Ok(StartStep::Wait));
+    assert_eq!(sent[0].message, Message::Hello);
+    let bad = Config {
+        encoder_direction: 0,
+        ..stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200)
+    };
+    let mut stats = StatsReport::default();
+    assert!(matches!(
+        c.on_frame(&frame_bytes(0, Message::Config(bad)), 1, &mut stats),
+        Received::BadConfig(_)
+    ));
+    // The node ends with the refusal; its exit path says goodbye.
+    let f = c.farewell(2).expect("DISABLE after refusing a CONFIG");
+    assert_eq!(f.message, Message::Control(Action::Disable));
+}
+
+#[test]
+fn h12_a_drive_never_heard_is_named_within_the_handshake_time() {
+    let ms = 1_000_000;
+    // Nothing comes back (a drive sending from another port is heard as nothing: §2).
+    let mut c = bridge_core(20_000.0, None);
+    let mut hellos = 0;
+    let mut t = 0;
+    let report = loop {
+        match look(&mut c, t) {
+            (Ok(StartStep::Wait), sent) => hellos += sent.len(),
+            (Err(Refusal::Handshake(r)), _) => break r,
+            other => panic!("{other:?}"),
+        }
+        t += 10 * ms;
+        assert!(
+            t <= HANDSHAKE_NS + 100 * ms,
+            "no verdict in the handshake time"
+        );
+    };
+    assert!(t >= HANDSHAKE_NS && hellos >= 20, "{t} ns, {hellos} HELLOs");
+    assert_eq!(report.frames, 0);
+    let text = Refusal::Handshake(report).to_string();
+    assert!(text.contains("no frame came"), "{text}");
+    // A CONFIG with its reserved byte set: dropped, never read, and named.
+    let mut c = bridge_core(20_000.0, None);
+    assert_eq!(look(&mut c, 0).0, Ok(StartStep::Wait));
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    let mut bytes = frame_bytes(0, Message::Config(config));
+    bytes[18 + 27] = 1;
+    reseal(&mut bytes);
+    let mut stats = StatsReport::default();
+    for i in 0..30 {
+        let now = i * 50 * ms;
+        c.on_frame(&bytes, now, &mut stats);
+        match look(&mut c, now) {
+            (Ok(StartStep::Wait), _) => assert!(now < HANDSHAKE_NS),
+            (Err(Refusal::Handshake(r)), _) => {
+                assert_eq!(r.frames, i + 1);
+                let text = Refusal::Handshake(r).to_string();
+                assert!(
+                    text.contains("CONFIG with its reserved byte (offset 27) set"),
+                    "{text}"
+                );
+                return;
+            }
+            other => panic!("{other:?}"),
+        }
+    }
+    panic!("no verdict")
+}
+
+/// The bridge's start-up (§7) against the emulated drive's core, period by period at
+/// 20 kHz, frames both ways (the host's answer to S(k) reaches the drive before period
+/// k + 1). Returns the verdict and every frame the host sent.
+fn start_against(d: &mut DriveCore, c: &mut BridgeCore) -> (Result<(), Refusal>, Vec<Frame>) {
+    let mut stats = StatsReport::default();
+    let mut all = Vec::new();
+    for k in 0..100_000u64 {
+        let now = k * 50_000;
+        let f = d.sample_frame(now);
+        let report = d.run_period(f.seq);
+        c.on_frame(&wire(&f), now, &mut stats);
+        if let Some(r) = report {
+            let report = frame_bytes(d.report_seq(), Message::FaultReport(r));
+            c.on_frame(&report, now, &mut stats);
+        }
+        let (step, sent) = look(c, now);
+        for f in &sent {
+            if let Some(Reply::Config(config)) = d.on_frame(&wire(f)) {
+                let reply = frame_bytes(d.report_seq(), Message::Config(config));
+                c.on_frame(&reply, now, &mut stats);
+            }
+        }
+        all.extend(sent);
+        match step {
+            Ok(StartStep::Ready) => return (Ok(()), all),
+            Err(e) => return (Err(e), all),
+            Ok(_) => {}
+        }
+    }
+    panic!("the start-up never ended")
+}
+
+#[test]
+fn h13_a_swapped_phase_is_caught_before_the_run_by_the_phase_b_step() {
+    // Wired as assumed: RESET, ALIGN, the hold, ENABLE and phase B alone (the rotor turns a
+    // quarter electrical period towards +θ), ALIGN again; then the run starts with θ where
+    // the rotor truly is.
+    let mut d = drive();
+    let mut c = bridge_core(20_000.0, None);
+    let (verdict, sent) = start_against(&mut d, &mut c);
+    verdict.expect("a drive wired as assumed passes");
+    let controls: Vec<Action> = sent
+        .iter()
+        .filter_map(|f| match f.message {
+            Message::Control(a) => Some(a),
+            _ => None,
+        })
+        .collect();
+    use Action::*;
+    assert_eq!(controls, [Reset, Align, Enable, Align]);
+    let commands = sent
+        .iter()
+        .filter(|f| matches!(f.message, Message::Command(c) if c.duty_a == 0 && c.duty_b > 0))
+        .count();
+    assert!(
+        commands >= 6000,
+        "phase B for align_ms: {commands} COMMANDs"
+    );
+    let enable = c.begin(0);
+    d.on_frame(&wire(&enable));
+    let f = d.sample_frame(0);
+    let truth = d.truth(f.seq).expect("the run started");
+    c.on_frame(&wire(&f), 0, &mut StatsReport::default());
+    let st = *c.newest().expect("the run's first sample");
+    assert_eq!(truth.k, 0);
+    assert!(
+        (st.theta_rad - truth.theta_rad).abs() < 1.2e-5,
+        "host θ {} against the rotor's {} (2 counts)",
+        st.theta_rad,
+        truth.theta_rad
+    );
+    // Phase A's leads swapped: the drive's shunt still reads +1 A holding, the held-current
+    // check passes, and the rotor rests half an electrical period off; driven on phase B it
+    // turns a quarter period towards −θ. Refused before the run's ENABLE.
+    let mut d = drive();
+    d.set_align_fault(AlignFault::SwappedLeads);
+    let mut c = bridge_core(20_000.0, None);
+    let (verdict, sent) = start_against(&mut d, &mut c);
+    let Err(Refusal::PhaseStep { ratio, .. }) = verdict else {
+        panic!("{verdict:?}")
+    };
+    assert!((ratio + 1.0).abs() < 0.05, "{ratio}");
+    let enables = sent
+        .iter()
+        .filter(|f| f.message == Message::Control(Action::Enable))
+        .count();
+    assert_eq!(enables, 1, "only the step's ENABLE, never the run's");
+}
+
+/// A SAMPLE of a drive holding its aligned rotor, with the default CONFIG's scaling.
+fn hold_sample(seq: u32, i_a: f64, i_b: f64, duty_a: i16, status_bits: u16) -> Vec<u8> {
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    let counts_per_amp = 1e6 / f64::from(config.current_ua_per_count);
+    let adc =
+        |amps: f64| (f64::from(config.current_zero_count) + amps * counts_per_amp).round() as u16;
+    let s = Sample {
+        adc_a: adc(i_a),
+        adc_b: adc(i_b),
+        duty_a,
+        status: status_bits,
+        ..RESTING
+    };
+    frame_bytes(seq, Message::Sample(s))
+}
+
+#[test]
+fn h14_theta_zero_comes_from_the_held_current() {
+    // The drive announced 1 A but holds 0.54 A: the load pulls the rotor further from the
+    // electrical zero, −asin(0.01 / (0.5 × 0.54)) / 50.
+    let mut l = DriveLink::new(
+        20_000.0,
+        400.0,
+        EncoderCalibration {
+            offset_counts: None,
+            reverse: false,
+            held_load: Some(HeldLoad {
+                torque_nm: 0.01,
+                torque_constant_nm_per_a: 0.5,
+                rotor_teeth: 50.0,
+            }),
+        },
+    );
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    l.on_frame(&frame_bytes(0, Message::Config(config)), 0);
+    l.on_frame(&hold_sample(1, 0.54, 0.0, 11_000, status::ALIGNING), 0);
+    for seq in 2..2 + HOLD_SAMPLES {
+        l.on_frame(&hold_sample(seq, 0.54, 0.0, 11_000, 0), 0);
+    }
+    l.restart();
+    let Event::State(st) = l.on_frame(&sample_at(100, 0), 0) else {
+        panic!("a state")
+    };
+    let expected = -(0.01f64 / (0.5 * 0.54)).asin() / 50.0;
+    assert!(
+        (st.theta_rad - expected).abs() < 1e-6,
+        "θ₀ {} against {expected} (from the announced 1 A: {THETA_0})",
+        st.theta_rad
+    );
+}
+
+/// The start-up, scripted up to the first hold's verdict: HELLO, `config`, the stack
+/// ready, one SAMPLE aligning and then the hold, with phase A at `i_a` for a duty of
+/// `duty_a`.
+fn first_hold(
+    c: &mut BridgeCore,
+    config: Config,
+    i_a: f64,
+    duty_a: i16,
+) -> Result<StartStep, Refusal> {
+    let mut stats = StatsReport::default();
+    look(c, 0).0?;
+    c.on_frame(&frame_bytes(0, Message::Config(config)), 0, &mut stats);
+    look(c, 1).0?;
+    c.on_frame(
+        &hold_sample(10, 1.0, 0.0, duty_a, status::ALIGNING),
+        2,
+        &mut stats,
+    );
+    look(c, 2).0?;
+    for seq in 11..11 + HOLD_SAMPLES {
+        c.on_frame(&hold_sample(seq, i_a, 0.0, duty_a, 0), 3, &mut stats);
+    }
+    look(c, 3).0
+}
+
+#[test]
+fn h15_a_current_sense_off_scale_is_refused() {
+    let config = stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200);
+    // The duty that drives 1 A through the model's 14.8 Ω from 24 V.
+    let duty = (14.8 / 24.0 * 32767.0_f64).round() as i16;
+    for (i_a, accepted) in [(1.0, true), (0.74, true), (1.4, false), (0.55, false)] {
+        let mut c = bridge_core(20_000.0, None);
+        let verdict = first_hold(&mut c, config, i_a, duty);
+        match (verdict, accepted) {
+            (Ok(StartStep::Answer), true) => {}
+            (Err(Refusal::CurrentScale { ratio, .. }), false) => {
+                assert!((ratio - i_a).abs() < 1e-3, "{ratio}")
+            }
+            (other, _) => panic!("{i_a} A: {other:?}"),
+        }
+    }
+}
+
+#[test]
+fn h16_a_drive_without_alignment_needs_an_encoder_offset() {
+    let config = Config {
+        align_ms: 0,
+        ..stepdrive_drive_protocol::units::default_config(20_000.0, 1000, 200)
+    };
+    let mut stats = StatsReport::default();
+    let mut c = bridge_core(20_000.0, None);
+    assert_eq!(look(&mut c, 0).0, Ok(StartStep::Wait));
+    c.on_frame(&frame_bytes(0, Message::Config(config)), 0, &mut stats);
+    let (step, _) = look(&mut c, 1);
+    assert_eq!(step, Err(Refusal::NoElectricalZero));
+    // With the absolute encoder's offset: RESET, no ALIGN, and the run may begin.
+    let mut c = bridge_core(20_000.0, Some(123));
+    assert_eq!(look(&mut c, 0).0, Ok(StartStep::Wait));
+    c.on_frame(&frame_bytes(0, Message::Config(config)), 0, &mut stats);
+    let (step, sent) = look(&mut c, 1);
+    assert_eq!(step, Ok(StartStep::Ready));
+    let sent: Vec<Message> = sent.into_iter().map(|f| f.message).collect();
+    assert_eq!(sent, [Message::Control(Action::Reset)]);
+}
+
+#[test]
+fn h17_reserved_bits_of_status_and_fault_bits_are_read_not_dropped() {
+    let mut l = configured_link();
+    let s = Sample {
+        status: status::ENABLED | 0x8000,
+        fault_bits: 0x1000,
+        ..RESTING
+    };
+    let Event::State(st) = l.on_frame(&frame_bytes(1, Message::Sample(s)), 0) else {
+        panic!("a frame with reserved bits set is read (§4.1), not dropped as a reserved byte")
+    };
+    assert_eq!(
+        st.fault >> 16,
+        0x1000,
+        "an unknown fault bit is still a fault"
+    );
+    assert_ne!(
+        st.fault & stepdrive_shared::messages::fault_bits::DRIVE_FAULT,
+        0
+    );
 }

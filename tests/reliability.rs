@@ -594,7 +594,8 @@ fn a_run_shorter_than_the_profile_reports_what_it_reached() {
 /// reports success: one that never finishes aligning is named by the bridge and the run
 /// exits 5; one that aligned the wrong way (phase A reversed: the rotor half an electrical
 /// period from the zero the host assumes, which used to commutate backwards and run away)
-/// is refused before it is enabled, its held current named, exit 5.
+/// is refused before it is enabled, its held current named, exit 5; one whose phase A leads
+/// are swapped is refused by the phase-B step (§7 step 4), exit 5.
 #[test]
 fn a_broken_alignment_is_loud() {
     let _turn = one_stack_at_a_time();
@@ -603,6 +604,10 @@ fn a_broken_alignment_is_loud() {
     for (fault, code, says) in [
         ("stuck", 5, "did not finish its alignment"),
         ("reversed", 5, "reports phase A at -1.0"),
+        // Issue 24: phase A's leads swapped passes the held-current check (the drive's
+        // shunt reads +1 A); the phase-B step turns the rotor the wrong way, refused before
+        // the run. (Before: both methods ran away, STEPPED OUT, exit 4.)
+        ("swapped-leads", 5, "turned its rotor -0.03"),
     ] {
         let json = dir.path(&format!("{fault}.json"));
         let inst = instance(&format!("hwalign{fault}"));
@@ -634,4 +639,170 @@ fn a_broken_alignment_is_loud() {
         assert!(all.contains(says), "{fault}: {all}");
         assert!(processes_with(&inst).is_empty());
     }
+}
+
+/// How the [`FakeDrive`] answers a HELLO.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Answer {
+    /// A valid CONFIG and then SAMPLEs, every one from a second socket (another port than
+    /// the one the HELLO went to).
+    FromAnotherPort,
+    /// A CONFIG with its reserved byte set.
+    ReservedByte,
+    /// A CONFIG with an invalid field (encoder_direction 0).
+    InvalidConfig,
+}
+
+/// Not a drive: a UDP socket on a free loopback port that answers each HELLO as told and
+/// keeps every host frame it receives, for the host's side of the handshake.
+struct FakeDrive {
+    addr: String,
+    other: std::net::SocketAddr,
+    stop: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: std::thread::JoinHandle<Vec<stepdrive_drive_protocol::Message>>,
+}
+
+impl FakeDrive {
+    fn start(answer: Answer, rate_hz: f64) -> Self {
+        use std::sync::atomic::Ordering;
+        use stepdrive_drive_protocol::units::default_config;
+        use stepdrive_drive_protocol::{decode, frame_bytes, reseal, status, Message, Sample};
+        let sock = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+        let other = std::net::UdpSocket::bind("127.0.0.1:0").expect("bind");
+        sock.set_read_timeout(Some(Duration::from_millis(1)))
+            .expect("timeout");
+        let addr = sock.local_addr().expect("addr").to_string();
+        let other_addr = other.local_addr().expect("addr");
+        let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let stopped = stop.clone();
+        let thread = std::thread::spawn(move || {
+            let mut got = Vec::new();
+            let mut host = None;
+            let mut seq = 0u32;
+            let mut buf = [0u8; 8192];
+            let mut config = default_config(rate_hz, 1000, 0);
+            if answer == Answer::InvalidConfig {
+                config.encoder_direction = 0;
+            }
+            while !stopped.load(Ordering::Relaxed) {
+                if let Ok((n, from)) = sock.recv_from(&mut buf) {
+                    if let Ok(f) = decode(&buf[..n]) {
+                        if f.message == Message::Hello {
+                            host = Some(from);
+                            let mut reply = frame_bytes(seq, Message::Config(config));
+                            if answer == Answer::ReservedByte {
+                                reply[18 + 27] = 1;
+                                reseal(&mut reply);
+                            }
+                            let out = if answer == Answer::FromAnotherPort {
+                                &other
+                            } else {
+                                &sock
+                            };
+                            let _ = out.send_to(&reply, from);
+                        }
+                        got.push(f.message);
+                    }
+                }
+                if let (Some(to), Answer::FromAnotherPort) = (host, answer) {
+                    seq += 1;
+                    let s = Sample {
+                        encoder_counts: 0,
+                        adc_a: 32768,
+                        adc_b: 32768,
+                        adc_bus: 2400,
+                        duty_a: 0,
+                        duty_b: 0,
+                        applied_command_seq: 0,
+                        fault_bits: 0,
+                        status: status::ENABLED,
+                    };
+                    let _ = other.send_to(&frame_bytes(seq, Message::Sample(s)), to);
+                }
+            }
+            got
+        });
+        Self {
+            addr,
+            other: other_addr,
+            stop,
+            thread,
+        }
+    }
+
+    /// Stops it; the host frames it received.
+    fn stop(self) -> Vec<stepdrive_drive_protocol::Message> {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        self.thread.join().expect("fake drive thread")
+    }
+}
+
+/// Issue 24, defect 5 (the reliability issue's finding 4): a drive whose frames never
+/// arrive is named, with what was missing, within the handshake time (1 s of HELLOs): one
+/// that answers from another port than it listens on, and one whose CONFIG has its
+/// reserved byte set; DISABLE follows. (Before: after 30 s, "the position loop could not
+/// start within 30s: still waiting for drive/state from the plant", exit 5.)
+#[test]
+fn a_drive_never_heard_is_named_within_the_handshake_time() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("handshake");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    for answer in [Answer::FromAnotherPort, Answer::ReservedByte] {
+        let json = dir.path("hw.json");
+        let inst = instance(&format!("handshake{answer:?}"));
+        let fake = FakeDrive::start(answer, 2000.0);
+        let (addr, other) = (fake.addr.clone(), fake.other);
+        let started = Instant::now();
+        let out = hardware_run(&scenario, &inst, &json, &["--drive", &addr]);
+        let took = started.elapsed();
+        let received = fake.stop();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(5), "{answer:?}: {err}");
+        assert!(took < Duration::from_secs(10), "{answer:?}: took {took:?}");
+        let named = format!("the drive at udp://{addr} sent no usable CONFIG within");
+        assert!(err.contains(&named), "{answer:?}: {err}");
+        let says = match answer {
+            Answer::FromAnotherPort => format!("frames came from {other} instead"),
+            _ => "a CONFIG with its reserved byte (offset 27) set".to_string(),
+        };
+        assert!(err.contains(&says), "{answer:?}: {err}");
+        assert!(
+            received.contains(&stepdrive_drive_protocol::Message::Control(
+                stepdrive_drive_protocol::Action::Disable
+            )),
+            "{answer:?}: no DISABLE in {received:?}"
+        );
+        assert!(processes_with(&inst).is_empty());
+    }
+}
+
+/// Issue 24, defect 4: a drive whose CONFIG is refused gets DISABLE on the way out (§7 step
+/// 7: every exit path). (Before: the refusal named the field, and no DISABLE went out.)
+#[test]
+fn a_refused_config_is_followed_by_disable() {
+    use stepdrive_drive_protocol::{Action, Message};
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("refusedconfig");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    let json = dir.path("hw.json");
+    let inst = instance("refusedconfig");
+    let fake = FakeDrive::start(Answer::InvalidConfig, 2000.0);
+    let addr = fake.addr.clone();
+    let out = hardware_run(&scenario, &inst, &json, &["--drive", &addr]);
+    let received = fake.stop();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(5), "{err}");
+    assert!(
+        err.contains("CONFIG field encoder_direction = 0 is invalid"),
+        "{err}"
+    );
+    let hello = received.iter().position(|m| *m == Message::Hello);
+    let disable = received
+        .iter()
+        .rposition(|m| *m == Message::Control(Action::Disable));
+    assert!(
+        matches!((hello, disable), (Some(h), Some(d)) if d > h),
+        "HELLO then DISABLE: {received:?}"
+    );
+    assert!(processes_with(&inst).is_empty());
 }

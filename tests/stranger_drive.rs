@@ -125,3 +125,27 @@ fn a_lossy_link_to_the_stranger_drive_costs_nothing() {
     // CI machine without them (before the sequence-gap observer: 15×).
     assert!(cruise[1] < 2.0 * cruise[0], "clean → lossy: {cruise:?}");
 }
+
+/// Issue 24: the stranger drive with phase A's motor leads swapped. Its shunt reads +I
+/// holding, so the held-current check passes; the phase-B step (docs/drive-protocol.md §7
+/// step 4) sees the rotor turn a quarter electrical period the wrong way and refuses the
+/// drive before the run, exit 5. (Before: both methods ran away, STEPPED OUT, exit 4.)
+#[test]
+fn a_stranger_drive_with_phase_a_swapped_is_refused_before_the_run() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("strangerswapped");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    let json = dir.path("hw.json");
+    let inst = instance("strangerswapped");
+    let options = DriveOptions {
+        swap_phase_a: true,
+        ..DriveOptions::default()
+    };
+    let (out, stats) = against_the_stranger(options, |drive| {
+        methods_run(&scenario, &inst, &json, drive, "proposed")
+    });
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(5), "{err}\ndrive: {stats:?}");
+    assert!(err.contains("turned its rotor -0.03"), "{err}");
+    assert!(processes_with(&inst).is_empty());
+}

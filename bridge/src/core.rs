@@ -14,9 +14,16 @@
 //!   last sent (default 1: each one), with as many entries as the drive keeps.
 //! - **arrivals**: when the drive's next SAMPLE is due, from its own timestamps
 //!   ([`ArrivalClock`]).
+//! - **start-up** (§7): HELLO until a CONFIG within the handshake time, then RESET and
+//!   ALIGN, the held current and its scale, the phase-B step, ALIGN again; a drive that
+//!   fails a step is refused ([`Refusal`]) and every exit path after a HELLO sends DISABLE
+//!   ([`BridgeCore::farewell`]).
 
-use crate::link::{DriveLink, EncoderCalibration, Event};
-use stepdrive_drive_protocol::{Action, Config, ConfigError, Frame};
+use crate::link::{ConfigChange, DriveLink, EncoderCalibration, Event, Hold};
+use std::f64::consts::FRAC_PI_2;
+use stepdrive_drive_protocol::{
+    status, Action, Config, ConfigError, DecodeError, Frame, MAX_DUTY, VERSION,
+};
 use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
 use stepdrive_shared::stats::StatsReport;
 
@@ -64,6 +71,10 @@ pub struct CoreSettings {
     pub plan_every: u32,
     pub observer_hz: f64,
     pub calibration: EncoderCalibration,
+    /// What the host's model says of the motor, for the start-up checks (§7 step 4): its
+    /// winding resistance (Ω) and its rotor teeth N_r.
+    pub resistance_ohm: f64,
+    pub rotor_teeth: f64,
 }
 
 /// What a frame from the drive was.
@@ -74,6 +85,8 @@ pub enum Received {
     Config(Config),
     /// A CONFIG the protocol does not allow (named field): the drive cannot be used.
     BadConfig(ConfigError),
+    /// A CONFIG other than the one taken at the handshake: not applied; the session ends.
+    ConfigChanged(ConfigChange),
     /// A latched fault the drive reports (also in its samples' fault bits).
     Fault {
         bits: u16,
@@ -108,7 +121,288 @@ pub struct BridgeCore {
     /// continued from.
     plan: Box<DrivePlan>,
     plan_sent: Option<u64>,
+    /// Where the start-up stands (§7), and whether a HELLO went out (from then on the drive
+    /// may have a session with this host, and every exit path sends DISABLE).
+    stage: Stage,
+    hello_sent: bool,
 }
+
+/// How often HELLO is repeated until the drive's CONFIG arrives (§4.6).
+pub const HELLO_EVERY_NS: u64 = 50_000_000;
+/// The handshake time (§7 step 1): a drive whose CONFIG has not arrived this long after the
+/// first HELLO (or after the last "port unreachable", while the drive was not up yet), with
+/// at least [`HANDSHAKE_HELLOS`] HELLOs sent, is named with what did arrive. A drive on a
+/// cable answers within a period; twenty HELLOs outlast any loss but a dead link.
+pub const HANDSHAKE_NS: u64 = 1_000_000_000;
+pub const HANDSHAKE_HELLOS: u32 = 20;
+/// How much longer than its announced time a drive may take to report its alignment done
+/// (and to report the hold after it, and the phase-B step).
+pub const ALIGN_SLACK_MS: u64 = 1_000;
+
+/// Where the start-up sequence of §7 stands.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Stage {
+    /// HELLO until CONFIG (step 1).
+    Handshake {
+        since_ns: Option<u64>,
+        next_hello_ns: u64,
+        hellos: u32,
+    },
+    /// Configured; waiting for the stack before touching the motor.
+    Joining,
+    /// RESET and ALIGN sent: waiting for the samples to show the alignment begin and end.
+    Aligning {
+        round: Round,
+        since_ns: u64,
+        seen: bool,
+    },
+    /// Aligned: collecting the hold's figures ([`Hold`]).
+    Holding { round: Round, since_ns: u64 },
+    /// Enabled, phase B alone driven by the host's COMMANDs (step 4).
+    Stepping(PhaseStep),
+    /// Every check passed: the run may begin.
+    Ready,
+    /// The stream runs (after [`BridgeCore::begin`]).
+    Running,
+}
+
+/// Which alignment: the first one, before the phase-B step, or the last one, which the run
+/// starts from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Round {
+    First,
+    Last,
+}
+
+/// The phase-B step (§7 step 4): with the rotor held by phase A, the host drives phase B
+/// alone at the hold's duty; a motor wired and sensed as the host assumes turns a quarter
+/// electrical period towards +θ.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct PhaseStep {
+    since_ns: u64,
+    duty_b: i16,
+    /// The hold before it.
+    from: Hold,
+    /// SAMPLEs the step lasts, the first ENABLED one's wire seq, the last one answered.
+    periods: u32,
+    first: Option<u32>,
+    answered: Option<u32>,
+    /// Means over its second half, when the rotor has settled.
+    n: u32,
+    theta_rad: f64,
+    i_a_a: f64,
+    i_b_a: f64,
+}
+
+/// What the host-driven start-up asks of the node after one look at the time and the wire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StartStep {
+    /// Nothing to do until frames arrive or time passes.
+    Wait,
+    /// Nothing to do, but the drive's SAMPLEs must be answered as they come (the phase-B
+    /// step: the drive's watchdog is armed): look again as soon as the wire is readable.
+    Answer,
+    /// Every check passed: drop the queued samples and [`BridgeCore::begin`].
+    Ready,
+}
+
+/// Why the host will not run a drive: each names what it saw against the rule it broke
+/// (docs/drive-protocol.md). Displayed after "the drive at ADDRESS ".
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum Refusal {
+    #[error("sent a CONFIG this host cannot use: {0}")]
+    Config(ConfigError),
+    #[error(
+        "sent a CONFIG during its session that differs from the one of the handshake \
+         ({} was {}, now {}): it was not applied, and the session ends, because the units \
+         its SAMPLEs are read in cannot change under a running motor \
+         (docs/drive-protocol.md §4.5, \"A CONFIG outside the handshake\")",
+        .0.field, .0.was, .0.now
+    )]
+    ConfigChanged(ConfigChange),
+    #[error("samples at {drive_hz} Hz, the scenario expects {scenario_hz} Hz")]
+    SampleRate { drive_hz: u32, scenario_hz: f64 },
+    #[error(
+        "does not align (CONFIG align_ms 0) and no encoder offset is configured \
+         ([drive] encoder_offset_counts or --encoder-offset): θ = 0 would be wherever the \
+         rotor happens to rest, not an electrical zero, and every command would be \
+         commutated at that angle's error (docs/drive-protocol.md §7)"
+    )]
+    NoElectricalZero,
+    #[error("{0}")]
+    Handshake(HandshakeReport),
+    #[error(
+        "did not finish its alignment ({align_ms} ms announced) within {waited_ms} ms: no \
+         SAMPLE with ALIGNING set and then cleared (docs/drive-protocol.md §7)"
+    )]
+    Align { align_ms: u16, waited_ms: u64 },
+    #[error(
+        "stopped answering during {during}: no SAMPLE for {waited_ms} ms \
+         (docs/drive-protocol.md §7)"
+    )]
+    Stalled {
+        during: &'static str,
+        waited_ms: u64,
+    },
+    #[error(
+        "latched fault bits {bits:#06x} during {during} (docs/drive-protocol.md §5); the \
+         host does not start a run on it"
+    )]
+    Fault { bits: u16, during: &'static str },
+    #[error(
+        "holding its rotor after its ALIGN, reports phase A at {i_a_a:+.3} A and phase B at \
+         {i_b_a:+.3} A; it must drive phase A alone at its align current, {align_a:+.3} A \
+         (docs/drive-protocol.md §7 step 4): a phase wired the other way round, or a current \
+         sense of the wrong sign or scale (CONFIG current_zero_count, current_ua_per_count), \
+         would commutate the motor wrongly"
+    )]
+    HeldCurrent {
+        i_a_a: f64,
+        i_b_a: f64,
+        align_a: f64,
+    },
+    #[error(
+        "holds phase A at {i_a_a:.3} A with a duty of {duty_pct:.1} % of its {bus_v:.2} V \
+         bus, which drives {expected_a:.3} A through the model's {resistance_ohm} Ω: its \
+         current sense reads {ratio:.2} × that, outside {min} … {max} (docs/drive-protocol.md \
+         §7 step 4, \"The current scale\"): a wrong CONFIG current_ua_per_count, or a model \
+         resistance ([motor] resistance_ohm) that is not this motor's",
+        min = CURRENT_SCALE_MIN,
+        max = CURRENT_SCALE_MAX
+    )]
+    CurrentScale {
+        i_a_a: f64,
+        duty_pct: f64,
+        bus_v: f64,
+        expected_a: f64,
+        resistance_ohm: f64,
+        ratio: f64,
+    },
+    #[error(
+        "driven on phase B alone at a duty of {duty_b} after its alignment, reports phase A \
+         at {i_a_a:+.3} A and phase B at {i_b_a:+.3} A; phase B must carry about the held \
+         {held_a:+.3} A and phase A none (docs/drive-protocol.md §7 step 4): phase B's \
+         current sense has the wrong sign or scale, or the phases are swapped"
+    )]
+    PhaseBCurrent {
+        duty_b: i16,
+        i_a_a: f64,
+        i_b_a: f64,
+        held_a: f64,
+    },
+    #[error(
+        "turned its rotor {moved_rad:+.4} rad when phase B alone was driven at +{i_b_a:.3} A \
+         after its alignment; a motor wired and sensed as this host assumes turns a quarter \
+         electrical period towards +θ, {expected_rad:+.4} rad ({ratio:.2} × that, outside \
+         {min} … {max}; docs/drive-protocol.md §7 step 4, \"The phase-B step\"): phase A's \
+         or phase B's motor leads swapped, an encoder counting the other way (CONFIG \
+         encoder_direction, --reverse-encoder), or a wrong counts_per_rev or N_r",
+        min = STEP_MIN,
+        max = STEP_MAX
+    )]
+    PhaseStep {
+        moved_rad: f64,
+        expected_rad: f64,
+        ratio: f64,
+        i_b_a: f64,
+    },
+}
+
+/// What the host heard from a drive whose CONFIG never came within the handshake time.
+#[derive(Debug, Clone, PartialEq)]
+pub struct HandshakeReport {
+    pub waited_ms: u64,
+    pub hellos: u32,
+    /// Datagrams read from the drive's address, and of those SAMPLEs before any CONFIG.
+    pub frames: u64,
+    pub samples: u64,
+    /// Frames of another protocol version, and the last version seen.
+    pub other_version: (u64, u8),
+    /// Why the last frame that failed validation failed.
+    pub last_rejection: Option<DecodeError>,
+    /// Frames that came from another address or port of the drive's host instead (the node
+    /// looks once the handshake failed with nothing heard: §2).
+    pub elsewhere: Option<std::net::SocketAddr>,
+}
+
+impl std::fmt::Display for HandshakeReport {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "sent no usable CONFIG within {} ms ({} HELLOs, one every {} ms; \
+             docs/drive-protocol.md §7 step 1): ",
+            self.waited_ms,
+            self.hellos,
+            HELLO_EVERY_NS / 1_000_000
+        )?;
+        if self.frames == 0 {
+            write!(f, "no frame came from that address and port")?;
+            return match self.elsewhere {
+                Some(from) => write!(
+                    f,
+                    "; frames came from {from} instead: a drive must send from the port it \
+                     listens on (§2), and this host reads only the drive's address and port"
+                ),
+                None => write!(
+                    f,
+                    " (is it on, at that address, and does it answer HELLO from the port it \
+                     listens on? §2)"
+                ),
+            };
+        }
+        write!(f, "{} frames came", self.frames)?;
+        if self.other_version.0 > 0 {
+            write!(
+                f,
+                ", {} of them of protocol version {} (this host speaks version {VERSION})",
+                self.other_version.0, self.other_version.1
+            )?;
+        }
+        if self.samples > 0 {
+            write!(
+                f,
+                ", {} of them SAMPLEs before any CONFIG (a drive answers each HELLO with a \
+                 CONFIG, §4.6)",
+                self.samples
+            )?;
+        }
+        if let Some(e) = &self.last_rejection {
+            write!(f, "; the last frame dropped: ")?;
+            match e {
+                DecodeError::Reserved(5) => write!(
+                    f,
+                    "a CONFIG with its reserved byte (offset 27) set, which a receiver drops \
+                     unread (§3, §4.5)"
+                )?,
+                DecodeError::Reserved(k) => write!(
+                    f,
+                    "a frame of kind {k} with a reserved byte set, which a receiver drops \
+                     unread (§3)"
+                )?,
+                other => write!(f, "{other} (§3)")?,
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The current-scale check (§7 step 4): the held current against what the hold's duty
+/// drives through the model's resistance. A winding warms from the model's temperature by
+/// up to ~110 K in use (copper +0.39 %/K: R × 1.43) and a motor's R is within ±10 % of its
+/// datasheet, so a sense that reads right gives 1/(1.43 × 1.1) = 0.64 … 1/(0.88 × 0.9) =
+/// 1.26 × (0.88: a winding 30 K colder than the model's): the band is that, rounded out.
+/// A 1.4× scale error at a cold start reads 1.4 and is refused; in a hot winding it can
+/// hide (the document says so).
+pub const CURRENT_SCALE_MIN: f64 = 0.6;
+pub const CURRENT_SCALE_MAX: f64 = 1.3;
+/// The phase-B step (§7 step 4) must turn the rotor 0.5 … 1.5 × a quarter electrical
+/// period towards +θ: the sign tells a wiring or encoder-direction error; the magnitude a
+/// counts_per_rev or N_r twice or half what it is. Detent torque and friction move the
+/// two rest positions by a few % of it, not by half.
+pub const STEP_MIN: f64 = 0.5;
+pub const STEP_MAX: f64 = 1.5;
+/// A quarter electrical period of fewer encoder counts than this cannot be judged.
+pub const STEP_MIN_COUNTS: f64 = 4.0;
 
 impl BridgeCore {
     pub fn new(settings: CoreSettings) -> Self {
@@ -132,6 +426,12 @@ impl BridgeCore {
             answered: None,
             plan: Box::default(),
             plan_sent: None,
+            stage: Stage::Handshake {
+                since_ns: None,
+                next_hello_ns: 0,
+                hellos: 0,
+            },
+            hello_sent: false,
             settings,
         }
     }
@@ -151,25 +451,324 @@ impl BridgeCore {
 
     /// The HELLO that asks the drive for its CONFIG.
     pub fn hello(&mut self, now: u64) -> Frame {
+        self.hello_sent = true;
         self.link.hello_frame(now)
     }
 
-    /// Before the stream: the RESET that clears what a previous session latched, and the
-    /// ALIGN that brings the rotor to an electrical zero (§7).
-    pub fn prepare(&mut self, now: u64) -> [Frame; 2] {
-        [
-            self.link.control_frame(Action::Reset, now),
-            self.link.control_frame(Action::Align, now),
-        ]
+    /// The node saw "port unreachable" from the drive's address: nothing listens there yet
+    /// (a drive starting up). The handshake time counts from the last such answer; the node
+    /// gives up on a drive that keeps answering it.
+    pub fn refused(&mut self, now: u64) {
+        if let Stage::Handshake { since_ns, .. } = &mut self.stage {
+            *since_ns = Some(now);
+        }
+    }
+
+    /// The start-up of §7, one look at a time: sends (through `send`) the frames due now,
+    /// and says what the node should do next. `stack_ready`: the loops the run needs are
+    /// there (the motor is not touched before).
+    pub fn startup(
+        &mut self,
+        now: u64,
+        stack_ready: bool,
+        send: &mut dyn FnMut(&Frame),
+    ) -> Result<StartStep, Refusal> {
+        loop {
+            match self.stage {
+                Stage::Handshake {
+                    since_ns,
+                    next_hello_ns,
+                    hellos,
+                } => {
+                    if self.link.configured() {
+                        self.accept_config()?;
+                        self.stage = Stage::Joining;
+                        continue;
+                    }
+                    let since = since_ns.unwrap_or(now);
+                    let waited = now.saturating_sub(since);
+                    if waited >= HANDSHAKE_NS && hellos >= HANDSHAKE_HELLOS {
+                        let l = &self.link;
+                        return Err(Refusal::Handshake(HandshakeReport {
+                            waited_ms: waited / 1_000_000,
+                            hellos,
+                            frames: l.frames_received,
+                            samples: l.samples_before_config,
+                            other_version: l.other_version,
+                            last_rejection: l.last_rejection.clone(),
+                            elsewhere: None,
+                        }));
+                    }
+                    let mut next = next_hello_ns;
+                    let mut sent = hellos;
+                    if now >= next_hello_ns {
+                        send(&self.hello(now));
+                        sent += 1;
+                        next = now + HELLO_EVERY_NS;
+                    }
+                    self.stage = Stage::Handshake {
+                        since_ns: Some(since),
+                        next_hello_ns: next,
+                        hellos: sent,
+                    };
+                    return Ok(StartStep::Wait);
+                }
+                Stage::Joining => {
+                    if !stack_ready {
+                        return Ok(StartStep::Wait);
+                    }
+                    // A fresh start: nothing a previous session latched, the rotor at an
+                    // electrical zero (a drive that does not align has an absolute encoder
+                    // whose offset the host was given: accept_config).
+                    send(&self.link.control_frame(Action::Reset, now));
+                    if self.align_ms() == 0 {
+                        self.stage = Stage::Ready;
+                        continue;
+                    }
+                    send(&self.link.control_frame(Action::Align, now));
+                    self.stage = Stage::Aligning {
+                        round: Round::First,
+                        since_ns: now,
+                        seen: false,
+                    };
+                    return Ok(StartStep::Wait);
+                }
+                Stage::Aligning {
+                    round,
+                    since_ns,
+                    seen,
+                } => {
+                    let aligning = self.link.last_status & status::ALIGNING != 0;
+                    // Samples sent before the drive took the RESET may still carry a fault
+                    // of a previous session; from the ALIGN's first SAMPLE on, one is new.
+                    if seen || aligning {
+                        self.fault_check(alignment_name(round))?;
+                    }
+                    if seen && !aligning {
+                        self.stage = Stage::Holding { round, since_ns };
+                        continue;
+                    }
+                    self.align_deadline(since_ns, now)?;
+                    self.stage = Stage::Aligning {
+                        round,
+                        since_ns,
+                        seen: seen || aligning,
+                    };
+                    return Ok(StartStep::Wait);
+                }
+                Stage::Holding { round, since_ns } => {
+                    self.fault_check(alignment_name(round))?;
+                    let hold = self.link.hold();
+                    if !hold.complete() {
+                        self.align_deadline(since_ns, now)?;
+                        return Ok(StartStep::Wait);
+                    }
+                    self.check_hold(&hold)?;
+                    if round == Round::Last {
+                        self.stage = Stage::Ready;
+                        continue;
+                    }
+                    let Some(step) = self.phase_step(&hold, now) else {
+                        self.stage = Stage::Ready;
+                        continue;
+                    };
+                    send(&self.link.control_frame(Action::Enable, now));
+                    self.stage = Stage::Stepping(step);
+                    return Ok(StartStep::Answer);
+                }
+                Stage::Stepping(mut step) => {
+                    self.fault_check("the phase-B step")?;
+                    let waited_ms = now.saturating_sub(step.since_ns) / 1_000_000;
+                    if waited_ms > u64::from(self.align_ms()) + ALIGN_SLACK_MS {
+                        return Err(Refusal::Stalled {
+                            during: "the phase-B step",
+                            waited_ms,
+                        });
+                    }
+                    if let (Some(first), Some(newest)) = (step.first, self.link.newest_sample_seq())
+                    {
+                        if newest.wrapping_sub(first) >= step.periods {
+                            judge_phase_step(&step, self.settings.rotor_teeth)?;
+                            send(&self.link.control_frame(Action::Align, now));
+                            self.stage = Stage::Aligning {
+                                round: Round::Last,
+                                since_ns: now,
+                                seen: false,
+                            };
+                            return Ok(StartStep::Wait);
+                        }
+                        if step.answered != Some(newest) {
+                            send(&self.link.duty_command_frame(newest, 0, step.duty_b, now));
+                            step.answered = Some(newest);
+                        }
+                    }
+                    self.stage = Stage::Stepping(step);
+                    return Ok(StartStep::Answer);
+                }
+                Stage::Ready => return Ok(StartStep::Ready),
+                Stage::Running => return Ok(StartStep::Ready),
+            }
+        }
+    }
+
+    /// What the start-up waits for from the drive, for a timeout report.
+    pub fn awaiting(&self) -> &'static str {
+        match self.stage {
+            Stage::Handshake { .. } | Stage::Joining => "a CONFIG",
+            Stage::Aligning { .. } | Stage::Holding { .. } => "the alignment",
+            Stage::Stepping(_) => "the phase-B step",
+            Stage::Ready | Stage::Running => "SAMPLE frames",
+        }
+    }
+
+    /// Whether the start-up waits for the stack's loops (configured, motor untouched).
+    pub fn awaiting_stack(&self) -> bool {
+        self.stage == Stage::Joining
+    }
+
+    fn align_ms(&self) -> u16 {
+        self.link.config().map_or(0, |c| c.align_ms)
+    }
+
+    /// §4.5 and §7 step 2: the drive's CONFIG against the scenario and the calibration.
+    fn accept_config(&mut self) -> Result<(), Refusal> {
+        let Some(c) = self.link.config().copied() else {
+            return Ok(());
+        };
+        tracing::info!(?c, "drive configuration");
+        if f64::from(c.sample_rate_hz) != self.settings.sample_hz.round() {
+            return Err(Refusal::SampleRate {
+                drive_hz: c.sample_rate_hz,
+                scenario_hz: self.settings.sample_hz,
+            });
+        }
+        if c.align_ms == 0 && self.settings.calibration.offset_counts.is_none() {
+            return Err(Refusal::NoElectricalZero);
+        }
+        Ok(())
+    }
+
+    fn align_deadline(&self, since_ns: u64, now: u64) -> Result<(), Refusal> {
+        let waited_ms = now.saturating_sub(since_ns) / 1_000_000;
+        if waited_ms > u64::from(self.align_ms()) + ALIGN_SLACK_MS {
+            return Err(Refusal::Align {
+                align_ms: self.align_ms(),
+                waited_ms,
+            });
+        }
+        Ok(())
+    }
+
+    /// A fault latched during the checks ends the start-up: the drive named it.
+    fn fault_check(&self, during: &'static str) -> Result<(), Refusal> {
+        let bits = self.link.last_fault_bits;
+        if bits != 0 {
+            return Err(Refusal::Fault { bits, during });
+        }
+        Ok(())
+    }
+
+    /// §7 step 4: phase A alone at the align current, read at the scale its duty implies.
+    fn check_hold(&self, hold: &Hold) -> Result<(), Refusal> {
+        let align_a = self
+            .link
+            .config()
+            .map_or(0.0, |c| f64::from(c.align_current_ma) * 1e-3);
+        if !holds_phase_a(hold.i_a_a, hold.i_b_a, align_a) {
+            return Err(Refusal::HeldCurrent {
+                i_a_a: hold.i_a_a,
+                i_b_a: hold.i_b_a,
+                align_a,
+            });
+        }
+        let expected_a = hold.duty_a * hold.bus_v / self.settings.resistance_ohm;
+        let ratio = hold.i_a_a / expected_a;
+        // A duty that drives no current cannot hold +I: refused as off scale too.
+        let in_scale = expected_a > 0.0 && (CURRENT_SCALE_MIN..=CURRENT_SCALE_MAX).contains(&ratio);
+        if !in_scale {
+            return Err(Refusal::CurrentScale {
+                i_a_a: hold.i_a_a,
+                duty_pct: hold.duty_a * 100.0,
+                bus_v: hold.bus_v,
+                expected_a,
+                resistance_ohm: self.settings.resistance_ohm,
+                ratio,
+            });
+        }
+        Ok(())
+    }
+
+    /// The phase-B step after the first hold, or `None` (said once) when the encoder is too
+    /// coarse to see a quarter electrical period.
+    fn phase_step(&self, hold: &Hold, now: u64) -> Option<PhaseStep> {
+        let quarter = FRAC_PI_2 / self.settings.rotor_teeth;
+        let counts = quarter / self.link.rad_per_count();
+        if counts.is_nan() || counts < STEP_MIN_COUNTS {
+            tracing::warn!(
+                counts,
+                "a quarter electrical period is under {STEP_MIN_COUNTS} encoder counts: the \
+                 phase-B step cannot tell a swapped phase; the run starts unchecked"
+            );
+            return None;
+        }
+        // The hold's own duty: the same voltage drives the same current through phase B.
+        let duty_b = (hold.duty_a * f64::from(MAX_DUTY))
+            .round()
+            .clamp(1.0, f64::from(MAX_DUTY)) as i16;
+        let config = self.link.config()?;
+        let periods = (u64::from(config.align_ms) * u64::from(config.sample_rate_hz) / 1000).max(2);
+        Some(PhaseStep {
+            since_ns: now,
+            duty_b,
+            from: *hold,
+            periods: u32::try_from(periods).unwrap_or(u32::MAX),
+            first: None,
+            answered: None,
+            n: 0,
+            theta_rad: 0.0,
+            i_a_a: 0.0,
+            i_b_a: 0.0,
+        })
+    }
+
+    /// A SAMPLE during the phase-B step: its second half makes the step's figures.
+    fn observe_step(&mut self, st: &DriveState) {
+        let (Stage::Stepping(step), Some(seq)) = (&mut self.stage, self.link.newest_sample_seq())
+        else {
+            return;
+        };
+        if self.link.last_status & (status::ENABLED | status::ALIGNING) != status::ENABLED {
+            return;
+        }
+        let first = *step.first.get_or_insert(seq);
+        if seq.wrapping_sub(first) < step.periods / 2 {
+            return;
+        }
+        let n = f64::from(step.n);
+        let mean = |m: f64, x: f64| (m * n + x) / (n + 1.0);
+        step.theta_rad = mean(step.theta_rad, st.theta_rad);
+        step.i_a_a = mean(step.i_a_a, st.i_a_a);
+        step.i_b_a = mean(step.i_b_a, st.i_b_a);
+        step.n += 1;
     }
 
     /// The stream starts: samples read so far are stale (the stack was coming up, the rotor
-    /// aligning), the next one is k = 0 and its position θ = 0. Returns the ENABLE to send.
+    /// aligning), the next one is k = 0 and its position θ = 0 at the electrical zero (θ₀
+    /// from the last hold's current). Returns the ENABLE to send.
     pub fn begin(&mut self, now: u64) -> Frame {
         self.link.restart();
         self.newest = None;
         self.last_rx_ns = now;
+        self.stage = Stage::Running;
         self.link.control_frame(Action::Enable, now)
+    }
+
+    /// The DISABLE to send on any exit path, once a HELLO went out (§7 step 7): the drive
+    /// may have a session with this host, and its outputs may be on (aligning, holding,
+    /// running) or about to be. `None` before any HELLO: there is nobody to tell.
+    pub fn farewell(&mut self, now: u64) -> Option<Frame> {
+        self.hello_sent
+            .then(|| self.link.control_frame(Action::Disable, now))
     }
 
     /// The RESET and ENABLE to send when a reset is requested: the drive clears its
@@ -181,15 +780,17 @@ impl BridgeCore {
         ]
     }
 
-    /// The DISABLE to send when the bridge stops.
-    pub fn disable(&mut self, now: u64) -> Frame {
-        self.link.control_frame(Action::Disable, now)
-    }
-
     /// A frame from the drive, read at `now`.
     pub fn on_frame(&mut self, bytes: &[u8], now: u64, stats: &mut StatsReport) -> Received {
         match self.link.on_frame(bytes, now) {
             Event::State(st) => {
+                if self.stage != Stage::Running {
+                    // The start-up reads samples for its checks; none is for the stack, so
+                    // none is counted as superseded or timed.
+                    self.observe_step(&st);
+                    self.newest = Some((st, now));
+                    return Received::Sample;
+                }
                 // The emulated drive shares this host's clock; for a real drive only the
                 // round trip is meaningful.
                 stats
@@ -202,6 +803,7 @@ impl BridgeCore {
             }
             Event::Config(c) => Received::Config(c),
             Event::BadConfig(e) => Received::BadConfig(e),
+            Event::ConfigChanged(c) => Received::ConfigChanged(c),
             Event::Fault(f) => {
                 tracing::error!(
                     faults = f.fault_bits,
@@ -384,6 +986,45 @@ pub fn holds_phase_a(i_a: f64, i_b: f64, align_a: f64) -> bool {
         && i_b.abs() <= HELD_CROSS_MAX * align_a
 }
 
+fn alignment_name(round: Round) -> &'static str {
+    match round {
+        Round::First => "its alignment",
+        Round::Last => "its second alignment (after the phase-B step)",
+    }
+}
+
+/// §7 step 4, the phase-B step: phase B carries about the held current and phase A none,
+/// and the rotor turned a quarter electrical period towards +θ.
+fn judge_phase_step(step: &PhaseStep, rotor_teeth: f64) -> Result<(), Refusal> {
+    let held_a = step.from.i_a_a;
+    if !holds_phase_a(step.i_b_a, step.i_a_a, held_a) {
+        return Err(Refusal::PhaseBCurrent {
+            duty_b: step.duty_b,
+            i_a_a: step.i_a_a,
+            i_b_a: step.i_b_a,
+            held_a,
+        });
+    }
+    let expected_rad = FRAC_PI_2 / rotor_teeth;
+    let moved_rad = step.theta_rad - step.from.theta_rad;
+    let ratio = moved_rad / expected_rad;
+    if !(STEP_MIN..=STEP_MAX).contains(&ratio) {
+        return Err(Refusal::PhaseStep {
+            moved_rad,
+            expected_rad,
+            ratio,
+            i_b_a: step.i_b_a,
+        });
+    }
+    tracing::info!(
+        moved_rad,
+        ratio,
+        i_b_a = step.i_b_a,
+        "phase-B step: the rotor turned towards +θ as wired"
+    );
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -404,6 +1045,8 @@ mod tests {
                 reverse: false,
                 held_load: None,
             },
+            resistance_ohm: 14.8,
+            rotor_teeth: 50.0,
         });
         let mut stats = StatsReport::default();
         let config = frame_bytes(0, Message::Config(default_config(20_000.0, 200, 8)));
@@ -695,12 +1338,16 @@ mod tests {
         );
         proptest!(|(frames in proptest::collection::vec(frame, 1..200))| {
             let mut c = core(100);
+            let mut fresh = BridgeCore::new(c.settings);
             let mut stats = StatsReport::default();
             let mut last: Option<u64> = None;
             for (i, (seq, kind, payload)) in frames.into_iter().enumerate() {
                 let bytes = stepdrive_drive_protocol::raw_frame(seq, kind % 9, &payload);
                 let now = (i as u64 + 1) * PERIOD;
                 c.on_frame(&bytes, now, &mut stats);
+                // A fresh core in its start-up reads the same frames: refusals, no panic.
+                fresh.on_frame(&bytes, now, &mut stats);
+                let _ = fresh.startup(now, i % 2 == 0, &mut |_| {});
                 if let Some((st, rx)) = c.take_sample(&mut stats) {
                     let st = c.publish(st, rx);
                     prop_assert!(last.is_none_or(|l| st.seq > l), "{:?} after {:?}", st.seq, last);

@@ -6,7 +6,7 @@ use crate::observer::VelocityObserver;
 use stepdrive_drive_protocol::units::{duty_for, volts_for, Scaling};
 use stepdrive_drive_protocol::{
     decode, is_newer, status, Action, Command, Config, ConfigError, DecodeError, FaultReport,
-    Frame, Message, Plan, MAX_PLAN_ENTRIES,
+    Frame, Message, Plan, MAX_DUTY, MAX_PLAN_ENTRIES,
 };
 use stepdrive_runtime::cycle::MissRuns;
 use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
@@ -19,9 +19,117 @@ pub enum Event {
     Config(Config),
     /// A CONFIG with a field the protocol does not allow: the drive cannot be used.
     BadConfig(ConfigError),
+    /// A CONFIG that differs from the one taken at the handshake (§4.5, "A CONFIG outside
+    /// the handshake"): never applied; the units the SAMPLEs are read in cannot change
+    /// under a running motor, so the session must end.
+    ConfigChanged(ConfigChange),
     Fault(FaultReport),
     /// Dropped: bad CRC, malformed, duplicate or out of order, stale, or unexpected.
     Dropped,
+}
+
+/// The first field in which a CONFIG differs from the one the host took.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ConfigChange {
+    pub field: &'static str,
+    pub was: i64,
+    pub now: i64,
+}
+
+impl ConfigChange {
+    /// The first field of §4.5's order in which `now` differs from `was`, if any.
+    pub fn between(was: &Config, now: &Config) -> Option<Self> {
+        let fields: [(&'static str, i64, i64); 11] = [
+            (
+                "sample_rate_hz",
+                was.sample_rate_hz.into(),
+                now.sample_rate_hz.into(),
+            ),
+            (
+                "counts_per_rev",
+                was.counts_per_rev.into(),
+                now.counts_per_rev.into(),
+            ),
+            (
+                "current_ua_per_count",
+                was.current_ua_per_count.into(),
+                now.current_ua_per_count.into(),
+            ),
+            (
+                "current_zero_count",
+                was.current_zero_count.into(),
+                now.current_zero_count.into(),
+            ),
+            (
+                "bus_uv_per_count",
+                was.bus_uv_per_count.into(),
+                now.bus_uv_per_count.into(),
+            ),
+            (
+                "watchdog_periods",
+                was.watchdog_periods.into(),
+                now.watchdog_periods.into(),
+            ),
+            (
+                "encoder_direction",
+                was.encoder_direction.into(),
+                now.encoder_direction.into(),
+            ),
+            (
+                "plan_capacity",
+                was.plan_capacity.into(),
+                now.plan_capacity.into(),
+            ),
+            (
+                "align_current_ma",
+                was.align_current_ma.into(),
+                now.align_current_ma.into(),
+            ),
+            ("align_ms", was.align_ms.into(), now.align_ms.into()),
+            ("reserved", was.reserved[0].into(), now.reserved[0].into()),
+        ];
+        fields
+            .into_iter()
+            .find(|f| f.1 != f.2)
+            .map(|(field, was, now)| Self { field, was, now })
+    }
+}
+
+/// SAMPLEs with ALIGNING clear, after an alignment, that make up the held-current figure.
+pub const HOLD_SAMPLES: u32 = 8;
+
+/// What an aligned drive reports while phase A holds its rotor (§7 step 4): the mean of the
+/// first [`HOLD_SAMPLES`] SAMPLEs with ALIGNING clear (not enabled, no fault) after the
+/// last SAMPLE with ALIGNING set. One SAMPLE is one ADC reading; eight take most of its
+/// noise out and last 4 ms at 2 kHz.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Hold {
+    pub samples: u32,
+    pub i_a_a: f64,
+    pub i_b_a: f64,
+    /// Phase A's duty as a fraction of the bus (−1 … 1), and the bus, V.
+    pub duty_a: f64,
+    pub bus_v: f64,
+    /// θ as the link reads it before the run starts (from the first sample seen, or the
+    /// encoder offset).
+    pub theta_rad: f64,
+}
+
+impl Hold {
+    fn add(&mut self, i_a: f64, i_b: f64, duty_a: f64, bus_v: f64, theta: f64) {
+        let n = f64::from(self.samples);
+        let mean = |m: f64, x: f64| (m * n + x) / (n + 1.0);
+        self.i_a_a = mean(self.i_a_a, i_a);
+        self.i_b_a = mean(self.i_b_a, i_b);
+        self.duty_a = mean(self.duty_a, duty_a);
+        self.bus_v = mean(self.bus_v, bus_v);
+        self.theta_rad = mean(self.theta_rad, theta);
+        self.samples += 1;
+    }
+
+    pub fn complete(&self) -> bool {
+        self.samples >= HOLD_SAMPLES
+    }
 }
 
 /// Which of the last 64 SAMPLE sequence numbers arrived: a late one is told apart from a
@@ -69,7 +177,8 @@ impl SeqWindow {
 /// Host-side encoder calibration, over what the drive's CONFIG says.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct EncoderCalibration {
-    /// Encoder reading at θ = 0 (an absolute encoder's zero); `None` zeroes at the first
+    /// Encoder reading at θ = 0 (an absolute encoder's zero): a reading of the SAMPLE's
+    /// 32-bit counter, so it is subtracted modulo 2^32 (§6); `None` zeroes at the first
     /// sample.
     pub offset_counts: Option<i64>,
     /// Counts increase for negative θ, whatever CONFIG's `encoder_direction` says (an
@@ -104,6 +213,8 @@ const _: () = assert!(MAX_PLAN_ENTRIES == stepdrive_shared::messages::MAX_PLAN);
 /// Drive frames ↔ SI, without sockets or clocks.
 pub struct DriveLink {
     scaling: Option<Scaling>,
+    /// The CONFIG taken at the handshake, as the drive sent it (before `reverse`).
+    config: Option<Config>,
     calibration: EncoderCalibration,
     /// PLAN entries the drive keeps (from CONFIG; 0: send none).
     plan_capacity: u16,
@@ -112,20 +223,30 @@ pub struct DriveLink {
     sample_hz: f64,
     window: SeqWindow,
     first_seq: Option<u32>,
+    /// The unwrapped position, counts from θ = 0 (the first sample, or the offset).
     counts: i64,
     last_raw: Option<i32>,
-    offset_counts: Option<i64>,
     /// θ of the first sample when the encoder is zeroed there: where alignment left the
     /// rotor, relative to the electrical zero (0 without alignment or a known load).
     start_angle_rad: f64,
+    /// An alignment was seen (a SAMPLE with ALIGNING set) since the last restart, and what
+    /// the drive reported holding the rotor after it.
+    aligning_seen: bool,
+    hold: Hold,
     /// After [`Self::restart`]: samples the drive sent before it took the ENABLE (in
     /// flight when it was sent) are not the run's; k = 0 is the first with ENABLED set.
     awaiting_enable: bool,
     /// Samples dropped that way.
     pub before_enable: u64,
     tx_seq: u32,
+    /// Every datagram read, valid or not (the handshake names what came, §7 step 1).
+    pub frames_received: u64,
     pub crc_errors: u64,
     pub bad_frames: u64,
+    /// Why the last frame that failed validation failed.
+    pub last_rejection: Option<DecodeError>,
+    /// SAMPLEs that came before any CONFIG (dropped: they cannot be read).
+    pub samples_before_config: u64,
     pub rejected_commands: u64,
     /// Periods the drive reported without their COMMAND, and of those the ones it covered
     /// with a PLAN entry; runs of such periods.
@@ -134,12 +255,17 @@ pub struct DriveLink {
     pub held_runs: MissRuns,
     /// Samples that never arrived: gaps in the drive's sample sequence.
     pub lost_on_wire: u64,
-    /// FAULT_REPORT and CONFIG frames older than the newest sample (§3): dropped.
+    /// FAULT_REPORT and CONFIG frames older than the newest sample (§3.1): dropped, and
+    /// counted with the bad frames of the report.
     pub stale_reports: u64,
+    /// CONFIGs identical to the one taken, after it (a late answer to a repeated HELLO):
+    /// dropped, and counted with the bad frames of the report.
+    pub repeated_configs: u64,
     /// Frames of another protocol version, and the last such version.
     pub other_version: (u64, u8),
-    /// The status bits of the newest sample.
+    /// The status and fault bits of the newest sample.
     pub last_status: u16,
+    pub last_fault_bits: u16,
     /// The drive's timestamp of the last accepted sample, ns on the drive's clock.
     pub sample_timestamp_ns: u64,
 }
@@ -148,6 +274,7 @@ impl DriveLink {
     pub fn new(sample_hz: f64, observer_hz: f64, calibration: EncoderCalibration) -> Self {
         Self {
             scaling: None,
+            config: None,
             calibration,
             plan_capacity: 0,
             observer: VelocityObserver::new(observer_hz, 1.0 / sample_hz),
@@ -157,32 +284,46 @@ impl DriveLink {
             first_seq: None,
             counts: 0,
             last_raw: None,
-            offset_counts: calibration.offset_counts,
             start_angle_rad: 0.0,
+            aligning_seen: false,
+            hold: Hold::default(),
             awaiting_enable: false,
             before_enable: 0,
             tx_seq: 1,
+            frames_received: 0,
             crc_errors: 0,
             bad_frames: 0,
+            last_rejection: None,
+            samples_before_config: 0,
             rejected_commands: 0,
             held_periods: 0,
             planned_periods: 0,
             held_runs: MissRuns::default(),
             lost_on_wire: 0,
             stale_reports: 0,
+            repeated_configs: 0,
             other_version: (0, 0),
             last_status: 0,
+            last_fault_bits: 0,
             sample_timestamp_ns: 0,
         }
     }
 
-    /// A FAULT_REPORT or CONFIG sent before the newest sample is stale (§3).
-    fn stale(&mut self, seq: u32) -> bool {
-        let stale = self
-            .window
-            .last
-            .is_some_and(|last| is_newer(last, Some(seq)));
-        self.stale_reports += u64::from(stale);
+    /// A FAULT_REPORT or CONFIG sent before the newest sample is stale (§3.1): dropped and
+    /// counted, never acted upon.
+    fn stale(&mut self, seq: u32, what: &'static str) -> bool {
+        let last = self.window.last;
+        let stale = last.is_some_and(|last| is_newer(last, Some(seq)));
+        if stale {
+            self.stale_reports += 1;
+            tracing::debug!(
+                what,
+                seq,
+                newest_sample = last,
+                stale = self.stale_reports,
+                "stale frame from the drive dropped"
+            );
+        }
         stale
     }
 
@@ -190,19 +331,60 @@ impl DriveLink {
         self.scaling.is_some()
     }
 
+    /// The CONFIG taken at the handshake, as the drive sent it.
+    pub fn config(&self) -> Option<&Config> {
+        self.config.as_ref()
+    }
+
+    /// What the drive reported holding its rotor after the last alignment seen (§7 step 4).
+    pub fn hold(&self) -> Hold {
+        self.hold
+    }
+
+    /// The wire seq of the newest SAMPLE accepted.
+    pub fn newest_sample_seq(&self) -> Option<u32> {
+        self.window.last
+    }
+
+    /// Radians per encoder count (0 before a CONFIG).
+    pub fn rad_per_count(&self) -> f64 {
+        self.scaling.map_or(0.0, |s| s.theta(1).abs())
+    }
+
     /// Forgets the sample stream (index, position, velocity, counters) so that run starts
-    /// at k = 0 with the next sample; the configuration is kept.
+    /// at k = 0 with the next sample; the configuration is kept. θ there is where the last
+    /// alignment's hold left the rotor, from the held current the drive reported (§7,
+    /// "Alignment under load"); without a hold seen, from the align current it announced.
     pub fn restart(&mut self) {
-        let (scaling, plan_capacity) = (self.scaling, self.plan_capacity);
+        let held_a = self.hold.complete().then_some(self.hold.i_a_a);
+        let start_angle_rad = self.config.map_or(0.0, |c| self.start_angle(&c, held_a));
         *self = Self {
-            scaling,
-            plan_capacity,
-            start_angle_rad: self.start_angle_rad,
+            scaling: self.scaling,
+            config: self.config,
+            plan_capacity: self.plan_capacity,
+            start_angle_rad,
+            hold: self.hold,
             awaiting_enable: true,
             other_version: self.other_version,
             tx_seq: self.tx_seq,
             ..Self::new(self.sample_hz, self.observer_hz, self.calibration)
         };
+    }
+
+    /// Where the aligned rotor rests from the electrical zero: an absolute zero is the
+    /// electrical zero itself; an aligned one is where the load let the rotor rest against
+    /// phase A's current (the one measured holding it, else the announced one).
+    fn start_angle(&self, c: &Config, held_a: Option<f64>) -> f64 {
+        match (self.calibration.held_load, self.calibration.offset_counts) {
+            (Some(load), None) if c.align_ms > 0 && c.align_current_ma > 0 => {
+                let announced = f64::from(c.align_current_ma) * 1e-3;
+                // A current at or below zero is refused by the checks before any run; θ₀
+                // from it would be meaningless.
+                let i = held_a.filter(|&i| i > 0.0).unwrap_or(announced);
+                load.rest_angle_rad(i)
+            }
+            _ => 0.0,
+        }
     }
 
     /// Index k of the drive sample with wire sequence `seq` (k = 0 at the first sample).
@@ -211,48 +393,58 @@ impl DriveLink {
     }
 
     pub fn on_frame(&mut self, bytes: &[u8], now_ns: u64) -> Event {
+        self.frames_received += 1;
         let frame = match decode(bytes) {
             Ok(f) => f,
-            Err(DecodeError::BadCrc { .. }) => {
-                self.crc_errors += 1;
-                return Event::Dropped;
-            }
-            Err(DecodeError::BadVersion(v)) => {
-                self.bad_frames += 1;
-                self.other_version = (self.other_version.0 + 1, v);
-                return Event::Dropped;
-            }
-            Err(_) => {
-                self.bad_frames += 1;
+            Err(e) => {
+                match e {
+                    DecodeError::BadCrc { .. } => self.crc_errors += 1,
+                    DecodeError::BadVersion(v) => {
+                        self.bad_frames += 1;
+                        self.other_version = (self.other_version.0 + 1, v);
+                    }
+                    _ => self.bad_frames += 1,
+                }
+                self.last_rejection = Some(e);
                 return Event::Dropped;
             }
         };
         match frame.message {
             Message::Config(c) => {
-                if self.stale(frame.seq) {
+                if self.stale(frame.seq, "CONFIG") {
                     return Event::Dropped;
+                }
+                if let Some(taken) = &self.config {
+                    // Only the handshake's CONFIG is read (§4.5): a later identical one is
+                    // a late answer to a repeated HELLO; a different one would change the
+                    // units of every SAMPLE under a running motor.
+                    return match ConfigChange::between(taken, &c) {
+                        None => {
+                            self.repeated_configs += 1;
+                            tracing::debug!(
+                                repeated = self.repeated_configs,
+                                "a CONFIG identical to the one taken: dropped"
+                            );
+                            Event::Dropped
+                        }
+                        Some(change) => Event::ConfigChanged(change),
+                    };
                 }
                 if let Err(e) = c.check() {
                     return Event::BadConfig(e);
                 }
+                self.config = Some(c);
                 let mut c = c;
                 if self.calibration.reverse {
                     c.encoder_direction = if c.encoder_direction < 0 { 1 } else { -1 };
                 }
                 self.scaling = Some(Scaling::new(&c));
-                // An absolute zero is the electrical zero itself; an aligned one is where
-                // the load let the rotor rest.
-                self.start_angle_rad = match (self.calibration.held_load, self.offset_counts) {
-                    (Some(load), None) if c.align_ms > 0 && c.align_current_ma > 0 => {
-                        load.rest_angle_rad(f64::from(c.align_current_ma) * 1e-3)
-                    }
-                    _ => 0.0,
-                };
+                self.start_angle_rad = self.start_angle(&c, None);
                 self.plan_capacity = c.plan_capacity.min(MAX_PLAN_ENTRIES as u16);
                 Event::Config(c)
             }
             Message::FaultReport(f) => {
-                if self.stale(frame.seq) {
+                if self.stale(frame.seq, "FAULT_REPORT") {
                     return Event::Dropped;
                 }
                 Event::Fault(f)
@@ -260,6 +452,7 @@ impl DriveLink {
             Message::Sample(s) => {
                 let Some(scaling) = self.scaling else {
                     self.bad_frames += 1;
+                    self.samples_before_config += 1;
                     return Event::Dropped;
                 };
                 // A faulted drive reports ENABLED clear too: that sample starts the run, so
@@ -287,17 +480,22 @@ impl DriveLink {
                 };
                 self.lost_on_wire += u64::from(gap - 1);
                 self.last_status = s.status;
+                self.last_fault_bits = s.fault_bits;
                 self.sample_timestamp_ns = frame.timestamp_ns;
                 self.first_seq.get_or_insert(frame.seq);
-                // Unwrap the 32-bit counter into a 64-bit position.
-                let step = match self.last_raw {
-                    Some(prev) => i64::from(s.encoder_counts.wrapping_sub(prev)),
-                    None => i64::from(s.encoder_counts),
+                // Unwrap the 32-bit counter into a 64-bit position by differences, the
+                // first one against the configured offset: that too is a reading of the
+                // 32-bit counter, so it is taken modulo 2^32 (§6) like every other
+                // difference (a reading across the ±2^31 wrap from the offset is a few
+                // counts away, not 2^32).
+                let step = match (self.last_raw, self.calibration.offset_counts) {
+                    (Some(prev), _) => s.encoder_counts.wrapping_sub(prev),
+                    (None, Some(offset)) => s.encoder_counts.wrapping_sub(offset as i32),
+                    (None, None) => 0,
                 };
                 self.last_raw = Some(s.encoder_counts);
-                self.counts += step;
-                let offset = *self.offset_counts.get_or_insert(self.counts);
-                let theta = scaling.theta(self.counts - offset) + self.start_angle_rad;
+                self.counts += i64::from(step);
+                let theta = scaling.theta(self.counts) + self.start_angle_rad;
                 let omega = self.observer.update(theta, gap);
                 let bus = scaling.bus_volts(s.adc_bus);
                 let k = self.index_of(frame.seq);
@@ -316,6 +514,19 @@ impl DriveLink {
                         self.planned_periods += 1;
                     }
                 }
+                let (i_a, i_b) = (scaling.amps(s.adc_a), scaling.amps(s.adc_b));
+                if s.status & status::ALIGNING != 0 {
+                    // A new alignment: the hold after it is measured afresh.
+                    self.aligning_seen = true;
+                    self.hold = Hold::default();
+                } else if self.aligning_seen
+                    && s.status & status::ENABLED == 0
+                    && s.fault_bits == 0
+                    && !self.hold.complete()
+                {
+                    let duty = f64::from(s.duty_a.clamp(-MAX_DUTY, MAX_DUTY)) / f64::from(MAX_DUTY);
+                    self.hold.add(i_a, i_b, duty, bus, theta);
+                }
                 Event::State(DriveState {
                     seq: k,
                     sample_time_s: k as f64 / self.sample_hz,
@@ -324,8 +535,8 @@ impl DriveLink {
                     applied_command_seq: u64::from(s.applied_command_seq),
                     theta_rad: theta,
                     omega_rad_s: omega,
-                    i_a_a: scaling.amps(s.adc_a),
-                    i_b_a: scaling.amps(s.adc_b),
+                    i_a_a: i_a,
+                    i_b_a: i_b,
                     v_a_v: volts_for(s.duty_a, bus),
                     v_b_v: volts_for(s.duty_b, bus),
                     bus_voltage_v: bus,
@@ -359,6 +570,28 @@ impl DriveLink {
         };
         self.tx_seq = self.tx_seq.wrapping_add(1);
         Some(frame)
+    }
+
+    /// A COMMAND with these duties answering the SAMPLE with wire seq `answers_sample`: the
+    /// host's own, before the run (the phase check of §7 step 4).
+    pub fn duty_command_frame(
+        &mut self,
+        answers_sample: u32,
+        duty_a: i16,
+        duty_b: i16,
+        now_ns: u64,
+    ) -> Frame {
+        let frame = Frame {
+            seq: self.tx_seq,
+            timestamp_ns: now_ns,
+            message: Message::Command(Command {
+                answers_sample,
+                duty_a,
+                duty_b,
+            }),
+        };
+        self.tx_seq = self.tx_seq.wrapping_add(1);
+        frame
     }
 
     /// The PLAN frame carrying `plan` (as many entries as the drive keeps), or `None` if the
@@ -398,7 +631,8 @@ impl DriveLink {
     pub fn copy_counters(&self, stats: &mut StatsReport) {
         stats.lost = self.lost_on_wire;
         stats.crc_errors = self.crc_errors;
-        stats.bad_frames = self.bad_frames;
+        // Stale reports and repeated CONFIGs are dropped frames like any other (§3.1).
+        stats.bad_frames = self.bad_frames + self.stale_reports + self.repeated_configs;
         stats.rejected_commands = self.rejected_commands;
         stats.misses = self.held_periods;
         stats.planned = self.planned_periods;

@@ -4,13 +4,14 @@
 //! while it waits it forwards the current loop's commands and plans, and watches for
 //! silence. The rules are [`BridgeCore`]'s; this module moves bytes.
 
-use crate::core::{holds_phase_a, BridgeCore, CoreSettings, Received};
+use crate::core::{BridgeCore, CoreSettings, Received, Refusal, StartStep};
 use crate::link::EncoderCalibration;
 use std::net::{SocketAddr, ToSocketAddrs};
 use std::path::PathBuf;
 use stepdrive_drive_protocol::transport::{Wire, WireError};
-use stepdrive_drive_protocol::{encode, status, ConfigError, Frame, MAX_FRAME, VERSION};
+use stepdrive_drive_protocol::{encode, Frame, MAX_FRAME, VERSION};
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
+use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::{Notify, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, ResetRequest};
@@ -81,47 +82,19 @@ pub enum BridgeError {
         source: WireError,
     },
     #[error(
-        "the drive at {drive} samples at {drive_hz} Hz, the scenario expects {scenario_hz} Hz"
-    )]
-    SampleRate {
-        drive: DriveAddr,
-        drive_hz: u32,
-        scenario_hz: f64,
-    },
-    #[error(
         "a drive applies each COMMAND one period after its sample (docs/drive-protocol.md); the \
          scenario's rates.compute_delay_periods is {0}, so the current loop would be designed \
          for another drive"
     )]
     ComputeDelay(u32),
-    #[error("the drive at {drive} sent a CONFIG this host cannot use")]
-    Config {
-        drive: DriveAddr,
-        #[source]
-        source: ConfigError,
-    },
     #[error(
-        "the drive at {drive} did not finish its alignment ({align_ms} ms announced) within \
-         {waited_ms} ms: no SAMPLE with ALIGNING set and then cleared (docs/drive-protocol.md §7)"
+        "the encoder offset {0} is not a reading of a drive's 32-bit encoder count \
+         (−2147483648 … 2147483647, docs/drive-protocol.md §6)"
     )]
-    Align {
-        drive: DriveAddr,
-        align_ms: u16,
-        waited_ms: u64,
-    },
-    #[error(
-        "after its ALIGN the drive at {drive} reports phase A at {i_a_a:+.3} A and phase B at \
-         {i_b_a:+.3} A; holding the rotor it must drive phase A alone at its align current, \
-         {align_a:+.3} A (docs/drive-protocol.md §7): a phase wired the other way round, or \
-         a current sense of the wrong sign or scale (CONFIG current_zero_count, \
-         current_ua_per_count), would commutate the motor wrongly"
-    )]
-    HeldCurrent {
-        drive: DriveAddr,
-        i_a_a: f64,
-        i_b_a: f64,
-        align_a: f64,
-    },
+    EncoderOffset(i64),
+    /// The drive failed a step of the start-up (§7) or broke a rule of the session.
+    #[error("the drive at {drive} {reason}")]
+    Refused { drive: DriveAddr, reason: Refusal },
 }
 
 /// The bridge's settings beside the scenario.
@@ -183,43 +156,25 @@ impl BridgePorts {
 
 /// How often a bridge without real-time priority looks for the current loop's answer.
 const ANSWER_CHECK_NS: u64 = 20_000;
-/// HELLO is repeated this often until the drive's CONFIG arrives.
-const HELLO_EVERY_NS: u64 = 50_000_000;
 /// A drive whose host answers "port unreachable" this long is not coming (it is not
-/// started, or the address is wrong): fail instead of waiting out the start-up timeout.
+/// started, or the address is wrong): fail instead of waiting out the handshake.
 const REFUSED_FOR_NS: u64 = 3_000_000_000;
 /// The longest the bridge polls its socket past a frame's due time before it blocks.
 const MAX_SPIN_PAST_DUE_NS: u64 = 100_000;
-/// How much longer than its announced time a drive may take to report its alignment done.
-const ALIGN_SLACK_MS: u64 = 1_000;
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Phase {
-    /// HELLO until CONFIG.
-    Handshake {
-        next_hello_ns: u64,
-    },
-    /// Configured; waiting for the stack before enabling the drive.
-    Joining,
-    /// RESET and ALIGN sent: waiting for the drive's samples to show the alignment begin
-    /// and end.
-    Aligning {
-        since_ns: u64,
-        seen: bool,
-    },
-    Running,
-}
+/// While the start-up answers the drive itself (the phase-B step), the longest it blocks on
+/// the wire between looks at the time and the termination flag.
+const STEP_WAIT_NS: u64 = 1_000_000;
+/// After a handshake with nothing heard, how long the bridge listens for the drive's frames
+/// from another port (§2), ms.
+const ELSEWHERE_LISTEN_MS: i32 = 100;
 
 pub struct BridgeNode {
     core: BridgeCore,
     settings: BridgeSettings,
     sample_hz: f64,
     period_ns: u64,
-    phase: Phase,
+    running: bool,
     refused_since_ns: Option<u64>,
-    /// The drive's alignment time and current (CONFIG), ms and mA.
-    align_ms: u16,
-    align_current_ma: u16,
     /// A sample taken by `poll` for the coming cycle.
     taken: Option<(DriveState, u64)>,
     rx: [u8; 2048],
@@ -233,6 +188,14 @@ impl BridgeNode {
                 BridgeError::ComputeDelay(s.rates.compute_delay_periods),
             ));
         }
+        if let Some(offset) = settings.calibration.offset_counts {
+            if i32::try_from(offset).is_err() {
+                return Err(RunError::node(
+                    Role::Bridge,
+                    BridgeError::EncoderOffset(offset),
+                ));
+            }
+        }
         Ok(Self {
             core: BridgeCore::new(CoreSettings {
                 sample_hz: s.rates.current_loop_hz,
@@ -241,14 +204,14 @@ impl BridgeNode {
                 plan_every: settings.plan_every,
                 observer_hz: settings.observer_hz,
                 calibration: settings.calibration,
+                resistance_ohm: s.motor.resistance_ohm,
+                rotor_teeth: s.motor.n_r(),
             }),
             sample_hz: s.rates.current_loop_hz,
             period_ns: s.sample_period_ns(),
             settings,
-            phase: Phase::Handshake { next_hello_ns: 0 },
+            running: false,
             refused_since_ns: None,
-            align_ms: 0,
-            align_current_ma: 0,
             taken: None,
             rx: [0; 2048],
         })
@@ -268,44 +231,52 @@ impl BridgeNode {
         )
     }
 
+    /// The drive refused for `reason`, with what the wire can add to it: a handshake that
+    /// heard nothing listens once for the drive's frames from another port (§2).
+    fn refused(&mut self, ports: &mut BridgePorts, mut reason: Refusal, now: u64) -> RunError {
+        if let (Refusal::Handshake(report), DriveAddr::Udp(addr)) =
+            (&mut reason, &self.settings.drive)
+        {
+            if report.frames == 0 {
+                let mut buf = [0u8; MAX_FRAME];
+                let n = encode(&self.core.hello(now), &mut buf);
+                report.elsewhere =
+                    ports
+                        .wire
+                        .listen_elsewhere(*addr, &buf[..n], ELSEWHERE_LISTEN_MS);
+            }
+        }
+        RunError::node(
+            Role::Bridge,
+            BridgeError::Refused {
+                drive: self.settings.drive.clone(),
+                reason,
+            },
+        )
+    }
+
     /// Reads every frame queued. A refusal (nothing listens yet) is tolerated during the
-    /// handshake for a while, since the drive may be starting; a hang-up never is.
+    /// handshake for a while, since the drive may be starting; a hang-up never is. A CONFIG
+    /// that cannot be used, or one that differs from the handshake's, ends the session.
     fn read_frames(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<(), RunError> {
         loop {
             match ports.wire.recv(&mut self.rx, 0) {
                 Ok(Some((len, _))) => {
                     self.refused_since_ns = None;
                     let now = cx.now();
-                    let received = self.core.on_frame(&self.rx[..len], now, cx.stats);
-                    if let Received::BadConfig(source) = received {
-                        return Err(RunError::node(
-                            Role::Bridge,
-                            BridgeError::Config {
-                                drive: self.settings.drive.clone(),
-                                source,
-                            },
-                        ));
-                    }
-                    if let Received::Config(c) = received {
-                        tracing::info!(?c, "drive configuration");
-                        self.align_ms = c.align_ms;
-                        self.align_current_ma = c.align_current_ma;
-                        if f64::from(c.sample_rate_hz) != self.sample_hz.round() {
-                            return Err(RunError::node(
-                                Role::Bridge,
-                                BridgeError::SampleRate {
-                                    drive: self.settings.drive.clone(),
-                                    drive_hz: c.sample_rate_hz,
-                                    scenario_hz: self.sample_hz,
-                                },
-                            ));
-                        }
-                    }
+                    let reason = match self.core.on_frame(&self.rx[..len], now, cx.stats) {
+                        Received::BadConfig(e) => Refusal::Config(e),
+                        Received::ConfigChanged(c) => Refusal::ConfigChanged(c),
+                        _ => continue,
+                    };
+                    return Err(self.refused(ports, reason, now));
                 }
                 Ok(None) => return Ok(()),
-                Err(WireError::Refused) if matches!(self.phase, Phase::Handshake { .. }) => {
-                    let since = *self.refused_since_ns.get_or_insert(cx.now());
-                    if cx.now().saturating_sub(since) > REFUSED_FOR_NS {
+                Err(WireError::Refused) if !self.core.configured() => {
+                    let now = cx.now();
+                    self.core.refused(now);
+                    let since = *self.refused_since_ns.get_or_insert(now);
+                    if now.saturating_sub(since) > REFUSED_FOR_NS {
                         return Err(self.gone(WireError::Refused));
                     }
                     return Ok(());
@@ -315,30 +286,8 @@ impl BridgeNode {
         }
     }
 
-    /// The drive has aligned: it must now hold phase A alone at its align current.
-    fn check_held_current(&self) -> Result<(), RunError> {
-        let (Some(st), true) = (self.core.newest(), self.align_ms > 0) else {
-            return Ok(());
-        };
-        let align_a = f64::from(self.align_current_ma) * 1e-3;
-        if holds_phase_a(st.i_a_a, st.i_b_a, align_a) {
-            return Ok(());
-        }
-        Err(RunError::node(
-            Role::Bridge,
-            BridgeError::HeldCurrent {
-                drive: self.settings.drive.clone(),
-                i_a_a: st.i_a_a,
-                i_b_a: st.i_b_a,
-                align_a,
-            },
-        ))
-    }
-
     fn send(ports: &mut BridgePorts, frame: &Frame) {
-        let mut buf = [0u8; MAX_FRAME];
-        let n = encode(frame, &mut buf);
-        ports.wire.send(&buf[..n]);
+        send_on(&mut ports.wire, frame);
     }
 
     /// Forwards every command queued, then the newest plan if it is due.
@@ -356,6 +305,12 @@ impl BridgeNode {
         }
         Ok(())
     }
+}
+
+fn send_on(wire: &mut Wire, frame: &Frame) {
+    let mut buf = [0u8; MAX_FRAME];
+    let n = encode(frame, &mut buf);
+    wire.send(&buf[..n]);
 }
 
 impl Node for BridgeNode {
@@ -379,89 +334,62 @@ impl Node for BridgeNode {
 
     fn awaiting(&self) -> String {
         let drive = &self.settings.drive;
-        match self.phase {
-            Phase::Handshake { .. } if self.refused_since_ns.is_some() => {
-                format!("a CONFIG from the drive at {drive} (nothing listens there yet)")
-            }
-            Phase::Handshake { .. } => match self.core.link().other_version {
-                (0, _) => format!("a CONFIG from the drive at {drive}"),
-                (n, v) => format!(
-                    "a CONFIG from the drive at {drive}: it sent {n} frames of protocol \
-                     version {v}, this host speaks version {VERSION} (docs/drive-protocol.md)"
-                ),
-            },
-            Phase::Joining => format!(
+        if self.core.awaiting_stack() {
+            return format!(
                 "the current loop, the position loop and {} state subscribers",
                 self.settings.wait_subscribers
+            );
+        }
+        if self.core.configured() {
+            return format!("{} from the drive at {drive}", self.core.awaiting());
+        }
+        if self.refused_since_ns.is_some() {
+            return format!("a CONFIG from the drive at {drive} (nothing listens there yet)");
+        }
+        match self.core.link().other_version {
+            (0, _) => format!("a CONFIG from the drive at {drive}"),
+            (n, v) => format!(
+                "a CONFIG from the drive at {drive}: it sent {n} frames of protocol \
+                 version {v}, this host speaks version {VERSION} (docs/drive-protocol.md)"
             ),
-            Phase::Aligning { .. } => format!("the drive at {drive} to align the rotor"),
-            Phase::Running => format!("SAMPLE frames from the drive at {drive}"),
         }
     }
 
+    /// §7: the handshake, the alignment and the checks, then ENABLE. Between looks it
+    /// returns to the runner, except during the phase-B step, when the drive's armed
+    /// watchdog needs every SAMPLE answered as it comes.
     fn start(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<Start, RunError> {
-        if let Phase::Handshake { next_hello_ns } = self.phase {
-            let now = cx.now();
-            if now >= next_hello_ns {
-                let hello = self.core.hello(now);
-                Self::send(ports, &hello);
-                self.phase = Phase::Handshake {
-                    next_hello_ns: now + HELLO_EVERY_NS,
-                };
-            }
+        loop {
             self.read_frames(ports, cx)?;
-            if !self.core.configured() {
-                return Ok(Start::Waiting);
-            }
-            self.phase = Phase::Joining;
-        }
-        if self.phase == Phase::Joining {
+            // Asked only while it matters: the phase-B step answers within a period.
             let p = &ports.presence;
-            let ready = p.publishers(Topic::Command) >= 1
+            let stack_ready = self.core.awaiting_stack()
+                && p.publishers(Topic::Command) >= 1
                 && (p.publishers(Topic::Setpoint) >= 1 || !self.settings.wait_position_loop)
                 && p.subscribers(Topic::State) >= self.settings.wait_subscribers;
-            if !ready {
-                return Ok(Start::Waiting);
-            }
-            // A fresh start: nothing a previous session latched, the rotor at an electrical
-            // zero (unless the drive does not align: then the encoder's zero must be one).
-            for f in self.core.prepare(cx.now()) {
-                Self::send(ports, &f);
-            }
-            self.phase = Phase::Aligning {
-                since_ns: cx.now(),
-                seen: self.align_ms == 0,
-            };
-        }
-        if let Phase::Aligning { since_ns, seen } = self.phase {
-            self.read_frames(ports, cx)?;
-            let aligning = self.core.link().last_status & status::ALIGNING != 0;
-            if !seen || aligning {
-                let waited_ms = cx.now().saturating_sub(since_ns) / 1_000_000;
-                if waited_ms > u64::from(self.align_ms) + ALIGN_SLACK_MS {
-                    return Err(RunError::node(
-                        Role::Bridge,
-                        BridgeError::Align {
-                            drive: self.settings.drive.clone(),
-                            align_ms: self.align_ms,
-                            waited_ms,
-                        },
-                    ));
+            let now = cx.now();
+            let wire = &mut ports.wire;
+            let step = self
+                .core
+                .startup(now, stack_ready, &mut |f| send_on(wire, f));
+            match step {
+                Err(reason) => return Err(self.refused(ports, reason, now)),
+                Ok(StartStep::Wait) => return Ok(Start::Waiting),
+                Ok(StartStep::Answer) => {
+                    if termination_requested() {
+                        return Ok(Start::Waiting);
+                    }
+                    wait_readable(ports.wire.raw_fd(), STEP_WAIT_NS);
                 }
-                self.phase = Phase::Aligning {
-                    since_ns,
-                    seen: seen || aligning,
-                };
-                return Ok(Start::Waiting);
+                Ok(StartStep::Ready) => break,
             }
-            self.check_held_current()?;
         }
         // Samples queued meanwhile are stale: drop them and start the stream (k = 0) with
         // the next one, then enable the drive.
         while let Ok(Some(_)) = ports.wire.recv(&mut self.rx, 0) {}
         let enable = self.core.begin(cx.now());
         Self::send(ports, &enable);
-        self.phase = Phase::Running;
+        self.running = true;
         tracing::info!(drive = %self.settings.drive, "bridge running");
         Ok(Start::NOW)
     }
@@ -547,19 +475,20 @@ impl Node for BridgeNode {
         self.core.report(stats);
     }
 
-    /// Every exit path: the drive's outputs off.
+    /// Every exit path after a HELLO, a refusal included: the drive's outputs off (§7 step 7).
     fn stop(&mut self, ports: &mut BridgePorts, cx: &mut Cx) {
-        // Aligning, the drive's outputs are on too.
-        if matches!(self.phase, Phase::Running | Phase::Aligning { .. }) {
-            let f = self.core.disable(cx.now());
+        if let Some(f) = self.core.farewell(cx.now()) {
             Self::send(ports, &f);
         }
         let l = self.core.link();
         tracing::info!(
             crc_errors = l.crc_errors,
             bad_frames = l.bad_frames,
+            stale = l.stale_reports,
+            repeated_configs = l.repeated_configs,
             rejected = l.rejected_commands,
             lost = l.lost_on_wire,
+            running = self.running,
             "bridge stopped"
         );
     }

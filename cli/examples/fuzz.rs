@@ -214,6 +214,8 @@ fn fuzz_bridge(r: &mut Rng, t: &mut Tally) {
         plan_every: 1 + r.below(20) as u32,
         observer_hz: 400.0,
         calibration: EncoderCalibration::default(),
+        resistance_ohm: 14.8,
+        rotor_teeth: 50.0,
     });
     let mut stats = StatsReport::default();
     let mut last: Option<u64> = None;
@@ -222,6 +224,8 @@ fn fuzz_bridge(r: &mut Rng, t: &mut Tally) {
         let now = (k + 1) * 50_000;
         t.inputs += 1;
         core.on_frame(&bytes, now, &mut stats);
+        // The start-up's checks read the same frames: a refusal is an answer, never a panic.
+        let _ = core.startup(now, r.chance(2), &mut |_| {});
         if r.chance(10) {
             core.on_quiet(now, now);
         }

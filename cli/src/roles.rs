@@ -313,7 +313,8 @@ pub struct InjectArgs {
     #[arg(long, default_value_t = 0, value_name = "N")]
     pub dropout_samples: u64,
     /// Fault injection: break the ALIGN (§7). stuck: ALIGNING never clears; reversed:
-    /// phase A is energized the wrong way, leaving the rotor half an electrical period off.
+    /// phase A is energized the wrong way, leaving the rotor half an electrical period off;
+    /// swapped-leads: phase A's motor leads swapped (the drive's shunt still reads +I).
     #[arg(long, value_enum, default_value_t = AlignInjection::None)]
     pub align_fault: AlignInjection,
 }
@@ -323,6 +324,7 @@ pub enum AlignInjection {
     None,
     Stuck,
     Reversed,
+    SwappedLeads,
 }
 
 fn percent(s: &str) -> Result<f64, String> {
@@ -387,6 +389,7 @@ pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
                 AlignInjection::None => AlignFault::None,
                 AlignInjection::Stuck => AlignFault::Stuck,
                 AlignInjection::Reversed => AlignFault::Reversed,
+                AlignInjection::SwappedLeads => AlignFault::SwappedLeads,
             },
         },
         duration,

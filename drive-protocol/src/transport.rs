@@ -258,6 +258,71 @@ impl Wire {
         }
     }
 
+    /// A host whose drive was never heard: whether the drive's host sends from another
+    /// port instead (§2 forbids it; the connected socket's kernel discards such datagrams
+    /// unseen). The socket is disconnected, `hello` sent to `drive`, datagrams read for up
+    /// to `wait_ms`, and the socket connected to `drive` again (for the DISABLE that
+    /// follows): the first source other than `drive` on its address.
+    pub fn listen_elsewhere(
+        &mut self,
+        drive: SocketAddr,
+        hello: &[u8],
+        wait_ms: i32,
+    ) -> Option<SocketAddr> {
+        let Wire::Udp { sock, .. } = self else {
+            return None;
+        };
+        // SAFETY: sockaddr with family AF_UNSPEC dissolves the association (connect(2)).
+        let unspec = libc::sockaddr {
+            sa_family: libc::AF_UNSPEC as libc::sa_family_t,
+            sa_data: [0; 14],
+        };
+        // SAFETY: a valid sockaddr of its own size on our own socket.
+        let rc = unsafe {
+            libc::connect(
+                sock.as_raw_fd(),
+                &unspec,
+                std::mem::size_of::<libc::sockaddr>() as libc::socklen_t,
+            )
+        };
+        if rc != 0 {
+            return None;
+        }
+        let _ = sock.send_to(hello, drive);
+        let found = Self::first_source_other_than(sock, drive, wait_ms);
+        let _ = sock.connect(drive);
+        found
+    }
+
+    fn first_source_other_than(
+        sock: &UdpSocket,
+        drive: SocketAddr,
+        wait_ms: i32,
+    ) -> Option<SocketAddr> {
+        let deadline =
+            std::time::Instant::now() + std::time::Duration::from_millis(wait_ms.max(0) as u64);
+        let mut buf = [0u8; 64];
+        while std::time::Instant::now() < deadline {
+            let mut pfd = libc::pollfd {
+                fd: sock.as_raw_fd(),
+                events: libc::POLLIN,
+                revents: 0,
+            };
+            // SAFETY: one valid pollfd.
+            if unsafe { libc::poll(&mut pfd, 1, 5) } <= 0 {
+                continue;
+            }
+            match sock.recv_from(&mut buf) {
+                // A datagram too long for the buffer is still one whose source tells.
+                Ok((_, from)) if from != drive && from.ip() == drive.ip() => return Some(from),
+                Ok(_) => {}
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {}
+                Err(_) => return None,
+            }
+        }
+        None
+    }
+
     /// The descriptor to `poll()` for incoming frames.
     pub fn raw_fd(&self) -> RawFd {
         match self {

@@ -49,6 +49,11 @@ pub enum AlignFault {
     /// Phase A energized the wrong way: the rotor rests half an electrical period from
     /// the zero the host then assumes.
     Reversed,
+    /// Phase A's motor leads swapped at the drive's terminals: the drive's own shunt still
+    /// reads the current it drives (+I while aligning), but the winding carries it the
+    /// other way round, in every period, so the rotor aligns half an electrical period off
+    /// and every COMMAND's phase A acts backwards.
+    SwappedLeads,
 }
 
 /// A xorshift64* generator: the injected losses are the same in every run.

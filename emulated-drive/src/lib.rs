@@ -33,8 +33,8 @@ pub struct DriveCounters {
     pub bad_frames: u64,
     pub crc_errors: u64,
     pub stale_frames: u64,
-    /// Frames from an address other than the session's host (UDP), and frames other than
-    /// HELLO before there is a session.
+    /// Frames from an address other than the session's host (UDP), a HELLO from one while
+    /// the session is live (§4.6), and frames other than HELLO before there is a session.
     pub foreign_frames: u64,
     pub commands_applied: u64,
     /// COMMANDs discarded because their period had begun (they came too late).
@@ -66,9 +66,17 @@ pub struct DriveCore {
     /// The PLAN with the newest `answers_sample`, and its frame's seq.
     plan: Option<(Plan, u32)>,
     planned: bool,
+    /// The duties to hold when a period has no COMMAND, and the frame they came from.
     held_duty: (i16, i16),
     held_seq: u32,
+    /// What the next SAMPLE reports of the period that ends at it (§4.1: duties, applied
+    /// seq, COMMAND_HELD, COMMAND_PLANNED), fixed when that period started: a DISABLE,
+    /// RESET or HELLO taken within it changes the state bits at once, not this.
+    ended: EndedPeriod,
     since_command: u32,
+    /// Periods since the last frame accepted from the session's host: a session whose host
+    /// has been silent for the watchdog's periods is no longer live (§4.6).
+    since_host: u32,
     /// The watchdog counts from the first COMMAND applied after ENABLE (§5).
     armed: bool,
     /// Periods of alignment left, and whether phase A still holds the rotor after it
@@ -79,13 +87,25 @@ pub struct DriveCore {
     /// The seq of the next SAMPLE (the sample index; CONFIG and FAULT_REPORT carry the
     /// last one sent).
     tx_seq: u32,
-    /// The run's first sample (the first after ENABLE) and the electrical zero nearest to
-    /// where the rotor was then: the truth's k and θ count from them.
+    /// The run's first sample (the first with ENABLED set and ALIGNING clear after an
+    /// ENABLE that starts a run, §7 step 5) and the electrical zero nearest to where the
+    /// rotor was then: the truth's k and θ count from them. `run_pending`: such an ENABLE
+    /// was taken and that sample has not been sent yet.
     run_start: Option<(u32, f64)>,
+    run_pending: bool,
     align_fault: AlignFault,
     n_r: f64,
     period_s: f64,
     pub counters: DriveCounters,
+}
+
+/// What a SAMPLE reports of the period that ended at it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+struct EndedPeriod {
+    duty: (i16, i16),
+    seq: u32,
+    held: bool,
+    planned: bool,
 }
 
 /// What the drive answers to a frame.
@@ -115,13 +135,16 @@ impl DriveCore {
             planned: false,
             held_duty: (0, 0),
             held_seq: 0,
+            ended: EndedPeriod::default(),
             since_command: 0,
+            since_host: 0,
             armed: false,
             aligning: 0,
             holding: false,
             align_duty,
             tx_seq: 1,
             run_start: None,
+            run_pending: false,
             align_fault: AlignFault::None,
             n_r: s.motor.n_r(),
             period_s: s.sample_period_s(),
@@ -154,6 +177,21 @@ impl DriveCore {
         self.session
     }
 
+    /// Whether a run is under way (from its first SAMPLE, §7 step 5, until a HELLO, ALIGN
+    /// or DISABLE ends it): fault injection counts its time from there.
+    pub fn in_run(&self) -> bool {
+        self.run_start.is_some()
+    }
+
+    /// A session is live while its host is heard and the motor is energized (enabled,
+    /// aligning or holding): then a HELLO from any other address is not taken (§4.6). A
+    /// host silent for the watchdog's periods, or outputs off, leaves it to the next host.
+    fn live(&self) -> bool {
+        let energized =
+            self.outputs_on() || (self.latched == 0 && (self.aligning > 0 || self.holding));
+        self.session && energized && self.since_host < u32::from(self.config.watchdog_periods)
+    }
+
     pub fn outputs_on(&self) -> bool {
         self.enabled && self.latched == 0
     }
@@ -176,6 +214,11 @@ impl DriveCore {
         self.tx_seq.wrapping_sub(1)
     }
 
+    fn end_run(&mut self) {
+        self.run_start = None;
+        self.run_pending = false;
+    }
+
     fn stop_aligning(&mut self) {
         self.aligning = 0;
         self.holding = false;
@@ -195,9 +238,17 @@ impl DriveCore {
         self.stop_aligning();
     }
 
-    /// Handles one received datagram. Bad, duplicate and out-of-order frames are counted
-    /// and dropped; nothing from them is applied.
+    /// Handles one received datagram from the session's host (or from the only host there
+    /// is). Bad, duplicate and out-of-order frames are counted and dropped; nothing from
+    /// them is applied.
     pub fn on_frame(&mut self, bytes: &[u8]) -> Option<Reply> {
+        self.on_frame_from(bytes, true)
+    }
+
+    /// Handles one received datagram; `from_host`: it came from the session's host's
+    /// address (UDP), or there is no session yet. From any other address only a HELLO is
+    /// read, and only while the session is not live.
+    pub fn on_frame_from(&mut self, bytes: &[u8], from_host: bool) -> Option<Reply> {
         let frame = match decode(bytes) {
             Ok(f) => f,
             Err(DecodeError::BadCrc { .. }) => {
@@ -222,18 +273,25 @@ impl DriveCore {
             self.counters.foreign_frames += 1;
             return None;
         }
+        // §2, §4.6: another address may take the drive over only once the session's host
+        // has let go of the motor or gone silent for the watchdog's periods.
+        if self.session && !from_host && (frame.message != Message::Hello || self.live()) {
+            self.counters.foreign_frames += 1;
+            return None;
+        }
         // A HELLO starts a new session: a new host counts its frames from its own start,
         // so sequence tracking restarts with it, and the outputs stay off until it enables
         // them; the next ENABLE starts a run.
         if frame.message == Message::Hello {
             self.session = true;
             self.stand_down();
-            self.run_start = None;
+            self.end_run();
         } else if !is_newer(frame.seq, self.last_rx_seq) {
             self.counters.stale_frames += 1;
             return None;
         }
         self.last_rx_seq = Some(frame.seq);
+        self.since_host = 0;
         self.counters.frames_ok += 1;
         match frame.message {
             Message::Command(c) => {
@@ -258,14 +316,11 @@ impl DriveCore {
             }
             Message::Control(Action::Enable) => {
                 self.enabled = true;
-                // A run starts at the first ENABLE after a HELLO, ALIGN or DISABLE (an ENABLE
-                // after a RESET mid-run continues it): the plant's load profile and the
-                // truth count from there.
+                // A run starts with the first ENABLE after a HELLO, ALIGN or DISABLE (an
+                // ENABLE after a RESET mid-run continues it), at its first SAMPLE with
+                // ENABLED set and ALIGNING clear (§7 step 5: where the host's k = 0 is).
                 if self.run_start.is_none() {
-                    self.sim.restart_load_clock();
-                    let pitch = std::f64::consts::TAU / self.n_r;
-                    let zero = (self.sim.motor_state()[0] / pitch).round() * pitch;
-                    self.run_start = Some((self.tx_seq, zero));
+                    self.run_pending = true;
                 }
                 self.armed = false;
                 self.since_command = 0;
@@ -273,7 +328,7 @@ impl DriveCore {
             }
             Message::Control(Action::Disable) => {
                 self.stand_down();
-                self.run_start = None;
+                self.end_run();
                 None
             }
             Message::Control(Action::Reset) => {
@@ -287,7 +342,7 @@ impl DriveCore {
                 // With phase A energized the rotor settles at an electrical zero
                 // (N_r θ ≡ 0 mod 2π), where the host's encoder zero then commutates right.
                 self.stand_down();
-                self.run_start = None;
+                self.end_run();
                 let periods =
                     u64::from(self.config.align_ms) * u64::from(self.config.sample_rate_hz) / 1000;
                 self.aligning = u32::try_from(periods).unwrap_or(u32::MAX);
@@ -330,17 +385,32 @@ impl DriveCore {
 
     /// The sample at the current instant, as a frame.
     pub fn sample_frame(&mut self, now_ns: u64) -> Frame {
+        let starts_run = (self.outputs_on() && self.aligning == 0) || self.latched != 0;
+        if self.run_pending && starts_run {
+            // The plant's load profile and the truth count from the run's first SAMPLE.
+            self.run_pending = false;
+            self.sim.restart_load_clock();
+            let pitch = std::f64::consts::TAU / self.n_r;
+            let zero = (self.sim.motor_state()[0] / pitch).round() * pitch;
+            self.run_start = Some((self.tx_seq, zero));
+        }
         let st = self.sim.state(false);
         let counts = self.scaling.counts(st.theta_rad);
+        // With phase A's leads swapped the shunt, on the drive's side of them, reads the
+        // current the drive drives, the reverse of the winding's.
+        let i_a = match self.align_fault {
+            AlignFault::SwappedLeads => -st.i_a_a,
+            _ => st.i_a_a,
+        };
         let mut status_bits = 0;
         if self.outputs_on() {
             status_bits |= status::ENABLED;
         }
-        // Held: a period that expected a COMMAND (outputs on) and had none.
-        if self.since_command > 0 && self.outputs_on() {
+        let ended = self.ended;
+        if ended.held {
             status_bits |= status::COMMAND_HELD;
         }
-        if self.planned {
+        if ended.planned {
             status_bits |= status::COMMAND_PLANNED;
         }
         if self.aligning > 0 {
@@ -351,12 +421,12 @@ impl DriveCore {
             timestamp_ns: now_ns,
             message: Message::Sample(Sample {
                 encoder_counts: counts as i32,
-                adc_a: self.scaling.adc(st.i_a_a),
+                adc_a: self.scaling.adc(i_a),
                 adc_b: self.scaling.adc(st.i_b_a),
                 adc_bus: self.scaling.bus_adc(self.bus_v),
-                duty_a: self.held_duty.0,
-                duty_b: self.held_duty.1,
-                applied_command_seq: self.held_seq,
+                duty_a: ended.duty.0,
+                duty_b: ended.duty.1,
+                applied_command_seq: ended.seq,
                 fault_bits: self.latched,
                 status: status_bits,
             }),
@@ -371,6 +441,7 @@ impl DriveCore {
     /// outputs go off and a fault latches. Returns a fault report if one just latched.
     pub fn run_period(&mut self, sample_seq: u32) -> Option<FaultReport> {
         self.planned = false;
+        self.since_host = self.since_host.saturating_add(1);
         let wanted = sample_seq.wrapping_sub(1);
         if self.aligning > 0 && self.latched == 0 {
             if self.align_fault != AlignFault::Stuck {
@@ -395,11 +466,15 @@ impl DriveCore {
                     Some(_) => self.counters.commands_late += 1,
                     None => {}
                 }
+                // Holding the aligned rotor, no PLAN entry applies (§4.3): the watchdog is
+                // not armed before the first COMMAND, and a plan alone would run the motor
+                // on predictions with nothing to stop it.
+                let hold = self.holding && !self.armed;
                 if self.enabled {
                     self.since_command = self.since_command.saturating_add(1);
                     self.counters.periods_held += 1;
                     // The PLAN's duty for this period, if it has one; else the last is held.
-                    if let Some((duty, seq)) = self.planned_duty(sample_seq) {
+                    if let Some((duty, seq)) = self.planned_duty(sample_seq).filter(|_| !hold) {
                         self.held_duty = duty;
                         self.held_seq = seq;
                         self.planned = true;
@@ -440,8 +515,18 @@ impl DriveCore {
         let duty = if self.latched == 0 { duty } else { (0, 0) };
         self.held_duty = duty;
         self.held_seq = if self.latched == 0 { seq } else { 0 };
+        self.ended = EndedPeriod {
+            duty,
+            seq: self.held_seq,
+            held: self.since_command > 0 && self.outputs_on(),
+            planned: self.planned,
+        };
+        let v_a = match self.align_fault {
+            AlignFault::SwappedLeads => -volts_for(duty.0, self.bus_v),
+            _ => volts_for(duty.0, self.bus_v),
+        };
         let v = DriveCommand {
-            v_a_v: volts_for(duty.0, self.bus_v),
+            v_a_v: v_a,
             v_b_v: volts_for(duty.1, self.bus_v),
             ..Default::default()
         };

@@ -104,14 +104,16 @@ impl Node for DriveNode {
     fn poll(&mut self, wire: &mut Wire, cx: &mut Cx) -> Result<Poll, RunError> {
         while let Ok(Some((n, from))) = wire.recv(&mut self.rx, 0) {
             // §2: once a host said HELLO, frames from any other address are not its (only
-            // a new HELLO moves the session).
+            // a new HELLO moves the session, and not while it is live: the core's rule).
+            let mut from_host = true;
             if let (Wire::Udp { peer: Some(p), .. }, Some(from)) = (&*wire, from) {
-                if from != *p && self.rx.get(3) != Some(&HELLO_KIND) {
+                from_host = from == *p;
+                if !from_host && self.rx.get(3) != Some(&HELLO_KIND) {
                     self.core.counters.foreign_frames += 1;
                     continue;
                 }
             }
-            if let Some(Reply::Config(c)) = self.core.on_frame(&self.rx[..n]) {
+            if let Some(Reply::Config(c)) = self.core.on_frame_from(&self.rx[..n], from_host) {
                 if let (Wire::Udp { peer, .. }, Some(from)) = (&mut *wire, from) {
                     *peer = Some(from);
                 }
@@ -138,9 +140,12 @@ impl Node for DriveNode {
         if !self.core.in_session() {
             return Ok(Flow::Continue);
         }
-        // Injection times count from the session's ENABLE (the run's start), not from the
-        // HELLO: the alignment and the stack's start-up before it take varying time.
-        if self.running_since.is_none() && self.core.outputs_on() {
+        // Injection times count from the run's first sample (after the host's alignment
+        // checks), not from the HELLO: the alignment and the stack's start-up before it
+        // take varying time.
+        if !self.core.in_run() {
+            self.running_since = None;
+        } else if self.running_since.is_none() {
             self.running_since = Some(cx.woke_ns);
         }
         let t_s = self

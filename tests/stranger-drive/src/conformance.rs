@@ -831,3 +831,145 @@ fn plan_of_1024_entries_kept() {
     d.on_frame(&b, h.addr, 0);
     assert_eq!(d.stats.plans_stored, 1);
 }
+
+// ---- v3.1 (issue 24): D18–D23 ----
+
+/// ENABLE during an ALIGN: the run starts at the first SAMPLE with ENABLED set and
+/// ALIGNING clear (§7 step 5), where the host's k = 0 is.
+#[test]
+fn d18_run_starts_at_first_enabled_sample_with_aligning_clear() {
+    let o = opts();
+    let n = (o.align_ms as u32) * o.rate_hz / 1000;
+    let mut d = DriveCore::new(&o);
+    let mut h = Host::new();
+    h.hello(&mut d);
+    h.control(&mut d, ACTION_ALIGN);
+    h.control(&mut d, ACTION_ENABLE);
+    for i in 0..n {
+        let (k, x) = h.tick(&mut d);
+        assert_ne!(x.status & STATUS_ALIGNING, 0);
+        assert_eq!(d.run_index(k), None, "sample {i}: no run while aligning");
+    }
+    let (k, x) = h.tick(&mut d);
+    assert_eq!(
+        x.status & (STATUS_ENABLED | STATUS_ALIGNING),
+        STATUS_ENABLED
+    );
+    assert_eq!(d.run_index(k), Some(0));
+}
+
+/// Aligned and enabled, no COMMAND yet: a PLAN entry does not end the hold (§4.3).
+#[test]
+fn d19_no_plan_entry_while_the_aligned_rotor_is_held() {
+    let mut d = DriveCore::new(&opts());
+    let mut h = Host::new();
+    start(&mut d, &mut h);
+    let (s, held) = h.tick(&mut d);
+    h.send(
+        &mut d,
+        Payload::Plan {
+            answers_sample: s,
+            entries: vec![(3000, 3000), (4000, 4000), (5000, 5000)],
+        },
+    );
+    h.tick(&mut d);
+    h.tick(&mut d);
+    let (_, x) = h.tick(&mut d); // reports period s + 2, entry 0's
+    assert_eq!(x.status, STATUS_ENABLED | STATUS_COMMAND_HELD);
+    assert_eq!(
+        (x.duty_a, x.duty_b, x.applied_command_seq),
+        (held.duty_a, 0, 0)
+    );
+    assert!(held.duty_a > 0);
+}
+
+/// DISABLE, RESET or HELLO between S(k − 1) and S(k): S(k) has ENABLED clear and period
+/// k − 1's duties; S(k + 1) duties 0 (§4.1, "Mid-period").
+#[test]
+fn d20_disable_reset_hello_at_once_duties_a_period_later() {
+    for action in [Some(ACTION_DISABLE), Some(ACTION_RESET), None] {
+        let mut d = DriveCore::new(&opts());
+        let mut h = Host::new();
+        h.hello(&mut d);
+        h.control(&mut d, ACTION_ENABLE);
+        let (s, _) = h.tick(&mut d);
+        let c = h.cmd(&mut d, s, 2000);
+        h.tick(&mut d); // period s + 1 applies C(s)
+        match action {
+            Some(a) => {
+                h.control(&mut d, a);
+            }
+            None => {
+                h.hello(&mut d);
+            }
+        }
+        let (_, x) = h.tick(&mut d);
+        assert_eq!(x.status & STATUS_ENABLED, 0, "{action:?}");
+        assert_eq!((x.duty_a, x.applied_command_seq), (2000, c), "{action:?}");
+        let (_, x) = h.tick(&mut d);
+        assert_eq!((x.duty_a, x.duty_b, x.applied_command_seq), (0, 0, 0));
+    }
+}
+
+/// §4.6: a HELLO from another address does not take a live session over; once its host
+/// lets go (DISABLE), it does.
+#[test]
+fn d21_a_live_session_is_not_taken_over() {
+    let mut d = DriveCore::new(&opts());
+    let mut h = Host::new();
+    start(&mut d, &mut h);
+    let (s, _) = h.tick(&mut d);
+    h.cmd(&mut d, s, 800);
+    h.tick(&mut d);
+    let mut other = Host::new();
+    other.addr = "127.0.0.1:50002".parse().expect("addr");
+    other.hello(&mut d);
+    assert_eq!(d.session_host(), Some(h.addr));
+    assert_eq!(d.stats.dropped_wrong_source, 1);
+    let (_, x) = h.tick(&mut d);
+    assert_ne!(x.status & STATUS_ENABLED, 0, "still this host's motor");
+    h.control(&mut d, ACTION_DISABLE);
+    other.hello(&mut d);
+    assert_eq!(d.session_host(), Some(other.addr));
+}
+
+/// §4.6: a HELLO stops an ALIGN.
+#[test]
+fn d22_hello_stops_an_align() {
+    let mut d = DriveCore::new(&opts());
+    let mut h = Host::new();
+    h.hello(&mut d);
+    h.control(&mut d, ACTION_ALIGN);
+    h.tick(&mut d);
+    assert_ne!(h.tick(&mut d).1.status & STATUS_ALIGNING, 0);
+    h.hello(&mut d);
+    let (_, x) = h.tick(&mut d);
+    assert_eq!(x.status & STATUS_ALIGNING, 0);
+    let (_, x) = h.tick(&mut d);
+    assert_eq!((x.duty_a, x.duty_b), (0, 0));
+}
+
+/// §4.7: past a plan's end the last duties are held, COMMAND_HELD without
+/// COMMAND_PLANNED, `applied_command_seq` the PLAN frame's.
+#[test]
+fn d23_past_a_plans_end_held_not_planned() {
+    let mut d = DriveCore::new(&opts());
+    let mut h = Host::new();
+    h.hello(&mut d);
+    h.control(&mut d, ACTION_ENABLE);
+    let (s, _) = h.tick(&mut d);
+    h.cmd(&mut d, s, 1000);
+    let p = h.send(
+        &mut d,
+        Payload::Plan {
+            answers_sample: s,
+            entries: vec![(2000, 2000), (3000, 3000)],
+        },
+    );
+    for _ in 0..4 {
+        h.tick(&mut d);
+    }
+    let (_, x) = h.tick(&mut d); // period s + 4, past the end
+    assert_eq!(x.status, STATUS_ENABLED | STATUS_COMMAND_HELD);
+    assert_eq!((x.duty_a, x.applied_command_seq), (3000, p));
+}

@@ -100,6 +100,11 @@ pub struct DriveCore {
     run_started: bool,
     run_start_pending: bool,
     run_start_seq: u32,
+    /// v3.1 §4.6: periods since the last frame accepted from the session's host; while it
+    /// is heard and the motor energized, a HELLO from elsewhere is dropped.
+    since_host: u32,
+    /// Fault injection: phase A's motor leads swapped (the shunt reads the drive's side).
+    swap_phase_a: bool,
     outbox: Vec<Vec<u8>>,
     pub stats: DriveStats,
 }
@@ -155,6 +160,8 @@ impl DriveCore {
             run_started: false,
             run_start_pending: false,
             run_start_seq: 0,
+            since_host: 0,
+            swap_phase_a: o.swap_phase_a,
             outbox: Vec::new(),
             stats: DriveStats::default(),
         }
@@ -276,7 +283,13 @@ impl DriveCore {
             return;
         }
         if let Payload::Hello { .. } = f.payload {
-            // a new session, from wherever it comes, whatever its seq (§3.1, §4.6)
+            // v3.1 §4.6: not from another address while this session is live
+            if self.session.is_some_and(|h| h != from) && self.live() {
+                self.stats.dropped_wrong_source += 1;
+                return;
+            }
+            self.since_host = 0;
+            // a new session, whatever its seq (§3.1, §4.6)
             self.stats.frames_accepted += 1;
             self.stats.sessions += 1;
             self.session = Some(from);
@@ -312,6 +325,7 @@ impl DriveCore {
         }
         self.host_last_seq = f.seq;
         self.stats.frames_accepted += 1;
+        self.since_host = 0;
         match f.payload {
             Payload::Command {
                 answers_sample,
@@ -418,6 +432,14 @@ impl DriveCore {
         }
     }
 
+    /// v3.1 §4.6: the session's host is heard (within the watchdog's periods) and the motor
+    /// is energized (aligning, holding, enabled).
+    fn live(&self) -> bool {
+        self.faults == 0
+            && self.mode != Mode::Disabled
+            && self.since_host < self.config.watchdog_periods as u32
+    }
+
     fn adc_current(&self, i: f64) -> u16 {
         let c = (i * 1e6 / self.config.current_ua_per_count as f64).round()
             + self.config.current_zero_count as f64;
@@ -470,8 +492,11 @@ impl DriveCore {
         let ts = self.stamp(now_ns);
 
         // 1. measure at t_k; over-current and bus faults found here show in SAMPLE k
+        self.since_host = self.since_host.saturating_add(1);
         let s = &self.motor.s;
-        let (adc_a, adc_b) = (self.adc_current(s.ia), self.adc_current(s.ib));
+        // swapped leads: the shunt sits on the drive's side of them
+        let ia_sensed = if self.swap_phase_a { -s.ia } else { s.ia };
+        let (adc_a, adc_b) = (self.adc_current(ia_sensed), self.adc_current(s.ib));
         let adc_bus = (self.bus_v * 1e6 / self.config.bus_uv_per_count as f64)
             .round()
             .clamp(0.0, 65535.0) as u16;
@@ -505,7 +530,12 @@ impl DriveCore {
         self.next_seq = k.wrapping_add(1);
         self.stats.samples_sent += 1;
         self.stats.periods += 1;
-        if sample.status & frame::STATUS_ENABLED != 0 && self.run_start_pending {
+        // v3.1 §7 step 5: the run starts where the host's k = 0 is, the first SAMPLE with
+        // ENABLED set and ALIGNING clear (or a fault bit), not inside an alignment
+        let run_sample = sample.status & (frame::STATUS_ENABLED | frame::STATUS_ALIGNING)
+            == frame::STATUS_ENABLED
+            || sample.fault_bits != 0;
+        if run_sample && self.run_start_pending {
             self.run_start_pending = false;
             self.run_started = true;
             self.run_start_seq = k;
@@ -641,9 +671,10 @@ impl DriveCore {
         self.record = if on { rec } else { off };
 
         // 4. the motor over period k
+        let sign_a = if self.swap_phase_a { -1.0 } else { 1.0 };
         let (da, db) = if on {
             (
-                Drive::Volts(rec.duty_a as f64 / 32767.0 * self.bus_v),
+                Drive::Volts(sign_a * rec.duty_a as f64 / 32767.0 * self.bus_v),
                 Drive::Volts(rec.duty_b as f64 / 32767.0 * self.bus_v),
             )
         } else {

@@ -1,5 +1,5 @@
-//! A drive for stepdrive's wire protocol version 3, written from `docs/drive-protocol.md`
-//! alone: a simulated Table I stepper behind a UDP endpoint.
+//! A drive for stepdrive's wire protocol version 3 (3.1 since issue 24), written from
+//! `docs/drive-protocol.md` alone: a simulated Table I stepper behind a UDP endpoint.
 
 #[cfg(test)]
 mod conformance;
@@ -46,6 +46,8 @@ pub struct DriveOptions {
     /// Spin (instead of sleeping) for this long before each deadline, µs.
     pub spin_us: u64,
     pub verbose: bool,
+    /// Fault injection: phase A's motor leads swapped at the drive's terminals.
+    pub swap_phase_a: bool,
 }
 
 impl Default for DriveOptions {
@@ -79,6 +81,7 @@ impl Default for DriveOptions {
             stop_after: None,
             spin_us: 60,
             verbose: false,
+            swap_phase_a: false,
         }
     }
 }

@@ -3,7 +3,7 @@ use std::sync::atomic::AtomicBool;
 use stranger_drive::{serve, DriveOptions};
 
 const HELP: &str =
-    "stranger-drive: a simulated stepper drive speaking stepdrive's wire protocol v3 over UDP
+    "stranger-drive: a simulated stepper drive speaking stepdrive's wire protocol v3.1 over UDP
 
 options:
   --listen ADDR:PORT        (default 127.0.0.1:47701)
@@ -26,7 +26,8 @@ options:
   --dropout-samples M
   --stop-after N            stop after N periods
   --spin-us US              spin this long before each deadline (default 60)
-  --verbose                 print the rotor state once a second";
+  --verbose                 print the rotor state once a second
+  --swap-phase-a            fault injection: phase A's motor leads swapped";
 
 fn parse<T: std::str::FromStr>(name: &str, v: Option<String>) -> Result<T, String> {
     let v = v.ok_or_else(|| format!("{name} needs a value"))?;
@@ -60,6 +61,7 @@ fn options() -> Result<DriveOptions, String> {
             "--stop-after" => o.stop_after = Some(parse("--stop-after", args.next())?),
             "--spin-us" => o.spin_us = parse("--spin-us", args.next())?,
             "--verbose" => o.verbose = true,
+            "--swap-phase-a" => o.swap_phase_a = true,
             "-h" | "--help" => {
                 println!("{HELP}");
                 std::process::exit(0);

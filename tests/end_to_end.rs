@@ -297,10 +297,12 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
         in_holds + longest <= misses,
         "the SIGSTOP was blamed on the host: {t}"
     );
-    // The stall simulation (`simulate_stalls`) on this scenario, a 5.5 ms stall starting
-    // anywhere after start-up: at most 4.8e-3 rad with the plan (at the reversal corner,
-    // where the torque the plan assumes changes), up to 7.1e-2 rad with the voltage held.
-    assert!(num(run, "max_abs_error_rad") < 1e-2, "{run}");
+    // The stall simulation (`stepdrive simulate --stall AT:230`) on this scenario, an 11.5 ms
+    // stall (the longest seen here: 201-233 periods, a loaded machine adds to the 10 ms)
+    // starting anywhere: at most 1.33e-2 rad with the plan (at a corner of the profile,
+    // where the torque the plan assumes changes), 0.12-0.17 rad and a step-out with the
+    // voltage held. Between the two, with room for a longer stall.
+    assert!(num(run, "max_abs_error_rad") < 3e-2, "{run}");
 }
 
 #[test]
@@ -514,7 +516,7 @@ fn a_drive_that_comes_back_after_silence_gets_its_commands_again() {
     let scenario = dir.file("slow.toml", &slow_scenario());
     let json = dir.path("hw.json");
     let inst = instance("hwfreeze");
-    let injection = ["--freeze-at", "0.3", "--freeze-ms", "150"];
+    let injection = ["--freeze-at", "0.45", "--freeze-ms", "150"];
     let (out, drive_log) = hardware_run_against(&scenario, &inst, &json, &injection);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("speaks again"), "{stderr}");

@@ -61,8 +61,19 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
     let expected: Vec<String> = ["lyapunov", "proposed"]
         .iter()
         .flat_map(|m| {
-            // The plan channel stays empty in lockstep.
-            ["command", "fault", "plan", "setpoint", "state", "stats"].map(|k| format!("/{m}/{k}"))
+            // The plan channel stays empty in lockstep; the axis's acknowledgements and
+            // status are recorded beside the loops' topics.
+            [
+                "axis/ack",
+                "axis/status",
+                "command",
+                "fault",
+                "plan",
+                "setpoint",
+                "state",
+                "stats",
+            ]
+            .map(|k| format!("/{m}/{k}"))
         })
         .collect();
     assert_eq!(topics, expected);

@@ -22,7 +22,7 @@
 use crate::link::{ConfigChange, DriveLink, EncoderCalibration, Event, Hold};
 use std::f64::consts::FRAC_PI_2;
 use stepdrive_drive_protocol::{
-    status, Action, Config, ConfigError, DecodeError, Frame, MAX_DUTY, VERSION,
+    faults, status, Action, Config, ConfigError, DecodeError, Frame, MAX_DUTY, VERSION,
 };
 use stepdrive_shared::messages::{fault_bits, state_flags, DriveCommand, DrivePlan, DriveState};
 use stepdrive_shared::stats::StatsReport;
@@ -245,8 +245,8 @@ pub enum Refusal {
         waited_ms: u64,
     },
     #[error(
-        "latched fault bits {bits:#06x} during {during} (docs/drive-protocol.md §5); the \
-         host does not start a run on it"
+        "latched {} (fault bits {bits:#06x}) during {during} (docs/drive-protocol.md §5); \
+         the host does not start a run on it", faults::named(*bits)
     )]
     Fault { bits: u16, during: &'static str },
     #[error(

@@ -58,6 +58,26 @@ pub struct RunArgs {
 }
 
 #[derive(Args, Debug)]
+pub struct ServeArgs {
+    #[command(flatten)]
+    scenario: ScenarioOpt,
+    /// realtime: the simulated motor on the wall clock. hardware: the plant is a bridge to a
+    /// drive (--drive, or an emulated one started for it). A served stack runs on the wall
+    /// clock: commands come when they come.
+    #[arg(long, value_enum, default_value_t = ServeMode::Realtime)]
+    mode: ServeMode,
+    #[command(flatten)]
+    stack: StackArgs,
+}
+
+/// The modes a stack can be served in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ServeMode {
+    Realtime,
+    Hardware,
+}
+
+#[derive(Args, Debug)]
 pub struct SimulateArgs {
     #[command(flatten)]
     select: Selection,
@@ -292,6 +312,58 @@ pub fn run(a: RunArgs) -> Result<()> {
     }
     close_recording(recording, a.plots.as_deref());
     conclude(&s, &runs, json)
+}
+
+/// `stepdrive serve`: the stack up, the axis disabled, until Ctrl-C.
+pub fn serve(a: ServeArgs) -> Result<()> {
+    let mut s = a.scenario.load()?;
+    if !s.program.is_empty() {
+        anyhow::bail!(
+            "scenario {} has a [[program]]: a served stack takes its commands from clients \
+             (`stepdrive axis`); run a program with `stepdrive run`",
+            s.name
+        );
+    }
+    if a.stack.duration.is_some() {
+        anyhow::bail!("--duration is for `run`: a served stack runs until Ctrl-C");
+    }
+    s.run.until_stopped = true;
+    let mode = match a.mode {
+        ServeMode::Realtime => Mode::Realtime,
+        ServeMode::Hardware => Mode::Hardware,
+    };
+    let deployment = a.stack.deployment(mode)?;
+    let _throttling = throttling_guard(&a.stack, &deployment, mode)?;
+    let opts = LaunchOptions {
+        instance: a.stack.instance.clone(),
+        mode,
+        deployment,
+    };
+    tracing::info!(
+        "serving instance `{}` ({}): the axis is disabled; command it with `stepdrive axis \
+         --instance {} ...`; Ctrl-C stops the stack",
+        opts.instance,
+        mode.as_str(),
+        opts.instance
+    );
+    let r = stepdrive_monitor::supervise::launcher::serve_stack(&s, &opts)?;
+    println!(
+        "served {:.1} s ({} samples, {} deadline misses): {}",
+        r.served_s, r.samples, r.misses, r.because
+    );
+    if r.outcome == Outcome::Ok {
+        return Ok(());
+    }
+    Err(Exit {
+        code: r.outcome.exit_code(),
+        headline: format!(
+            "{} (exit {}): the served stack {}",
+            r.outcome.title(),
+            r.outcome.exit_code(),
+            r.because
+        ),
+    }
+    .into())
 }
 
 /// Finishes the recording (its summary makes it complete) and draws its plots; a failure

@@ -3,6 +3,7 @@
 //! terminals and they find each other by instance name). This crate only parses the
 //! command line and hands over: the processes are nodes of `stepdrive-runtime`'s runner.
 
+mod axis;
 mod commands;
 mod options;
 mod roles;
@@ -35,6 +36,12 @@ enum Cmd {
     /// Launch plant, position loop and current loop as processes, run the scenario for each
     /// method, print the side-by-side table (and JSON with --json).
     Run(commands::RunArgs),
+    /// Bring plant (or bridge), position loop and current loop up and keep them up, the
+    /// axis disabled, taking commands (`stepdrive axis ...`, the client crate) until Ctrl-C.
+    Serve(commands::ServeArgs),
+    /// Command a served stack's axis: status, enable, disable, quick-stop, reset, move, jog,
+    /// stop, stream, set-position (`stepdrive axis --help`).
+    Axis(crate::axis::AxisArgs),
     /// The same nodes in one process on virtual time, no IPC: the reference a `run` must
     /// reproduce exactly; with --stall, what a host stall of the current loop costs.
     Simulate(commands::SimulateArgs),
@@ -116,6 +123,8 @@ fn init_logging() {
 fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Cmd::Run(a) => commands::run(a),
+        Cmd::Serve(a) => commands::serve(a),
+        Cmd::Axis(a) => crate::axis::axis(a),
         Cmd::Simulate(a) => commands::simulate(a),
         Cmd::Robustness(a) => commands::robustness(a),
         Cmd::Identify(a) => commands::identify(a),

@@ -290,13 +290,16 @@ pub struct InjectArgs {
     /// Fault injection: stop sending samples after S seconds of running (from the ENABLE).
     #[arg(long, value_name = "S")]
     pub stop_after: Option<f64>,
-    /// Fault injection: freeze the drive once, after S seconds of running (from the ENABLE), for
-    /// --freeze-ms (no frames, its clock paused: what a host stall does to it).
+    /// Fault injection: freeze the drive once, after S seconds of running, for --freeze-ms (no
+    /// frames, its clock paused: what a host stall does to it). Seconds count from a run's
+    /// first SAMPLE (docs/drive-protocol.md §7 step 5); the host's phase-B step (--align-ms
+    /// long) is a run to the drive, so pick S past it to hit the host's run.
     #[arg(long, value_name = "S")]
     pub freeze_at: Option<f64>,
     #[arg(long, default_value_t = 0, value_name = "MS")]
     pub freeze_ms: u64,
-    /// Fault injection: latch an over-current fault after S seconds of running (from the ENABLE).
+    /// Fault injection: latch an over-current fault after S seconds of running (counted as
+    /// for --freeze-at: pick S past the phase-B step to hit the host's run).
     #[arg(long, value_name = "S")]
     pub overcurrent_after: Option<f64>,
     /// Fault injection: drop each sample frame with probability P % (seeded: the same

@@ -8,7 +8,9 @@ use crate::laws::current_tracking::SampledCurrentLaw;
 use crate::laws::microstepping::{microstep_currents, microstep_voltages};
 use crate::laws::phasor::{Complex, Rotating};
 use crate::laws::pi_current::PiCurrent;
-use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint, MAX_PLAN};
+use stepdrive_shared::messages::{
+    setpoint_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint, MAX_PLAN,
+};
 use stepdrive_shared::scenario::MAX_COMPUTE_DELAY_PERIODS;
 use stepdrive_shared::{Method, Scenario};
 
@@ -173,12 +175,35 @@ impl CurrentLoop {
                 emf: law.back_emf_sequence(theta_d + omega * period, omega),
             }
         };
+        // A jerk-limited setpoint's acceleration is continuous: the rotor's speed over the
+        // periods ahead is predicted with it. The scenario's profile (the paper's experiment,
+        // its acceleration a step at each corner) runs the sampled law as designed, at
+        // constant speed.
+        let alpha = match setpoint.flags & setpoint_flags::ACCELERATION_AHEAD != 0 {
+            true => setpoint.alpha_d_rad_s2,
+            false => 0.0,
+        };
+        let ahead = |j: usize| {
+            let tj = period * j as f64;
+            theta + omega * tj + 0.5 * alpha * tj * tj
+        };
+        let decide = |reference: &dyn Fn(usize) -> [f64; 2]| match alpha == 0.0 {
+            true => law.decide(i, theta, omega, decided, reference),
+            false => law.decide_accelerating(i, theta, omega, alpha, decided, reference),
+        };
         let (v, i_ref, seed) = match self.method {
             Method::Proposed => {
                 let tau = setpoint.torque_nm;
-                let reference =
-                    |j: usize| commutate(tau, theta + omega * period * j as f64, k_m, n_r);
-                let (v, predicted) = law.decide(i, theta, omega, decided, reference);
+                // Along a smooth segment the torque moves on between ticks.
+                let tau_at = |j: usize| {
+                    tau + setpoint.torque_rate_nm_s
+                        * (t + period * j as f64 - setpoint.sample_time_s)
+                };
+                let reference = |j: usize| match alpha == 0.0 {
+                    true => commutate(tau, theta + omega * period * j as f64, k_m, n_r),
+                    false => commutate(tau_at(j), ahead(j), k_m, n_r),
+                };
+                let (v, predicted) = decide(&reference);
                 let v = clamp(v);
                 // (17) as a phasor: i^d = j(τ/K_m) e^{jN_rθ}, turning with the rotor.
                 let seed = planning.then(|| {
@@ -197,7 +222,7 @@ impl CurrentLoop {
                 let reference = |j: usize| {
                     microstep_currents(setpoint.theta_d_at(t + period * j as f64), v_max, r, n_r)
                 };
-                let (v, predicted) = law.decide(i, theta, omega, decided, reference);
+                let (v, predicted) = decide(&reference);
                 let v = clamp(v);
                 let seed = planning.then(|| {
                     let amplitude = Complex::new(v_max / r, 0.0);
@@ -250,26 +275,49 @@ impl CurrentLoop {
                 (v, reported, seed)
             }
         };
-        // Keep what the drive will apply, for the next cycle's prediction.
-        self.decided = all_decided;
+        self.answer(state, v, i_ref, seed.map(|seed| (seed, bus_v)))
+    }
+
+    /// Keeps what the drive will apply, for the next cycle's prediction, and makes the
+    /// command.
+    fn answer(
+        &mut self,
+        state: &DriveState,
+        v: [f64; 2],
+        i_ref: [f64; 2],
+        seed: Option<(Seed, f64)>,
+    ) -> DriveCommand {
+        let d = self.delay;
+        self.decided = self.decided_before(state.seq);
         if d > 0 {
             self.decided.copy_within(1..d, 0);
             self.decided[d - 1] = v;
         }
         let seq = self.answered.map_or(0, |(_, seq)| seq + 1);
         self.answered = Some((state.seq, seq));
-        self.seed = seed.map(|seed| (seed, bus_v));
+        self.seed = seed;
         DriveCommand {
             seq,
             answers_seq: state.seq,
-            sample_time_s: t,
+            sample_time_s: state.sample_time_s,
             state_publish_time_ns: state.publish_time_ns,
             publish_time_ns: 0,
             v_a_v: v[0],
             v_b_v: v[1],
             i_a_ref_a: i_ref[0],
             i_b_ref_a: i_ref[1],
+            flags: 0,
+            _reserved: 0,
         }
+    }
+
+    /// The axis has no torque: zero volts, and a plan of zeros (a drive that misses the next
+    /// commands keeps the outputs at zero too). `publish_time_ns` is left for the caller.
+    pub fn off(&mut self, state: &DriveState) -> DriveCommand {
+        let zero = Rotating::new(Complex::new(0.0, 0.0), 0.0, 0.0, 0.0);
+        let planning = self.plan_periods > 0;
+        let seed = planning.then_some((Seed::Voltages(zero), self.bus_v));
+        self.answer(state, [0.0; 2], [0.0; 2], seed)
     }
 
     /// The plan continuing the command just returned by [`Self::on_sample`]: the voltages
@@ -436,6 +484,11 @@ mod tests {
         alpha_d_rad_s2: 0.0,
         torque_nm: 0.0757,
         load_estimate_nm: 0.0,
+        torque_rate_nm_s: 0.0,
+        axis: 0,
+        flags: stepdrive_shared::messages::setpoint_flags::OUTPUTS_ON,
+        epoch: 1,
+        _reserved: 0,
     };
 
     /// The plan is the law's own future: on the model it assumes (constant speed, same

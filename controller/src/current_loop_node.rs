@@ -6,12 +6,13 @@
 //! deadline k + d, the period the answer is applied in.
 
 use stepdrive_control::current_loop::CurrentLoop;
+use stepdrive_control::stale::StaleGuard;
 use stepdrive_runtime::inbox::Inbox;
 use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish};
 use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{
-    state_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint,
+    command_flags, setpoint_flags, state_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint,
 };
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
@@ -86,6 +87,12 @@ pub struct CurrentLoopNode {
     /// When the last setpoint came, and how long it may be stale before this loop stops.
     setpoint_seen_ns: Option<u64>,
     setpoint_timeout: Option<std::time::Duration>,
+    /// A setpoint came at all; the guard against stale ones, and whether it was acting.
+    setpoint_seen: bool,
+    guard: StaleGuard,
+    was_stale: bool,
+    /// The last command had the outputs on.
+    outputs_on: bool,
 }
 
 impl CurrentLoopNode {
@@ -110,6 +117,10 @@ impl CurrentLoopNode {
             started: false,
             setpoint_seen_ns: None,
             setpoint_timeout: None,
+            setpoint_seen: false,
+            guard: StaleGuard::new(s),
+            was_stale: false,
+            outputs_on: false,
         }
     }
 
@@ -145,6 +156,7 @@ impl CurrentLoopNode {
         }
         self.setpoint = sp.message;
         self.setpoint_seen_ns = Some(now);
+        self.setpoint_seen = true;
         Ok(true)
     }
 }
@@ -234,7 +246,37 @@ impl Node for CurrentLoopNode {
         cx.stats
             .hop
             .record(cx.woke_ns.saturating_sub(state.publish_time_ns));
-        let mut command = self.body.on_sample(&state, &self.setpoint);
+        // A stale setpoint is not followed: the guard stops the motor on its own.
+        let (sp, stale) = match self.setpoint_seen {
+            true => self.guard.guard(&state, &self.setpoint),
+            false => (self.setpoint, false),
+        };
+        if stale != self.was_stale {
+            self.was_stale = stale;
+            if stale {
+                tracing::error!(
+                    age_ms = (state.sample_time_s - self.setpoint.sample_time_s) * 1e3,
+                    limit_ms = self.guard.limit_s() * 1e3,
+                    "the position loop is silent (its newest setpoint is too old): this loop \
+                     brings the motor to a standstill and holds it until setpoints of a new \
+                     enable come"
+                );
+            } else {
+                tracing::warn!("setpoints of a new enable: the position loop has the motor again");
+            }
+        }
+        let on = sp.flags & setpoint_flags::OUTPUTS_ON != 0;
+        let mut command = if on {
+            self.body.on_sample(&state, &sp)
+        } else {
+            self.body.off(&state)
+        };
+        if stale {
+            command.flags |= command_flags::SETPOINT_STALE;
+        }
+        // Outputs switched: the plant's freshest plan must say so at once.
+        let switched = on != self.outputs_on;
+        self.outputs_on = on;
         command.publish_time_ns = cx.now();
         ports.commands.publish(&command)?;
         let done = cx.answered();
@@ -245,7 +287,7 @@ impl Node for CurrentLoopNode {
         // After the command, so that planning never delays it; after a gap at once, the
         // newest state being news.
         if let Some(plans) = &mut ports.plans {
-            if plans_after(state.seq, self.last_seq) {
+            if switched || plans_after(state.seq, self.last_seq) {
                 let mut plan = *self.body.plan();
                 if plan.len > 0 {
                     plan.publish_time_ns = cx.now();

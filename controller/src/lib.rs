@@ -5,3 +5,4 @@
 pub mod current_loop_node;
 pub mod identify_node;
 pub mod position_loop_node;
+pub mod program;

@@ -1,24 +1,44 @@
-//! The position loop as a node of the runner: trajectory and torque modulation (12) from
-//! the newest state, a setpoint per tick. Its ports take the states by the stack's policy
-//! (in lockstep every one in order); its ticks come from its input (every N-th state) or
-//! from its own clock at the position rate, on the plant's deadline grid (it does not chase
-//! the plant's re-anchoring: it only needs the newest state).
+//! The position loop as a node of the runner: each tick it takes the axis's commands (the
+//! command service's, a stream's points, or the scenario's program at their times), runs
+//! the axis and torque modulation (12) on the newest state, publishes the setpoint, then
+//! answers the commands (so that an answer's time is the first setpoint that carries the
+//! command out) and publishes the axis's status. Its ports take the states by the stack's
+//! policy (in lockstep every one in order); its ticks come from its input (every N-th
+//! state) or from its own clock at the position rate, on the plant's deadline grid.
 
-use stepdrive_control::position_loop::PositionLoop;
+use crate::program::Program;
+use stepdrive_control::position_loop::{measured, PositionLoop};
 use stepdrive_runtime::inbox::Inbox;
+use stepdrive_runtime::ipc::COMMANDS_PER_CYCLE;
 use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
-use stepdrive_runtime::port::{PortError, PortFactory, Presence, Publish};
+use stepdrive_runtime::port::{AxisServer, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
-use stepdrive_shared::messages::{state_flags, DriveState, TorqueSetpoint};
+use stepdrive_shared::axis::{
+    AxisAck, AxisRequest, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
+};
+use stepdrive_shared::messages::{state_flags, DriveState, ResetRequest, TorqueSetpoint};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 use stepdrive_shared::stack::POSITION_LOOP;
 use stepdrive_shared::Scenario;
 
+/// Commands applied in one tick; more in the same tick are refused (a flood must not take
+/// the loop's time). Each costs a few µs at most (a re-plan of the trajectory).
+const APPLIED_PER_TICK: usize = 8;
+/// A fault reset asks the device to reset at most this often, s.
+const RESET_EVERY_S: f64 = 0.1;
+
 /// What the position loop reads and writes.
 pub struct PositionLoopPorts {
     pub states: Inbox<DriveState>,
     pub setpoints: Box<dyn Publish<TorqueSetpoint>>,
+    pub status: Box<dyn Publish<AxisStatus>>,
+    pub acks: Box<dyn Publish<AxisAck>>,
+    pub stream: Box<dyn Subscribe<AxisStreamPoint>>,
+    /// The command service (on the wall clock; a lockstep stack runs its program only).
+    pub commands: Option<AxisServer>,
+    /// A fault reset asks the device to clear its own latched fault too.
+    pub resets: Box<dyn Publish<ResetRequest>>,
     pub presence: Box<dyn Presence>,
 }
 
@@ -27,6 +47,14 @@ impl PositionLoopPorts {
         Ok(Self {
             states: Inbox::open(f, &POSITION_LOOP, mode, LOOP_BUFFER)?,
             setpoints: f.publisher()?,
+            status: f.publisher()?,
+            acks: f.publisher()?,
+            stream: f.subscriber(256)?,
+            commands: match mode {
+                Mode::Lockstep => None,
+                _ => f.command_server()?,
+            },
+            resets: f.publisher()?,
             presence: f.presence()?,
         })
     }
@@ -34,6 +62,7 @@ impl PositionLoopPorts {
 
 pub struct PositionLoopNode {
     body: PositionLoop,
+    program: Program,
     pace: Pace,
     ratio: u64,
     period_ns: u64,
@@ -44,18 +73,26 @@ pub struct PositionLoopNode {
     fresh: bool,
     last_used: Option<u64>,
     setpoint_subscribers: usize,
+    /// Commands taken this tick and their answers (pre-allocated).
+    requests: [AxisRequest; COMMANDS_PER_CYCLE],
+    acks: [AxisAck; COMMANDS_PER_CYCLE],
+    /// When the device was last asked to reset, s.
+    reset_asked_s: Option<f64>,
+    ticks: u64,
 }
 
 impl PositionLoopNode {
     /// In lockstep a tick is every N-th state, taken in order; otherwise its own clock at
     /// the position rate, on the plant's deadline grid shifted by `phase_ns` (processes use
     /// half a current period, so that the sample is out when the tick reads it; a
-    /// simulation, 0: same instant, the plant first).
-    pub fn new(s: &Scenario, mode: Mode, phase_ns: u64) -> Self {
+    /// simulation, 0: same instant, the plant first). The scenario's program, if any, is
+    /// read now (its stream files too).
+    pub fn new(s: &Scenario, mode: Mode, phase_ns: u64) -> Result<Self, RunError> {
         let period_ns = s.sample_period_ns();
         let ratio = s.rate_ratio();
-        Self {
+        Ok(Self {
             body: PositionLoop::new(s),
+            program: Program::new(s).map_err(|e| RunError::node(Role::PositionLoop, e))?,
             pace: match mode {
                 Mode::Lockstep => Pace::Input,
                 _ => Pace::Clock {
@@ -71,7 +108,11 @@ impl PositionLoopNode {
             fresh: false,
             last_used: None,
             setpoint_subscribers: 0,
-        }
+            requests: [AxisRequest::default(); COMMANDS_PER_CYCLE],
+            acks: [AxisAck::default(); COMMANDS_PER_CYCLE],
+            reset_asked_s: None,
+            ticks: 0,
+        })
     }
 
     /// Whether `state` starts a tick: on the clock, any state the last tick did not use;
@@ -81,6 +122,129 @@ impl PositionLoopNode {
             Pace::Input => state.seq % self.ratio == 0,
             Pace::Clock { .. } => self.last_used != Some(state.seq),
         }
+    }
+
+    /// Applies `request` to the axis at `state`, returning its answer.
+    fn apply(&mut self, request: &AxisRequest, state: &DriveState) -> AxisAck {
+        let m = measured(state);
+        let mut ack = AxisAck {
+            request: *request,
+            tick: self.ticks,
+            t_s: state.sample_time_s,
+            ..Default::default()
+        };
+        let result = if request.axis != 0 {
+            Err((
+                Refusal::UnknownAxis,
+                format!("axis {} (this stack has axis 0 only)", request.axis),
+            ))
+        } else {
+            self.body
+                .axis()
+                .request(request, &m)
+                .map_err(|r| (r.refusal, r.text))
+        };
+        if let Err((refusal, text)) = result {
+            ack.refusal = refusal as u32;
+            ack.set_text(&text);
+            tracing::debug!(
+                kind = request.kind,
+                seq = request.seq,
+                client = request.client,
+                "command refused: {text}"
+            );
+        }
+        ack.state = self.body.axis().state() as u32;
+        ack
+    }
+
+    /// One tick: the commands, the axis and (12), the setpoint, the answers, the status.
+    fn tick(
+        &mut self,
+        ports: &mut PositionLoopPorts,
+        cx: &mut Cx,
+        state: &DriveState,
+    ) -> Result<(), RunError> {
+        let m = measured(state);
+        // The program's commands due by now (and their answers, for the recorders).
+        while let Some(request) = self.program.due(state.sample_time_s) {
+            let ack = self.apply(&request, state);
+            if !ack.taken() {
+                tracing::warn!(
+                    "program step {} ({}) at {:.4} s refused: {}",
+                    request.seq,
+                    RequestKind::from_u32(request.kind).map_or("?", |k| k.name()),
+                    state.sample_time_s,
+                    ack.text()
+                );
+            }
+            self.program.answered(&ack);
+            ports.acks.publish(&ack)?;
+        }
+        for p in self.program.points_due(state.sample_time_s) {
+            // A point the axis refuses is counted in its status.
+            let _ = self.body.axis().stream_point(p, &m);
+        }
+        let n = match &mut ports.commands {
+            Some(server) => server.take(&mut self.requests)?,
+            None => 0,
+        };
+        for i in 0..n {
+            let request = self.requests[i];
+            self.acks[i] = if i < APPLIED_PER_TICK {
+                self.apply(&request, state)
+            } else {
+                let mut ack = AxisAck {
+                    request,
+                    refusal: Refusal::TooMany as u32,
+                    tick: self.ticks,
+                    t_s: state.sample_time_s,
+                    state: self.body.axis().state() as u32,
+                    ..Default::default()
+                };
+                ack.set_text(&format!(
+                    "more than {APPLIED_PER_TICK} commands in one tick ({} µs)",
+                    1_000_000 / self.rate_hz.max(1.0) as u64
+                ));
+                ack
+            };
+        }
+        while let Some(p) = ports.stream.receive()? {
+            let _ = self.body.axis().stream_point(&p, &m);
+        }
+        let mut sp = self.body.on_tick(state);
+        sp.publish_time_ns = cx.now();
+        ports.setpoints.publish(&sp)?;
+        if n > 0 {
+            for ack in &mut self.acks[..n] {
+                ack.publish_time_ns = sp.publish_time_ns;
+            }
+            if let Some(server) = &mut ports.commands {
+                server.answer(&self.acks[..n])?;
+            }
+            for ack in &self.acks[..n] {
+                ports.acks.publish(ack)?;
+            }
+        }
+        let mut status = self.body.status(state);
+        status.publish_time_ns = cx.now();
+        ports.status.publish(&status)?;
+        if self.body.axis().device_reset_wanted() && state.fault != 0 {
+            let due = self
+                .reset_asked_s
+                .is_none_or(|t| state.sample_time_s - t >= RESET_EVERY_S);
+            if due {
+                self.reset_asked_s = Some(state.sample_time_s);
+                ports.resets.publish(&ResetRequest {
+                    seq: self.ticks,
+                    publish_time_ns: cx.now(),
+                    pid: std::process::id(),
+                    _reserved: 0,
+                })?;
+            }
+        }
+        self.ticks += 1;
+        Ok(())
     }
 }
 
@@ -127,6 +291,7 @@ impl Node for PositionLoopNode {
 
     fn connect(&mut self, ports: &mut PositionLoopPorts) -> Result<(), RunError> {
         ports.setpoints.connect()?;
+        ports.status.connect()?;
         Ok(())
     }
 
@@ -160,9 +325,7 @@ impl Node for PositionLoopNode {
             return Ok(Flow::Continue);
         };
         if self.ticks_on(&state) {
-            let mut sp = self.body.on_tick(&state);
-            sp.publish_time_ns = cx.now();
-            ports.setpoints.publish(&sp)?;
+            self.tick(ports, cx, &state)?;
             self.last_used = Some(state.seq);
         }
         Ok(if state.flags & state_flags::LAST != 0 {

@@ -49,6 +49,38 @@ pub mod faults {
     pub const BUS_VOLTAGE: u16 = 1 << 2;
     /// A COMMAND asked for a duty outside ±MAX_DUTY (rejected, not applied).
     pub const BAD_COMMAND: u16 = 1 << 3;
+
+    /// The set bits by name ("WATCHDOG, OVERCURRENT"; an unknown bit by its value), for
+    /// messages (no allocation: the codec builds without std).
+    pub fn named(bits: u16) -> Named {
+        Named(bits)
+    }
+
+    /// See [`named`].
+    #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+    pub struct Named(pub u16);
+
+    impl core::fmt::Display for Named {
+        fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+            const NAMES: [(u16, &str); 4] = [
+                (WATCHDOG, "WATCHDOG"),
+                (OVERCURRENT, "OVERCURRENT"),
+                (BUS_VOLTAGE, "BUS_VOLTAGE"),
+                (BAD_COMMAND, "BAD_COMMAND"),
+            ];
+            let set = (0..16).map(|i| 1u16 << i).filter(|bit| self.0 & bit != 0);
+            for (n, bit) in set.enumerate() {
+                if n > 0 {
+                    f.write_str(", ")?;
+                }
+                match NAMES.iter().find(|(b, _)| *b == bit) {
+                    Some((_, name)) => f.write_str(name)?,
+                    None => write!(f, "{bit:#06x}")?,
+                }
+            }
+            Ok(())
+        }
+    }
 }
 
 /// SAMPLE.status bits.
@@ -717,6 +749,18 @@ pub fn frame_bytes(seq: u32, message: Message) -> Vec<u8> {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// Fault bits read as the document names them; a bit it does not name, by value.
+    #[test]
+    fn fault_bits_by_name() {
+        let named = |b| faults::named(b).to_string();
+        assert_eq!(named(faults::OVERCURRENT), "OVERCURRENT");
+        assert_eq!(
+            named(faults::WATCHDOG | faults::BAD_COMMAND | 0x0100),
+            "WATCHDOG, BAD_COMMAND, 0x0100"
+        );
+        assert_eq!(named(0), "");
+    }
 
     /// The CRC test vectors of docs/drive-protocol.md.
     #[test]

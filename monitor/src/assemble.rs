@@ -194,7 +194,7 @@ pub fn position_loop(
         0
     };
     Ok((
-        PositionLoopNode::new(s, setup.mode, phase_ns),
+        PositionLoopNode::new(s, setup.mode, phase_ns)?,
         PositionLoopPorts::open(bus, setup.mode)?,
     ))
 }

@@ -5,7 +5,7 @@
 use crate::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
 use stepdrive_runtime::cycle::MissRuns;
 use stepdrive_shared::messages::{
-    fault_bits, state_flags, DriveCommand, DrivePlan, DriveState, NONE_SEQ,
+    command_flags, fault_bits, state_flags, DriveCommand, DrivePlan, DriveState, NONE_SEQ,
 };
 use stepdrive_shared::plant::Disturbance;
 use stepdrive_shared::stats::StatsReport;
@@ -27,6 +27,9 @@ pub struct PlantSim {
     applied: [f64; 2],
     applied_seq: u64,
     flags: u32,
+    /// The last command came from a current loop stopping the motor on its own (stale
+    /// setpoints); sticky until a command without it.
+    stale: bool,
     fault: u32,
 }
 
@@ -46,6 +49,7 @@ impl PlantSim {
             applied: [0.0; 2],
             applied_seq: NONE_SEQ,
             flags: 0,
+            stale: false,
             fault: 0,
         }
     }
@@ -107,7 +111,13 @@ impl PlantSim {
             v_b_v: self.applied[1],
             bus_voltage_v: self.bus_v,
             deadline_ns: 0,
-            flags: self.flags | if last { state_flags::LAST } else { 0 },
+            flags: self.flags
+                | if last { state_flags::LAST } else { 0 }
+                | if self.stale {
+                    state_flags::SETPOINT_STALE
+                } else {
+                    0
+                },
             fault: self.fault,
         }
     }
@@ -164,7 +174,10 @@ impl PlantSim {
     /// outputs off and latches [`fault_bits::BAD_COMMAND`]; from then on the outputs stay off.
     pub fn advance(&mut self, command: Option<&DriveCommand>) {
         match command {
-            Some(c) => self.apply([c.v_a_v, c.v_b_v], c.seq),
+            Some(c) => {
+                self.stale = c.flags & command_flags::SETPOINT_STALE != 0;
+                self.apply([c.v_a_v, c.v_b_v], c.seq)
+            }
             None => self.apply([0.0; 2], NONE_SEQ),
         }
     }

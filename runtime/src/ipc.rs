@@ -5,7 +5,7 @@
 //! at once, with both named, instead of exchanging messages that mean something else.
 
 use crate::port::{
-    BoxedError, Listen, Notify, PortError, PortFactory, Presence, Publish, Subscribe,
+    BoxedError, Listen, Notify, PortError, PortFactory, Presence, Publish, Serve, Subscribe,
 };
 use iceoryx2::port::listener::ListenerWaitError;
 use iceoryx2::port::update_connections::UpdateConnections;
@@ -17,8 +17,12 @@ use iceoryx2::service::builder::event::{EventOpenError, EventOpenOrCreateError};
 use iceoryx2::service::builder::publish_subscribe::{
     PublishSubscribeOpenError, PublishSubscribeOpenOrCreateError,
 };
+use iceoryx2::service::builder::request_response::{
+    RequestResponseOpenError, RequestResponseOpenOrCreateError,
+};
 use iceoryx2::service::port_factory::PortFactory as _;
 use std::time::{Duration, Instant};
+use stepdrive_shared::axis::{AxisAck, AxisRequest};
 use stepdrive_shared::messages::{ResetRequest, StackScenario};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::{Message, ServiceNames, Topic};
@@ -85,6 +89,15 @@ impl OpenError for EventOpenOrCreateError {
         matches!(
             self,
             Self::EventOpenError(EventOpenError::IncompatibleAttributes)
+        )
+    }
+}
+
+impl OpenError for RequestResponseOpenOrCreateError {
+    fn incompatible_attributes(&self) -> bool {
+        matches!(
+            self,
+            Self::RequestResponseOpenError(RequestResponseOpenError::IncompatibleAttributes)
         )
     }
 }
@@ -356,6 +369,25 @@ impl PortFactory for IpcBus {
         }))
     }
 
+    fn command_server(&mut self) -> Result<Option<crate::port::AxisServer>, PortError> {
+        let (service, factory) = self.command_service()?;
+        let server = factory
+            .server_builder()
+            .create()
+            .map_err(|e| PortError::Create {
+                service: service.clone(),
+                port: "server",
+                what: "axis commands",
+                source: boxed(e),
+            })?;
+        Ok(Some(Box::new(IpcCommandServer {
+            server,
+            held: Vec::with_capacity(COMMANDS_PER_CYCLE),
+            service,
+            _factory: factory,
+        })))
+    }
+
     fn presence(&mut self) -> Result<Box<dyn Presence>, PortError> {
         Ok(Box::new(IpcPresence {
             state: self.topic::<DriveState>()?.1,
@@ -364,6 +396,148 @@ impl PortFactory for IpcBus {
             stats: self.topic::<StatsReport>()?.1,
             reset: self.topic::<ResetRequest>()?.1,
         }))
+    }
+}
+
+/// Requests an axis's command server holds at most per cycle (more wait for the next).
+pub const COMMANDS_PER_CYCLE: usize = 16;
+
+type CommandFactory = iceoryx2::service::port_factory::request_response::PortFactory<
+    Ipc,
+    AxisRequest,
+    (),
+    AxisAck,
+    (),
+>;
+type ActiveCommand = iceoryx2::active_request::ActiveRequest<Ipc, AxisRequest, (), AxisAck, ()>;
+
+/// The axis command service's server side: requests taken are held until answered.
+pub struct IpcCommandServer {
+    server: iceoryx2::port::server::Server<Ipc, AxisRequest, (), AxisAck, ()>,
+    held: Vec<ActiveCommand>,
+    service: String,
+    _factory: CommandFactory,
+}
+
+impl Serve<AxisRequest, AxisAck> for IpcCommandServer {
+    fn take(&mut self, out: &mut [AxisRequest]) -> Result<usize, PortError> {
+        self.held.clear();
+        let room = out.len().min(self.held.capacity());
+        while self.held.len() < room {
+            match self.server.receive() {
+                Ok(Some(active)) => {
+                    out[self.held.len()] = *active.payload();
+                    self.held.push(active);
+                }
+                Ok(None) => break,
+                // A client that broke off mid-request, or one holding too many: its
+                // requests wait for the next cycle (the loop never blocks on a client).
+                Err(e) => {
+                    tracing::debug!(service = %self.service, error = ?e, "command receive");
+                    break;
+                }
+            }
+        }
+        Ok(self.held.len())
+    }
+
+    fn answer(&mut self, answers: &[AxisAck]) -> Result<(), PortError> {
+        for (active, ack) in self.held.drain(..).zip(answers) {
+            // A client that is gone gets no answer; that is its business.
+            if let Err(e) = active.send_copy(*ack) {
+                tracing::debug!(service = %self.service, error = ?e, "command answer");
+            }
+        }
+        Ok(())
+    }
+}
+
+/// A client of the axis command service (`stepdrive axis`, the client crate): each
+/// request waits for its answer.
+pub struct CommandClient {
+    client: iceoryx2::port::client::Client<Ipc, AxisRequest, (), AxisAck, ()>,
+    service: String,
+    _factory: CommandFactory,
+}
+
+/// A command the position loop did not answer in time (it is not running, or stalled).
+#[derive(Debug, thiserror::Error)]
+#[error("the axis did not answer {kind} within {timeout:?}: is the stack's position loop running?")]
+pub struct NoAnswer {
+    pub kind: &'static str,
+    pub timeout: Duration,
+}
+
+impl CommandClient {
+    /// Sends `request` and waits up to `timeout` for its answer.
+    pub fn request(
+        &mut self,
+        request: &AxisRequest,
+        timeout: Duration,
+    ) -> Result<AxisAck, PortError> {
+        let transfer = |operation: &'static str, source: BoxedError| PortError::Transfer {
+            service: self.service.clone(),
+            operation,
+            source,
+        };
+        let pending = self
+            .client
+            .send_copy(*request)
+            .map_err(|e| transfer("send", boxed(e)))?;
+        let deadline = Instant::now() + timeout;
+        loop {
+            match pending.receive() {
+                Ok(Some(answer)) => return Ok(*answer.payload()),
+                Ok(None) => {}
+                Err(e) => return Err(transfer("receive", boxed(e))),
+            }
+            if Instant::now() >= deadline || crate::poll::termination_requested() {
+                let kind = stepdrive_shared::axis::RequestKind::from_u32(request.kind)
+                    .map_or("a command", |k| k.name());
+                return Err(transfer("answer", Box::new(NoAnswer { kind, timeout })));
+            }
+            std::thread::sleep(Duration::from_micros(50));
+        }
+    }
+}
+
+impl IpcBus {
+    fn command_service(&self) -> Result<(String, CommandFactory), PortError> {
+        let name = self.names.topic(Topic::AxisCommand);
+        let factory = self.service(
+            &name,
+            MessagingPattern::RequestResponse,
+            |builder, stamp| {
+                builder
+                    .request_response::<AxisRequest, AxisAck>()
+                    .max_servers(1)
+                    .max_clients(8)
+                    .max_active_requests_per_client(4)
+                    .max_response_buffer_size(4)
+                    .enable_safe_overflow_for_responses(true)
+                    .open_or_create_with_attributes(stamp)
+            },
+        )?;
+        Ok((name, factory))
+    }
+
+    /// The axis command service's client.
+    pub fn command_client(&self) -> Result<CommandClient, PortError> {
+        let (service, factory) = self.command_service()?;
+        let client = factory
+            .client_builder()
+            .create()
+            .map_err(|e| PortError::Create {
+                service: service.clone(),
+                port: "client",
+                what: "axis commands",
+                source: boxed(e),
+            })?;
+        Ok(CommandClient {
+            client,
+            service,
+            _factory: factory,
+        })
     }
 }
 
@@ -575,8 +749,12 @@ impl IpcPresence {
             Topic::Setpoint => of(&self.setpoint),
             Topic::Stats => of(&self.stats),
             Topic::Reset => of(&self.reset),
-            // Nobody waits for the plan's peers.
-            Topic::Plan => (0, 0),
+            // Nobody waits for these peers.
+            Topic::Plan
+            | Topic::AxisStatus
+            | Topic::AxisStream
+            | Topic::AxisCommand
+            | Topic::AxisAcks => (0, 0),
         }
     }
 }

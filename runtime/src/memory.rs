@@ -93,6 +93,10 @@ impl PortFactory for MemoryBus {
         Ok(Box::new(Nothing))
     }
 
+    fn command_server(&mut self) -> Result<Option<crate::port::AxisServer>, PortError> {
+        Ok(None)
+    }
+
     fn presence(&mut self) -> Result<Box<dyn Presence>, PortError> {
         Ok(Box::new(MemoryPresence(Rc::clone(&self.counts))))
     }

@@ -80,6 +80,16 @@ pub trait Subscribe<M> {
     }
 }
 
+/// The server side of a request-response service: takes requests and answers each, never
+/// waiting. Requests taken are held until answered, so that an answer can come after the
+/// work it reports on (an axis command's, after the setpoint that carries it out).
+pub trait Serve<Req, Resp> {
+    /// Takes up to `out.len()` queued requests into `out`; returns how many.
+    fn take(&mut self, out: &mut [Req]) -> Result<usize, PortError>;
+    /// Answers the requests of the last [`Self::take`], in order.
+    fn answer(&mut self, answers: &[Resp]) -> Result<(), PortError>;
+}
+
 /// Raises the "a state was published" event (hardware mode).
 pub trait Notify {
     fn notify(&mut self) -> Result<(), PortError>;
@@ -111,4 +121,11 @@ pub trait PortFactory {
     fn notifier(&mut self) -> Result<Box<dyn Notify>, PortError>;
     fn listener(&mut self) -> Result<Box<dyn Listen>, PortError>;
     fn presence(&mut self) -> Result<Box<dyn Presence>, PortError>;
+    /// The axis command service's server (none in a simulation: its commands come from
+    /// the scenario's program).
+    fn command_server(&mut self) -> Result<Option<AxisServer>, PortError>;
 }
+
+/// The axis command service's server.
+pub type AxisServer =
+    Box<dyn Serve<stepdrive_shared::axis::AxisRequest, stepdrive_shared::axis::AxisAck>>;

@@ -4,6 +4,7 @@
 //! DQ frame the metrics and laws share ([`frames`]). No process logic lives here: timing,
 //! ports and the runner are `stepdrive-runtime`'s.
 
+pub mod axis;
 pub mod frames;
 pub mod messages;
 pub mod plant;

@@ -21,6 +21,25 @@ pub mod state_flags {
     pub const COMMAND_HELD: u32 = 1 << 2;
     /// With [`COMMAND_HELD`]: the voltage came from a [`DrivePlan`].
     pub const COMMAND_PLANNED: u32 = 1 << 3;
+    /// The command applied came from a current loop that had stopped the motor on its own:
+    /// the position loop's setpoints had grown stale ([`super::command_flags::SETPOINT_STALE`]).
+    pub const SETPOINT_STALE: u32 = 1 << 4;
+}
+
+/// Bits of [`DriveCommand::flags`].
+pub mod command_flags {
+    /// The newest setpoint was older than `[axis] setpoint_age_ticks` position-loop periods:
+    /// the current loop decelerates the motor to a standstill and holds it on its own.
+    pub const SETPOINT_STALE: u32 = 1 << 0;
+}
+
+/// Bits of [`TorqueSetpoint::flags`].
+pub mod setpoint_flags {
+    /// The axis has torque: the current loop follows; without it it applies zero volts.
+    pub const OUTPUTS_ON: u32 = 1 << 0;
+    /// The acceleration is continuous (a jerk-limited trajectory): the current loop may
+    /// predict the rotor's speed ahead with it.
+    pub const ACCELERATION_AHEAD: u32 = 1 << 1;
 }
 
 /// Bits of [`DriveState::fault`]. A fault is latched by the process that drives the motor.
@@ -78,7 +97,7 @@ pub struct DriveState {
 #[cfg_attr(
     feature = "ipc",
     derive(ZeroCopySend),
-    type_name("stepdrive.DriveCommand.v1")
+    type_name("stepdrive.DriveCommand.v2")
 )]
 #[repr(C)]
 pub struct DriveCommand {
@@ -98,6 +117,9 @@ pub struct DriveCommand {
     /// `answers_seq` + compute delay + 1, the first the command's voltage can reach.
     pub i_a_ref_a: f64,
     pub i_b_ref_a: f64,
+    /// [`command_flags`] bits.
+    pub flags: u32,
+    pub _reserved: u32,
 }
 
 /// Longest [`DrivePlan`]: 1024 periods, 51.2 ms at 20 kHz. The default plan (1000 periods)
@@ -202,7 +224,7 @@ pub struct ResetRequest {
 #[cfg_attr(
     feature = "ipc",
     derive(ZeroCopySend),
-    type_name("stepdrive.TorqueSetpoint.v2")
+    type_name("stepdrive.TorqueSetpoint.v3")
 )]
 #[repr(C)]
 pub struct TorqueSetpoint {
@@ -224,6 +246,18 @@ pub struct TorqueSetpoint {
     /// The load torque (12) used for τ_L: `[load]`'s when known, the observer's estimate
     /// of the lumped disturbance, or 0, N·m.
     pub load_estimate_nm: f64,
+    /// With [`setpoint_flags::ACCELERATION_AHEAD`]: how fast the torque changes along the
+    /// segment (B α_d + J jerk_d, while the rotor tracks), N·m/s: the current loop follows
+    /// τ + τ̇ (t − t_0) between ticks instead of holding τ.
+    pub torque_rate_nm_s: f64,
+    /// The axis it is for.
+    pub axis: u32,
+    /// [`setpoint_flags`] bits.
+    pub flags: u32,
+    /// The axis's enable these setpoints belong to: a current loop that stopped the motor
+    /// on its own follows setpoints again only from a later one.
+    pub epoch: u32,
+    pub _reserved: u32,
 }
 
 impl TorqueSetpoint {

@@ -2,6 +2,7 @@
 //! loop rates, trajectory and metric windows. Loads from TOML and validates itself; every
 //! error names the offending field.
 
+pub use crate::axis::{AxisParams, ProgramStep};
 use crate::messages::MAX_PLAN;
 pub use crate::plant::{Disturbance, PlantParams};
 use serde::{Deserialize, Serialize};
@@ -206,6 +207,9 @@ impl Default for MetricWindows {
 pub struct RunParams {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub duration_s: Option<f64>,
+    /// Runs until stopped (`stepdrive serve`): no last sample, `duration_s` ignored.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub until_stopped: bool,
 }
 
 /// Everything a run needs. `Scenario::default()` is the paper's Section V scenario.
@@ -227,6 +231,13 @@ pub struct Scenario {
     /// Load compensation of (12) and the industrial baseline's current loop.
     #[serde(skip_serializing_if = "ControlParams::is_default")]
     pub control: ControlParams,
+    /// The axis's limits and defaults (absent: the defaults).
+    #[serde(skip_serializing_if = "AxisParams::is_default")]
+    pub axis: AxisParams,
+    /// Timed commands (`[[program]]`): with a program the axis runs it instead of the
+    /// scenario's trajectory, deterministically in lockstep.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub program: Vec<ProgramStep>,
 }
 
 impl Default for Scenario {
@@ -243,6 +254,8 @@ impl Default for Scenario {
             run: RunParams::default(),
             plant: PlantParams::default(),
             control: ControlParams::default(),
+            axis: AxisParams::default(),
+            program: Vec::new(),
         }
     }
 }
@@ -332,6 +345,9 @@ pub(crate) fn invalid(field: &'static str, message: String) -> ScenarioError {
 
 /// Most samples a run may have (a 20 kHz run of 13.9 hours).
 pub const MAX_SAMPLES: u64 = 1_000_000_000;
+
+/// A program's run lasts this long past its last step unless `run.duration_s` says.
+pub const PROGRAM_TAIL_S: f64 = 2.0;
 
 impl Scenario {
     /// Reads and validates a TOML scenario. Absent fields take their defaults; unknown
@@ -503,6 +519,7 @@ impl Scenario {
             )
         };
         match self.run.duration_s {
+            _ if self.run.until_stopped => {}
             Some(d) => {
                 within("run.duration_s", d, 1e-6, 1e9, "s")?;
                 if self.sample_count() > MAX_SAMPLES {
@@ -551,6 +568,10 @@ impl Scenario {
             "s (one pass of the trajectory)",
         )?;
         self.plant.validate()?;
+        self.axis.validate()?;
+        for (i, step) in self.program.iter().enumerate() {
+            step.validate(i)?;
+        }
         let c = &self.control;
         // Past π f (half the sample rate) the estimate or the loop would be noise.
         if let Some(l) = c.observer_bandwidth_rad_s {
@@ -633,9 +654,20 @@ impl Scenario {
         t.accel_s + t.cruise_s + t.decel_s + t.hold_s
     }
 
-    /// Length of the run, s: `run.duration_s`, or one pass of the trajectory.
+    /// Length of the run, s: `run.duration_s`, or one pass of the trajectory, or with a
+    /// program its last step and [`PROGRAM_TAIL_S`] after it.
     pub fn duration_s(&self) -> f64 {
-        self.run.duration_s.unwrap_or_else(|| self.profile_s())
+        self.run
+            .duration_s
+            .unwrap_or_else(|| match self.program_end_s() {
+                Some(end) => end + PROGRAM_TAIL_S,
+                None => self.profile_s(),
+            })
+    }
+
+    /// The time of a program's last step, if there is a program.
+    pub fn program_end_s(&self) -> Option<f64> {
+        self.program.iter().map(|p| p.at_s).reduce(f64::max)
     }
 
     /// Current-loop sample period T_s, s.
@@ -655,6 +687,9 @@ impl Scenario {
 
     /// Samples in the run, k = 0 ..= duration / T_s.
     pub fn sample_count(&self) -> u64 {
+        if self.run.until_stopped {
+            return u64::MAX;
+        }
         (self.duration_s() * self.rates.current_loop_hz).round() as u64 + 1
     }
 

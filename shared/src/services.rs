@@ -2,6 +2,7 @@
 //! opener's settings as minimum requirements, so they are part of the contract: they live
 //! here, once, and the port implementations (`stepdrive-runtime`) only read them.
 
+use crate::axis::{AxisAck, AxisStatus, AxisStreamPoint};
 use crate::messages::{DriveCommand, DrivePlan, DriveState, ResetRequest, TorqueSetpoint};
 use crate::scenario::Mode;
 use crate::stats::StatsReport;
@@ -36,6 +37,14 @@ pub enum Topic {
     Stats,
     /// Anyone → plant or bridge: clear latched faults (`stepdrive reset`).
     Reset,
+    /// Position loop → everyone, every tick: the axis's status.
+    AxisStatus,
+    /// A streaming client → position loop: cyclic synchronous position points.
+    AxisStream,
+    /// Clients → position loop: axis commands, each answered (request-response).
+    AxisCommand,
+    /// Position loop → recorders: every command's answer, with the command.
+    AxisAcks,
 }
 
 impl Topic {
@@ -48,6 +57,10 @@ impl Topic {
             Topic::Setpoint => "control/setpoint",
             Topic::Stats => "monitor/stats",
             Topic::Reset => "control/reset",
+            Topic::AxisStatus => "axis/0/status",
+            Topic::AxisStream => "axis/0/stream",
+            Topic::AxisCommand => "axis/0/command",
+            Topic::AxisAcks => "axis/0/acks",
         }
     }
 
@@ -83,8 +96,28 @@ impl Topic {
                 history: 0,
                 safe_overflow: true,
             },
-            // Rare, small, from any tool; the plant takes them at its pace.
-            Topic::Reset => Qos {
+            // Every tick; readers want the newest (a late joiner gets it at once). The acks
+            // are rare, but a recorder must see each.
+            Topic::AxisStatus | Topic::AxisAcks => Qos {
+                max_publishers: 1,
+                max_subscribers: 8,
+                max_buffer: MONITOR_BUFFER,
+                history: 1,
+                safe_overflow: true,
+            },
+            // Up to 2 kHz from a client; the position loop takes them every tick. A client
+            // that writes faster than that loses its oldest points (the axis counts the gap
+            // in time as an underrun).
+            Topic::AxisStream => Qos {
+                max_publishers: 4,
+                max_subscribers: 2,
+                max_buffer: 256,
+                history: 0,
+                safe_overflow: true,
+            },
+            // Rare, small, from any tool; the plant takes them at its pace. (The command
+            // service's settings are the request-response builder's: `IpcBus::command_*`.)
+            Topic::Reset | Topic::AxisCommand => Qos {
                 max_publishers: 4,
                 max_subscribers: 2,
                 max_buffer: LOOP_BUFFER,
@@ -144,6 +177,15 @@ impl Message for StatsReport {
 }
 impl Message for ResetRequest {
     const TOPIC: Topic = Topic::Reset;
+}
+impl Message for AxisStatus {
+    const TOPIC: Topic = Topic::AxisStatus;
+}
+impl Message for AxisStreamPoint {
+    const TOPIC: Topic = Topic::AxisStream;
+}
+impl Message for AxisAck {
+    const TOPIC: Topic = Topic::AxisAcks;
 }
 
 /// Service names of one stack. Two stacks with different instance names never see each

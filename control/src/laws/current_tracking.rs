@@ -151,6 +151,41 @@ impl SampledCurrentLaw {
         (v, predicted)
     }
 
+    /// [`Self::decide`] for a rotor accelerating at `alpha` (rad/s²): the speed over the
+    /// periods ahead is ω + α t, and each period's back-EMF is taken at its mid-period speed
+    /// (second-order accurate). At constant speed the prediction lags an accelerating rotor's
+    /// back-EMF by K_m α (d + ½) T, and the current, hence the torque, falls short by a
+    /// constant amount while it accelerates. `reference` is evaluated by the caller at the
+    /// angles it predicts the same way.
+    pub fn decide_accelerating(
+        &self,
+        i: [f64; 2],
+        theta: f64,
+        omega: f64,
+        alpha: f64,
+        decided: &[[f64; 2]],
+        reference: impl Fn(usize) -> [f64; 2],
+    ) -> ([f64; 2], [f64; 2]) {
+        let d = decided.len();
+        let t = |j: f64| self.period * j;
+        let angle = |j: f64| theta + omega * t(j) + 0.5 * alpha * t(j) * t(j);
+        let mid_speed = |j: f64| omega + alpha * t(j + 0.5);
+        let mut predicted = i;
+        for (j, v) in decided.iter().enumerate() {
+            let j = j as f64;
+            predicted = self.predict(predicted, *v, angle(j), mid_speed(j));
+        }
+        let r_now = reference(d);
+        let r_next = reference(d + 1);
+        let e = self.back_emf_step(angle(d as f64), mid_speed(d as f64));
+        let mut v = [0.0; 2];
+        for p in 0..2 {
+            let target = r_next[p] - self.lambda * (r_now[p] - predicted[p]);
+            v[p] = (target - self.a * predicted[p] - e[p]) / self.b;
+        }
+        (v, predicted)
+    }
+
     /// [`Self::back_emf_step`] from rotor angle θ_0 + ωTm, as a sequence over m: at constant
     /// speed it is a fixed complex amplitude turning with the electrical angle,
     /// Δ_m = −j (K_m ω/L) C e^{jN_rθ_m}, C = (e^{jΩT} − a)/(β + jΩ).

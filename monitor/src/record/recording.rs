@@ -21,6 +21,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 use stepdrive_emulated_drive::truth::TruthRow;
+use stepdrive_shared::axis::{AxisAck, AxisState, AxisStatus, Refusal, RequestKind};
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
 use stepdrive_shared::stats::StatsReport;
@@ -233,11 +234,84 @@ pub struct TruthRecord {
 const TRUTH_FIELDS: [&str; 7] = ["t", "seq", "theta", "error", "omega", "i_a", "i_b"];
 
 /// A JSON Schema of an object whose fields are all numbers (but `role`).
+/// Fields recorded as text (the rest are numbers).
+const STRING_FIELDS: [&str; 6] = ["role", "kind", "refusal", "text", "state", "mode"];
+
+/// An axis command's answer as recorded: the command, and whether it was taken.
+#[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
+pub struct AckRecord {
+    pub t: f64,
+    pub tick: u64,
+    pub kind: String,
+    pub seq: u64,
+    pub client: u32,
+    pub target: f64,
+    pub velocity: f64,
+    pub flags: u32,
+    /// `taken`, or why not.
+    pub refusal: String,
+    pub text: String,
+    /// The axis's state after it.
+    pub state: String,
+}
+
+const ACK_FIELDS: [&str; 11] = [
+    "t", "tick", "kind", "seq", "client", "target", "velocity", "flags", "refusal", "text", "state",
+];
+
+/// The axis's status as recorded, every tick.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+pub struct StatusRecord {
+    pub t: f64,
+    pub tick: u64,
+    /// The CiA 402 state (numbered as `stepdrive_shared::axis::AxisState`) and the status
+    /// word.
+    pub state_code: u32,
+    pub statusword: u32,
+    pub mode_code: u32,
+    pub theta: f64,
+    pub omega: f64,
+    pub torque: f64,
+    pub following_error: f64,
+    pub theta_d: f64,
+    pub omega_d: f64,
+    pub alpha_d: f64,
+    pub target: f64,
+    pub fault: u32,
+    pub warning: u32,
+    pub move_id: u64,
+    pub last_seq: u64,
+}
+
+const STATUS_FIELDS: [&str; 17] = [
+    "t",
+    "tick",
+    "state_code",
+    "statusword",
+    "mode_code",
+    "theta",
+    "omega",
+    "torque",
+    "following_error",
+    "theta_d",
+    "omega_d",
+    "alpha_d",
+    "target",
+    "fault",
+    "warning",
+    "move_id",
+    "last_seq",
+];
+
 fn schema(title: &str, fields: &[&str]) -> String {
     let props: Vec<String> = fields
         .iter()
         .map(|f| {
-            let ty = if *f == "role" { "string" } else { "number" };
+            let ty = if STRING_FIELDS.contains(f) {
+                "string"
+            } else {
+                "number"
+            };
             format!("\"{f}\":{{\"type\":\"{ty}\"}}")
         })
         .collect();
@@ -260,6 +334,8 @@ struct Channels {
     setpoint: u16,
     command: u16,
     plan: u16,
+    ack: u16,
+    status: u16,
     /// Made when the first truth arrives (only an emulated drive has one).
     truth: Option<u16>,
     written: u64,
@@ -273,7 +349,7 @@ struct Channels {
 pub struct Recording {
     writer: Option<mcap::Writer<BufWriter<File>>>,
     path: PathBuf,
-    schemas: [u16; 7],
+    schemas: [u16; 9],
     channels: Vec<Channels>,
     trajectory: Trapezoid,
     n_r: f64,
@@ -362,6 +438,20 @@ impl Recording {
                     schema("stepdrive.Plan", &PLAN_FIELDS).as_bytes(),
                 )
                 .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.AxisAck",
+                    "jsonschema",
+                    schema("stepdrive.AxisAck", &ACK_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
+            writer
+                .add_schema(
+                    "stepdrive.AxisStatus",
+                    "jsonschema",
+                    schema("stepdrive.AxisStatus", &STATUS_FIELDS).as_bytes(),
+                )
+                .map_err(wrap)?,
         ];
         let toml = s.to_toml_string().unwrap_or_default();
         writer
@@ -414,6 +504,17 @@ impl Recording {
         let plan = w
             .add_channel(self.schemas[6], &topic(method, "plan"), "json", &none)
             .map_err(wrap)?;
+        let ack = w
+            .add_channel(self.schemas[7], &topic(method, "axis/ack"), "json", &none)
+            .map_err(wrap)?;
+        let status = w
+            .add_channel(
+                self.schemas[8],
+                &topic(method, "axis/status"),
+                "json",
+                &none,
+            )
+            .map_err(wrap)?;
         self.channels.push(Channels {
             method,
             state,
@@ -422,6 +523,8 @@ impl Recording {
             setpoint,
             command,
             plan,
+            ack,
+            status,
             truth: None,
             written: 0,
             lost: 0,
@@ -510,6 +613,61 @@ impl Recording {
             load_estimate: sp.load_estimate_nm,
         };
         self.put(ch.setpoint, sp.sample_time_s, &rec)
+    }
+
+    /// An axis command's answer, at the tick that took it.
+    pub fn ack(&mut self, a: &AxisAck) -> Result<(), RecordError> {
+        let Some(ch) = self.channels.last() else {
+            return Ok(());
+        };
+        let r = &a.request;
+        let rec = AckRecord {
+            t: a.t_s,
+            tick: a.tick,
+            kind: RequestKind::from_u32(r.kind)
+                .map_or("?", |k| k.name())
+                .to_string(),
+            seq: r.seq,
+            client: r.client,
+            target: r.target_rad,
+            velocity: r.velocity_rad_s,
+            flags: r.flags,
+            refusal: Refusal::from_u32(a.refusal)
+                .map_or("?", |x| x.name())
+                .to_string(),
+            text: a.text().to_string(),
+            state: AxisState::from_u32(a.state)
+                .map_or("?", |x| x.name())
+                .to_string(),
+        };
+        self.put(ch.ack, a.t_s, &rec)
+    }
+
+    /// The axis's status at a tick.
+    pub fn status(&mut self, st: &AxisStatus) -> Result<(), RecordError> {
+        let Some(ch) = self.channels.last() else {
+            return Ok(());
+        };
+        let rec = StatusRecord {
+            t: st.t_s,
+            tick: st.tick,
+            state_code: st.state,
+            statusword: st.statusword,
+            mode_code: st.mode,
+            theta: st.theta_rad,
+            omega: st.omega_rad_s,
+            torque: st.torque_nm,
+            following_error: st.following_error_rad,
+            theta_d: st.theta_d_rad,
+            omega_d: st.omega_d_rad_s,
+            alpha_d: st.alpha_d_rad_s2,
+            target: st.target_rad,
+            fault: st.fault,
+            warning: st.warning,
+            move_id: st.move_id,
+            last_seq: st.last_seq,
+        };
+        self.put(ch.status, st.t_s, &rec)
     }
 
     /// A command of the current method's run, at the time of the sample it answers.
@@ -659,6 +817,8 @@ pub struct Recorded {
     pub commands: Vec<(String, Vec<CommandRecord>)>,
     pub plans: Vec<(String, Vec<PlanRecord>)>,
     pub truth: Vec<(String, Vec<TruthRecord>)>,
+    pub acks: Vec<(String, Vec<AckRecord>)>,
+    pub statuses: Vec<(String, Vec<StatusRecord>)>,
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
 }
 
@@ -717,6 +877,16 @@ impl Recorded {
                 ),
                 "truth" => push(
                     &mut out.truth,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "axis/ack" => push(
+                    &mut out.acks,
+                    method,
+                    serde_json::from_slice(&m.data).map_err(bad)?,
+                ),
+                "axis/status" => push(
+                    &mut out.statuses,
                     method,
                     serde_json::from_slice(&m.data).map_err(bad)?,
                 ),

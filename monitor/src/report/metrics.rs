@@ -6,9 +6,10 @@ use crate::report::outcome::{
     MIN_SEEN_FRACTION,
 };
 use serde::Serialize;
+use stepdrive_shared::axis::{axis_faults, request_flags, AxisAck, AxisStatus, RequestKind};
 use stepdrive_shared::frames::dq_currents;
-use stepdrive_shared::messages::{fault_bits, state_flags, DriveState};
-use stepdrive_shared::trajectory::Trapezoid;
+use stepdrive_shared::messages::{fault_bits, state_flags, DriveState, TorqueSetpoint};
+use stepdrive_shared::trajectory::{Reference, Trapezoid};
 use stepdrive_shared::{Method, Scenario};
 
 /// One method's results: one object of the JSON `runs` array, one column of the table.
@@ -26,6 +27,15 @@ pub struct RunReport {
     /// Why its recording is incomplete (the run went on without it).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub recording_error: Option<String>,
+    /// A program's moves, one by one.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub moves: Vec<MoveReport>,
+    /// The axis's first fault.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub axis_fault: Option<AxisFaultEvent>,
+    /// When the position loop went silent and the current loop stopped the motor, s.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub setpoint_stale_at_s: Option<f64>,
     /// The first latched fault.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fault: Option<FaultEvent>,
@@ -208,6 +218,97 @@ pub struct Metrics {
     cruise_missed: u64,
     final_missed: u64,
     longest_gap: u64,
+    /// A program's run: θ_d from the position loop's setpoints, the states waiting for the
+    /// segment that covers them, and each move's figures.
+    program: Option<ProgramReference>,
+    /// The first state whose command came from a current loop stopping the motor on its
+    /// own (the position loop went silent), and the axis's first fault.
+    first_stale: Option<(u64, f64)>,
+    axis_fault: Option<AxisFaultEvent>,
+}
+
+/// The axis faulted: when, and why.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct AxisFaultEvent {
+    pub sim_time_s: f64,
+    pub bits: u32,
+    pub faults: Vec<&'static str>,
+    /// θ_d − θ when it faulted, rad.
+    pub following_error_rad: f64,
+}
+
+/// States wait here until the setpoint after theirs arrives: a state is graded against the
+/// segment of the newest setpoint computed from a sample at or before it.
+#[derive(Debug, Clone)]
+struct ProgramReference {
+    segment: Option<TorqueSetpoint>,
+    pending: std::collections::VecDeque<DriveState>,
+    moves: Vec<MoveWatch>,
+}
+
+/// States kept waiting for their segment at most (then graded against the newest known).
+const PENDING_STATES: usize = 16_384;
+
+/// One move of a program: from the tick that took it to the next move or the run's end.
+#[derive(Debug, Clone, Copy)]
+struct MoveWatch {
+    start_s: f64,
+    target: f64,
+    /// The trajectory reached the target (θ_d on it, ω_d zero).
+    end_s: Option<f64>,
+    peak: f64,
+    /// After the end: the last sample outside the settle window, and the last seen.
+    last_outside: Option<f64>,
+    last_seen: f64,
+}
+
+/// One move's figures.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct MoveReport {
+    pub start_s: f64,
+    pub target_rad: f64,
+    /// From the command to the trajectory at its target, s (null: never got there).
+    pub duration_s: Option<f64>,
+    /// max |θ_d − θ| over the move, rad.
+    pub peak_abs_error_rad: f64,
+    /// From the trajectory's end until |target − θ| stays within [`RECOVERED_RAD`], s (null:
+    /// not settled before the next move or the run's end).
+    pub settle_s: Option<f64>,
+}
+
+impl MoveWatch {
+    fn push(&mut self, t: f64, theta: f64, r: &Reference) {
+        let e = (r.theta - theta).abs();
+        if e.is_nan() || e > self.peak {
+            self.peak = e;
+        }
+        if self.end_s.is_none() && r.theta == self.target && r.omega == 0.0 {
+            self.end_s = Some(t);
+        }
+        if self.end_s.is_some() {
+            let off = (self.target - theta).abs();
+            if off.is_nan() || off > RECOVERED_RAD {
+                self.last_outside = Some(t);
+            }
+        }
+        self.last_seen = t;
+    }
+
+    fn report(&self, period: f64) -> MoveReport {
+        let settle_s = match (self.end_s, self.last_outside) {
+            (None, _) => None,
+            (Some(_), None) => Some(0.0),
+            (Some(end), Some(out)) if out < self.last_seen => Some(out + period - end),
+            (Some(_), Some(_)) => None,
+        };
+        MoveReport {
+            start_s: self.start_s,
+            target_rad: self.target,
+            duration_s: self.end_s.map(|e| e - self.start_s),
+            peak_abs_error_rad: self.peak,
+            settle_s,
+        }
+    }
 }
 
 impl Metrics {
@@ -216,7 +317,11 @@ impl Metrics {
         let plant = s.plant_motor();
         Self {
             trajectory: Trapezoid::new(&s.trajectory),
-            cruise: (s.metrics.cruise_start_s, s.metrics.cruise_end_s),
+            // A program has no cruise: its moves are its own.
+            cruise: match s.program.is_empty() {
+                true => (s.metrics.cruise_start_s, s.metrics.cruise_end_s),
+                false => (f64::INFINITY, f64::NEG_INFINITY),
+            },
             final_from: s.final_window_start_s(),
             r: plant.resistance_ohm,
             k_m: plant.torque_constant_nm_per_a,
@@ -251,6 +356,13 @@ impl Metrics {
             cruise_missed: 0,
             final_missed: 0,
             longest_gap: 0,
+            program: (!s.program.is_empty()).then(|| ProgramReference {
+                segment: None,
+                pending: std::collections::VecDeque::with_capacity(PENDING_STATES),
+                moves: Vec::with_capacity(s.program.len()),
+            }),
+            first_stale: None,
+            axis_fault: None,
         }
     }
 
@@ -272,7 +384,98 @@ impl Metrics {
         }
     }
 
+    /// One state sample: graded at once against the scenario's profile, or, in a program's
+    /// run, once the segment that covers it is known ([`Self::setpoint`]).
     pub fn push(&mut self, s: &DriveState) {
+        let Some(p) = self.program.as_mut() else {
+            let reference = self.trajectory.at(s.sample_time_s);
+            self.account(s, reference);
+            return;
+        };
+        if p.pending.len() == PENDING_STATES {
+            if let Some(old) = p.pending.pop_front() {
+                let r = segment_at(p.segment.as_ref(), old.sample_time_s);
+                self.account(&old, r);
+            }
+        }
+        if let Some(p) = self.program.as_mut() {
+            p.pending.push_back(*s);
+        }
+    }
+
+    /// A program's run: the position loop's setpoint, the reference from its sample on.
+    /// The states before it are graded against the segment before it.
+    pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
+        self.grade_pending(Some(sp.from_state_seq));
+        if let Some(p) = self.program.as_mut() {
+            p.segment = Some(*sp);
+        }
+    }
+
+    /// Grades the waiting states before sample `until` (all: `None`).
+    fn grade_pending(&mut self, until: Option<u64>) {
+        loop {
+            let Some(p) = self.program.as_mut() else {
+                return;
+            };
+            let due = p
+                .pending
+                .front()
+                .is_some_and(|st| until.is_none_or(|u| st.seq < u));
+            if !due {
+                return;
+            }
+            let Some(st) = p.pending.pop_front() else {
+                return;
+            };
+            let r = segment_at(p.segment.as_ref(), st.sample_time_s);
+            self.account(&st, r);
+        }
+    }
+
+    /// Grades every state still waiting (the run is over).
+    pub fn flush(&mut self) {
+        self.grade_pending(None);
+    }
+
+    /// A program's command taken: a move starts its figures.
+    pub fn ack(&mut self, ack: &AxisAck) {
+        let Some(p) = self.program.as_mut() else {
+            return;
+        };
+        if ack.taken() && ack.request.kind == RequestKind::Move as u32 {
+            // The move's target: the axis's, as its status will tell; for a relative move
+            // the previous target plus the step.
+            let base = p.moves.last().map_or(0.0, |m| m.target);
+            let target = if ack.request.flags & request_flags::RELATIVE != 0 {
+                base + ack.request.target_rad
+            } else {
+                ack.request.target_rad
+            };
+            p.moves.push(MoveWatch {
+                start_s: ack.t_s,
+                target,
+                end_s: None,
+                peak: 0.0,
+                last_outside: None,
+                last_seen: ack.t_s,
+            });
+        }
+    }
+
+    /// The axis's status: its first fault is the run's.
+    pub fn status(&mut self, st: &AxisStatus) {
+        if st.fault != 0 && self.axis_fault.is_none() {
+            self.axis_fault = Some(AxisFaultEvent {
+                sim_time_s: st.t_s,
+                bits: st.fault,
+                faults: axis_fault_names(st.fault),
+                following_error_rad: st.following_error_rad,
+            });
+        }
+    }
+
+    fn account(&mut self, s: &DriveState, reference: Reference) {
         let expected = self.last_seq.map_or(0, |q| q + 1);
         if s.seq > expected {
             self.missed_between(expected, s.seq);
@@ -281,7 +484,6 @@ impl Metrics {
         }
         self.last_seq = Some(self.last_seq.map_or(s.seq, |q| q.max(s.seq)));
         let t = s.sample_time_s;
-        let reference = self.trajectory.at(t);
         let error = reference.theta - s.theta_rad;
         let i = [s.i_a_a, s.i_b_a];
         // The cruise window applies to every pass of a repeating move; on the way back the
@@ -308,6 +510,17 @@ impl Metrics {
         }
         if let Some(w) = self.step.as_mut() {
             w.push(t, abs);
+        }
+        if let Some(m) = self
+            .program
+            .as_mut()
+            .and_then(|p| p.moves.last_mut())
+            .filter(|m| t >= m.start_s)
+        {
+            m.push(t, s.theta_rad, &reference);
+        }
+        if s.flags & state_flags::SETPOINT_STALE != 0 && self.first_stale.is_none() {
+            self.first_stale = Some((s.seq, t));
         }
         if t >= self.final_from {
             self.final_sum_error += error;
@@ -356,11 +569,18 @@ impl Metrics {
         self.samples
     }
 
+    /// The newest sample's time, s.
+    pub fn sim_time_s(&self) -> f64 {
+        self.last_time
+    }
+
     /// How a run that reached its end went: a latched fault, then a step-out, then whether
     /// the monitor saw enough of it, decide.
     pub fn outcome(&self) -> Outcome {
-        if self.first_latched.is_some() {
+        if self.first_latched.is_some() || self.axis_fault.is_some() {
             Outcome::Fault
+        } else if self.first_stale.is_some() {
+            Outcome::ProcessDied
         } else if self.max_abs_error.is_nan() || self.max_abs_error > self.step_out_rad {
             Outcome::SteppedOut
         } else if self.unobserved().is_some() {
@@ -467,8 +687,41 @@ impl Metrics {
             timing: None,
             load_step: self.step.map(|w| w.report(self.period)),
             truth: None,
+            moves: self
+                .program
+                .as_ref()
+                .map(|p| p.moves.iter().map(|m| m.report(self.period)).collect())
+                .unwrap_or_default(),
+            axis_fault: self.axis_fault.clone(),
+            setpoint_stale_at_s: self.first_stale.map(|(_, t)| t),
         }
     }
+}
+
+/// The reference of `segment` at `t` (before any: rest at 0).
+fn segment_at(segment: Option<&TorqueSetpoint>, t: f64) -> Reference {
+    match segment {
+        Some(sp) => Reference {
+            theta: sp.theta_d_at(t),
+            omega: sp.omega_d_rad_s + sp.alpha_d_rad_s2 * (t - sp.sample_time_s),
+            alpha: sp.alpha_d_rad_s2,
+        },
+        None => Reference::default(),
+    }
+}
+
+/// The axis's fault bits by name.
+pub fn axis_fault_names(bits: u32) -> Vec<&'static str> {
+    [
+        (axis_faults::FOLLOWING_ERROR, "FOLLOWING_ERROR"),
+        (axis_faults::DRIVE, "DRIVE"),
+        (axis_faults::SETPOINT_STALE, "SETPOINT_STALE"),
+        (axis_faults::TRAJECTORY, "TRAJECTORY"),
+    ]
+    .into_iter()
+    .filter(|(b, _)| bits & b != 0)
+    .map(|(_, n)| n)
+    .collect()
 }
 
 #[cfg(test)]

@@ -168,6 +168,35 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         out.push('\n');
     }
     for r in runs {
+        if r.moves.is_empty() {
+            continue;
+        }
+        let _ = writeln!(
+            out,
+            "\n{} moves:\n  {:>3} {:>10} {:>14} {:>13} {:>16} {:>20}",
+            r.method,
+            "#",
+            "start [s]",
+            "target [rad]",
+            "duration [s]",
+            "peak |e| [rad]",
+            "settled 1e-4 [ms]"
+        );
+        let or_na = |v: Option<f64>, f: &dyn Fn(f64) -> String| v.map_or("n/a".into(), f);
+        for (i, m) in r.moves.iter().enumerate() {
+            let _ = writeln!(
+                out,
+                "  {:>3} {:>10.4} {:>14.6} {:>13} {:>16} {:>20}",
+                i + 1,
+                m.start_s,
+                m.target_rad,
+                or_na(m.duration_s, &|d| format!("{d:.4}")),
+                sci(m.peak_abs_error_rad),
+                or_na(m.settle_s, &|d| format!("{:.1}", d * 1e3)),
+            );
+        }
+    }
+    for r in runs {
         let Some(t) = &r.timing else { continue };
         let _ = writeln!(
             out,

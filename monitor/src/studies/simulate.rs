@@ -15,7 +15,8 @@ use stepdrive_runtime::port::{PortFactory, Subscribe};
 use stepdrive_runtime::runner::{Runner, Settings};
 use stepdrive_runtime::simulation::{self, Hold, Member};
 use stepdrive_runtime::RunError;
-use stepdrive_shared::messages::DriveState;
+use stepdrive_shared::axis::{AxisAck, AxisStatus};
+use stepdrive_shared::messages::{DriveState, TorqueSetpoint};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::stack::{stack, Purpose};
@@ -118,8 +119,13 @@ fn run_in_memory(
         observer: Observer::new(s, mode),
         rate_hz: s.rates.current_loop_hz,
     };
-    let sink_port = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
-    let mut sink = Runner::new(sink, sink_port, Settings::lockstep(NEVER, NEVER), None);
+    let sink_ports = SinkPorts {
+        states: bus.subscriber(MONITOR_BUFFER)?,
+        setpoints: bus.subscriber(MONITOR_BUFFER)?,
+        acks: bus.subscriber(MONITOR_BUFFER)?,
+        status: bus.subscriber(MONITOR_BUFFER)?,
+    };
+    let mut sink = Runner::new(sink, sink_ports, Settings::lockstep(NEVER, NEVER), None);
     let period_ns = s.sample_period_ns();
     let holds: Vec<Hold> = stalls
         .iter()
@@ -142,7 +148,9 @@ fn run_in_memory(
         .find(|m| m.role() == device)
         .map(|m| *m.stats())
         .unwrap_or_default();
-    Ok((sink.node().observer.metrics().clone(), plant))
+    let mut metrics = sink.node().observer.metrics().clone();
+    metrics.flush();
+    Ok((metrics, plant))
 }
 
 /// The monitor's part in a simulation: every state, by the supervisor's rules.
@@ -151,8 +159,17 @@ struct StateSink {
     rate_hz: f64,
 }
 
+/// What the monitor's part reads: the states, and for a program's figures the setpoints,
+/// the axis's answers and status.
+struct SinkPorts {
+    states: Box<dyn Subscribe<DriveState>>,
+    setpoints: Box<dyn Subscribe<TorqueSetpoint>>,
+    acks: Box<dyn Subscribe<AxisAck>>,
+    status: Box<dyn Subscribe<AxisStatus>>,
+}
+
 impl Node for StateSink {
-    type Ports = Box<dyn Subscribe<DriveState>>;
+    type Ports = SinkPorts;
 
     fn role(&self) -> Role {
         Role::Monitor
@@ -170,10 +187,19 @@ impl Node for StateSink {
         "drive/state from the plant".to_string()
     }
 
-    fn poll(&mut self, states: &mut Self::Ports, _cx: &mut Cx) -> Result<Poll, RunError> {
+    fn poll(&mut self, ports: &mut Self::Ports, _cx: &mut Cx) -> Result<Poll, RunError> {
         let observer = &mut self.observer;
+        while let Some(a) = ports.acks.receive()? {
+            observer.ack(&a);
+        }
+        while let Some(sp) = ports.setpoints.receive()? {
+            observer.setpoint(&sp);
+        }
+        while let Some(st) = ports.status.receive()? {
+            observer.status(&st);
+        }
         let mut broken = None;
-        states.drain(&mut |st| {
+        ports.states.drain(&mut |st| {
             if broken.is_none() {
                 broken = observer.state(st).err();
             }
@@ -188,7 +214,7 @@ impl Node for StateSink {
         })
     }
 
-    fn step(&mut self, _states: &mut Self::Ports, _cx: &mut Cx) -> Result<Flow, RunError> {
+    fn step(&mut self, _ports: &mut Self::Ports, _cx: &mut Cx) -> Result<Flow, RunError> {
         Ok(Flow::Last)
     }
 }

@@ -16,10 +16,7 @@ use std::time::{Duration, Instant};
 use stepdrive_runtime::clock::monotonic_ns;
 use stepdrive_runtime::ipc::{IpcBus, Stamp};
 use stepdrive_runtime::port::{PortFactory, Publish, Subscribe};
-use stepdrive_shared::messages::{
-    DriveCommand, DrivePlan, DriveState, ResetRequest, TorqueSetpoint,
-};
-use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::messages::{DriveState, ResetRequest};
 use stepdrive_shared::services::{Topic, LOOP_BUFFER, MONITOR_BUFFER};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{Method, Scenario};
@@ -199,25 +196,12 @@ pub fn watch(
     recording: Option<&mut Recording>,
 ) -> Result<RunReport> {
     let mode = bus.mode();
-    let controls = match recording {
-        Some(_) => Some(Controls {
-            setpoints: bus.subscriber::<TorqueSetpoint>(MONITOR_BUFFER)?,
-            commands: bus.subscriber::<DriveCommand>(MONITOR_BUFFER)?,
-            // The plan topic has room for the device and one reader: a stack recorded by
-            // `run` already has it, and is recorded here without its plans.
-            plans: match mode {
-                Mode::Lockstep => None,
-                _ => match bus.subscriber::<DrivePlan>(LOOP_BUFFER) {
-                    Ok(p) => Some(p),
-                    Err(e) => {
-                        tracing::warn!("recording without the voltage plans: {e}");
-                        None
-                    }
-                },
-            },
-        }),
-        None => None,
-    };
+    let controls = Controls::open(
+        &mut bus,
+        mode,
+        recording.is_some(),
+        !scenario.program.is_empty(),
+    )?;
     let feeds = Feeds {
         states: bus.subscriber::<DriveState>(MONITOR_BUFFER)?,
         stats: bus.subscriber::<StatsReport>(4)?,

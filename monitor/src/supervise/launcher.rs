@@ -19,9 +19,9 @@ use stepdrive_emulated_drive::truth::TruthRow;
 use stepdrive_runtime::deploy::Deployment;
 use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, Stamp};
 use stepdrive_runtime::port::PortFactory;
-use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
+use stepdrive_shared::messages::DriveState;
 use stepdrive_shared::scenario::Mode;
-use stepdrive_shared::services::{Topic, LOOP_BUFFER, MONITOR_BUFFER};
+use stepdrive_shared::services::{Topic, MONITOR_BUFFER};
 use stepdrive_shared::stack::{stack, NodeDecl, Purpose, Role, Stack};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{Method, Scenario};
@@ -103,21 +103,11 @@ fn launch(
         .context("cannot attach the monitor to the stack's services")?;
     let states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let stats = bus.subscriber::<StatsReport>(4)?;
-    // Recording: the setpoints and commands too, from the first. The device still waits
-    // for the current loop's subscription before its first sample, so the position loop
-    // (which starts once any setpoint subscriber is there) has nothing to answer before.
-    let controls = match recording {
-        true => Some(Controls {
-            setpoints: bus.subscriber::<TorqueSetpoint>(MONITOR_BUFFER)?,
-            commands: bus.subscriber::<DriveCommand>(MONITOR_BUFFER)?,
-            // Plans exist in realtime and hardware only (a lockstep plant never misses).
-            plans: match mode {
-                Mode::Lockstep => None,
-                _ => Some(bus.subscriber::<DrivePlan>(LOOP_BUFFER)?),
-            },
-        }),
-        false => None,
-    };
+    // Recording (or a program's figures): the setpoints and the rest too, from the
+    // first. The device still waits for the current loop's subscription before its first
+    // sample, so the position loop (which starts once any setpoint subscriber is there) has
+    // nothing to answer before.
+    let controls = Controls::open(&mut bus, mode, recording, !s.program.is_empty())?;
 
     let mut children = Vec::with_capacity(stack.nodes.len() + 1);
     // Only an emulated drive knows where the rotor really is; it writes that beside the
@@ -209,7 +199,7 @@ pub fn run_stack(
     let mut l = launch(&stack, s, opts, recording.is_some(), &method_arg)?;
     let observer = Observer::new(s, mode).recording(recording, method);
     let truth = l.truth.clone();
-    let (ending, failures, sup) = supervise(&mut l, s, mode, method.as_str(), observer)?;
+    let (ending, failures, mut sup) = supervise(&mut l, s, mode, method.as_str(), observer)?;
     let wall = sup.observer.wall_s();
     let stop = match ending {
         Ending::Last => None,
@@ -240,6 +230,75 @@ pub fn run_stack(
     drop(l);
     cleanup_dead_nodes();
     Ok(report)
+}
+
+/// How a served stack ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ServeReport {
+    pub outcome: Outcome,
+    /// In words: how it ended, with the run's time.
+    pub because: String,
+    /// Served for, s of the stack's time; samples seen and the device's misses.
+    pub served_s: f64,
+    pub samples: u64,
+    pub misses: u64,
+    /// The device's faults latched at the end (zero: none).
+    pub latched: u32,
+}
+
+/// `stepdrive serve`: brings the stack up (the axis disabled, waiting for commands) and
+/// keeps it up, supervised like any run, until Ctrl-C or until it breaks (a process dies
+/// or goes silent). Ctrl-C is how a served stack is meant to end: its outcome is then ok,
+/// unless the device has a fault latched at that moment.
+pub fn serve_stack(s: &Scenario, opts: &LaunchOptions) -> Result<ServeReport> {
+    let mode = opts.mode;
+    let stack = stack(mode, Purpose::Control);
+    let mut l = launch(&stack, s, opts, false, &|_| Vec::new())?;
+    let timeouts = (l.deployment.startup_timeout(), l.deployment.peer_timeout());
+    let feeds = l
+        .feeds
+        .take()
+        .context("a launched stack is supervised once")?;
+    let mut sup = Supervisor::new(
+        s,
+        mode,
+        "serve",
+        feeds,
+        Observer::new(s, mode),
+        &mut l.children,
+        Some(&l.files),
+        timeouts,
+    );
+    let ending = sup.run(Until::Interrupted)?;
+    let latched = sup.observer.last_fault() & crate::report::outcome::LATCHED;
+    let served_s = sup.observer.metrics().sim_time_s();
+    let samples = sup.observer.metrics().samples();
+    let misses = sup.finals.device_misses();
+    let (outcome, because) = match ending {
+        Ending::Stopped(stop) if stop.outcome == Outcome::Interrupted => match latched {
+            0 => (Outcome::Ok, "stopped (SIGINT/SIGTERM)".to_string()),
+            bits => (
+                Outcome::Fault,
+                format!(
+                    "stopped (SIGINT/SIGTERM) with {} latched in the device",
+                    crate::report::outcome::fault_names(bits).join(" and ")
+                ),
+            ),
+        },
+        Ending::Stopped(stop) => (stop.outcome, stop.because),
+        Ending::Last => (Outcome::Ok, "the stack ended its run".to_string()),
+    };
+    drop(sup);
+    drop(l);
+    cleanup_dead_nodes();
+    Ok(ServeReport {
+        outcome,
+        because,
+        served_s,
+        samples,
+        misses,
+        latched,
+    })
 }
 
 /// A child that exited with its verdict on the run (a latched fault: 3) carries that exit

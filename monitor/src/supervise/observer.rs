@@ -16,6 +16,7 @@
 use crate::record::recording::Recording;
 use crate::report::metrics::{Metrics, RunReport};
 use crate::report::outcome::Outcome;
+use stepdrive_shared::axis::{AxisAck, AxisStatus};
 use stepdrive_shared::messages::{
     state_flags, DriveCommand, DrivePlan, DriveState, TorqueSetpoint,
 };
@@ -53,6 +54,7 @@ pub struct Observer<'r> {
     first_ns: Option<u64>,
     last_ns: u64,
     last_seen: bool,
+    last_fault: u32,
 }
 
 impl<'r> Observer<'r> {
@@ -68,6 +70,7 @@ impl<'r> Observer<'r> {
             first_ns: None,
             last_ns: 0,
             last_seen: false,
+            last_fault: 0,
         }
     }
 
@@ -134,11 +137,25 @@ impl<'r> Observer<'r> {
         self.metrics.push(st);
         self.record(|r| r.state(st));
         self.last_seen |= st.flags & state_flags::LAST != 0;
+        self.last_fault = st.fault;
         Ok(())
     }
 
     pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
+        self.metrics.setpoint(sp);
         self.record(|r| r.setpoint(sp));
+    }
+
+    /// An axis command's answer (a program's move starts its figures).
+    pub fn ack(&mut self, ack: &AxisAck) {
+        self.metrics.ack(ack);
+        self.record(|r| r.ack(ack));
+    }
+
+    /// The axis's status (its first fault is the run's).
+    pub fn status(&mut self, st: &AxisStatus) {
+        self.metrics.status(st);
+        self.record(|r| r.status(st));
     }
 
     pub fn command(&mut self, c: &DriveCommand) {
@@ -156,6 +173,11 @@ impl<'r> Observer<'r> {
     /// The emulated drive's true rotor state, recorded after the run.
     pub fn truth(&mut self, rows: &[stepdrive_emulated_drive::truth::TruthRow]) {
         self.record(|r| r.truth(rows));
+    }
+
+    /// The fault bits of the newest state seen.
+    pub fn last_fault(&self) -> u32 {
+        self.last_fault
     }
 
     /// The run's last state has been seen.
@@ -189,7 +211,14 @@ impl<'r> Observer<'r> {
     }
 
     /// The run's report: complete, or stopped by `stop` with what ran before.
-    pub fn report(&self, method: Method, mode: &str, wall_s: f64, stop: Option<Stop>) -> RunReport {
+    pub fn report(
+        &mut self,
+        method: Method,
+        mode: &str,
+        wall_s: f64,
+        stop: Option<Stop>,
+    ) -> RunReport {
+        self.metrics.flush();
         let mut report = match stop {
             None => self.metrics.finish(method, mode, wall_s),
             Some(s) => self

@@ -11,6 +11,7 @@ use crate::supervise::observer::{Observer, Stop};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::Subscribe;
+use stepdrive_shared::axis::{AxisAck, AxisStatus};
 use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::stack::{Role, Slot};
@@ -21,17 +22,58 @@ use stepdrive_shared::Scenario;
 pub struct Feeds {
     pub states: Box<dyn Subscribe<DriveState>>,
     pub stats: Box<dyn Subscribe<StatsReport>>,
-    /// When recording: the setpoints, commands and (realtime) plans.
+    /// What a recorder, or a program's figures, take besides: see [`Controls::open`].
     pub controls: Option<Controls>,
 }
 
-/// What a recorder takes besides the states.
+/// The setpoints, commands, plans, and the axis's answers and status.
 pub struct Controls {
-    pub setpoints: Box<dyn Subscribe<TorqueSetpoint>>,
-    pub commands: Box<dyn Subscribe<DriveCommand>>,
+    pub setpoints: Option<Box<dyn Subscribe<TorqueSetpoint>>>,
+    pub commands: Option<Box<dyn Subscribe<DriveCommand>>>,
     /// The plan topic has room for the device and one reader: a second recorder goes
     /// without.
     pub plans: Option<Box<dyn Subscribe<DrivePlan>>>,
+    pub acks: Option<Box<dyn Subscribe<AxisAck>>>,
+    pub status: Option<Box<dyn Subscribe<AxisStatus>>>,
+}
+
+impl Controls {
+    /// What to take of a stack in `mode`: everything when `recording` (the plans on the
+    /// wall clock only: a lockstep plant never misses a command); for a program's figures
+    /// (`program`), the setpoints (its θ_d), the answers (its moves) and the status (the
+    /// axis's faults). `None`: nothing beside the states.
+    pub fn open(
+        bus: &mut impl stepdrive_runtime::port::PortFactory,
+        mode: Mode,
+        recording: bool,
+        program: bool,
+    ) -> Result<Option<Self>, stepdrive_runtime::port::PortError> {
+        if !recording && !program {
+            return Ok(None);
+        }
+        let buffer = stepdrive_shared::services::MONITOR_BUFFER;
+        Ok(Some(Self {
+            setpoints: Some(bus.subscriber(buffer)?),
+            commands: match recording {
+                true => Some(bus.subscriber(buffer)?),
+                false => None,
+            },
+            plans: match (recording, mode) {
+                (true, Mode::Realtime | Mode::Hardware) => {
+                    match bus.subscriber(stepdrive_shared::services::LOOP_BUFFER) {
+                        Ok(p) => Some(p),
+                        Err(e) => {
+                            tracing::warn!("recording without the voltage plans: {e}");
+                            None
+                        }
+                    }
+                }
+                _ => None,
+            },
+            acks: Some(bus.subscriber(buffer)?),
+            status: Some(bus.subscriber(buffer)?),
+        }))
+    }
 }
 
 /// Every loop's latest and final statistics, by its place in the stack.
@@ -206,20 +248,35 @@ impl<'a, 'r> Supervisor<'a, 'r> {
         Ok(Ok(got))
     }
 
-    /// Records the setpoints, commands and plans that arrived.
+    /// Takes the setpoints, commands, plans, answers and statuses that arrived.
     pub fn drain_controls(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
         let Some(c) = self.feeds.controls.as_mut() else {
             return Ok(());
         };
-        while let Some(sp) = c.setpoints.receive()? {
-            self.observer.setpoint(&sp);
+        let o = &mut self.observer;
+        if let Some(sub) = c.acks.as_mut() {
+            while let Some(a) = sub.receive()? {
+                o.ack(&a);
+            }
         }
-        while let Some(cmd) = c.commands.receive()? {
-            self.observer.command(&cmd);
+        if let Some(sub) = c.setpoints.as_mut() {
+            while let Some(sp) = sub.receive()? {
+                o.setpoint(&sp);
+            }
         }
-        if let Some(plans) = c.plans.as_mut() {
-            while let Some(p) = plans.receive()? {
-                self.observer.plan(&p);
+        if let Some(sub) = c.commands.as_mut() {
+            while let Some(cmd) = sub.receive()? {
+                o.command(&cmd);
+            }
+        }
+        if let Some(sub) = c.plans.as_mut() {
+            while let Some(p) = sub.receive()? {
+                o.plan(&p);
+            }
+        }
+        if let Some(sub) = c.status.as_mut() {
+            while let Some(st) = sub.receive()? {
+                o.status(&st);
             }
         }
         Ok(())
@@ -245,7 +302,9 @@ impl<'a, 'r> Supervisor<'a, 'r> {
         let mut next_minute = Instant::now() + Duration::from_secs(60);
         let mut misses_at_minute = 0;
         let mut running = false;
-        let progress = Progress::new(&self.label, total);
+        // A served stack has no end to count towards.
+        let endless = self.s.run.until_stopped;
+        let progress = Progress::new(&self.label, total, endless);
         let ending = loop {
             let got = match self.drain()? {
                 Ok(got) => got,
@@ -317,7 +376,11 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                     started.elapsed(),
                     misses,
                 );
-                next_progress += Duration::from_secs(if realtime { 5 } else { 1 });
+                next_progress += Duration::from_secs(match (endless, realtime) {
+                    (true, _) => 60,
+                    (false, true) => 5,
+                    (false, false) => 1,
+                });
                 // The last reading while every child lives: one that has exited has none.
                 self.resource.read_end();
             }
@@ -399,8 +462,9 @@ struct Progress {
 }
 
 impl Progress {
-    fn new(label: &str, total: u64) -> Self {
-        let bar = std::io::IsTerminal::is_terminal(&std::io::stderr()).then(|| {
+    fn new(label: &str, total: u64, endless: bool) -> Self {
+        let terminal = std::io::IsTerminal::is_terminal(&std::io::stderr()) && !endless;
+        let bar = terminal.then(|| {
             let bar = indicatif::ProgressBar::new(total);
             bar.set_style(
                 indicatif::ProgressStyle::with_template(
@@ -445,6 +509,16 @@ impl Progress {
         misses: Option<u64>,
     ) {
         if self.bar.is_some() {
+            return;
+        }
+        if total == u64::MAX {
+            tracing::info!(
+                "{}: up {:.0} s (stack time {:.1} s){}",
+                self.label,
+                elapsed.as_secs_f64(),
+                k as f64 / rate_hz,
+                misses.map_or(String::new(), |m| format!(", {m} deadline misses so far"))
+            );
             return;
         }
         tracing::info!(

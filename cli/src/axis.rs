@@ -1,0 +1,325 @@
+//! `stepdrive axis`: command a served stack's axis from the command line, through the
+//! client crate (`stepdrive-client`), as a program would.
+
+use crate::commands::Exit;
+use crate::options::seconds;
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand};
+use std::path::PathBuf;
+use std::time::{Duration, Instant};
+use stepdrive_client::{Axis, AxisMode, AxisState, AxisStatus, ClientError, Limits};
+use stepdrive_monitor::report::outcome::Outcome;
+use stepdrive_shared::axis::{parse_stream, request_flags, status_bits};
+use stepdrive_shared::services::DEFAULT_INSTANCE;
+
+#[derive(Args, Debug)]
+pub struct AxisArgs {
+    /// The served stack's instance name.
+    #[arg(long, default_value = DEFAULT_INSTANCE, global = true)]
+    instance: String,
+    /// The axis (this stack has axis 0).
+    #[arg(long, default_value_t = 0, global = true)]
+    axis: u32,
+    #[command(subcommand)]
+    verb: Verb,
+}
+
+/// A move's or jog's limits (absent: the axis's move defaults, `[axis]`).
+#[derive(Args, Debug, Clone, Copy)]
+struct LimitArgs {
+    /// Speed limit, rad/s.
+    #[arg(long, allow_negative_numbers = true)]
+    vmax: Option<f64>,
+    /// Acceleration limit, rad/s².
+    #[arg(long, allow_negative_numbers = true)]
+    amax: Option<f64>,
+    /// Jerk limit, rad/s³.
+    #[arg(long, allow_negative_numbers = true)]
+    jmax: Option<f64>,
+}
+
+impl LimitArgs {
+    fn limits(&self) -> Limits {
+        Limits {
+            v: self.vmax,
+            a: self.amax,
+            j: self.jmax,
+        }
+    }
+}
+
+#[derive(Subcommand, Debug)]
+enum Verb {
+    /// Print the axis's state (CiA 402), mode, position, speed, torque, following error,
+    /// setpoint, target and faults.
+    Status,
+    /// Enable: shutdown, switch on, enable operation (the setpoint starts where the rotor
+    /// stands, at rest).
+    Enable,
+    /// Disable voltage: no torque.
+    Disable,
+    /// Quick stop: decelerate at the axis's quick-stop rate to a standstill and hold.
+    QuickStop,
+    /// Fault reset (the drive's own fault too, once its cause is gone).
+    Reset,
+    /// Profile position: a jerk-limited move.
+    Move {
+        /// The target, rad.
+        #[arg(long, allow_negative_numbers = true)]
+        to: f64,
+        /// `--to` is relative to the current target.
+        #[arg(long)]
+        relative: bool,
+        /// After the current move ends (otherwise the move in progress changes at once).
+        #[arg(long)]
+        after_current: bool,
+        #[command(flatten)]
+        limits: LimitArgs,
+        /// Wait until the target is reached (exit 3 if the axis faults on the way).
+        #[arg(long)]
+        wait: bool,
+        /// Longest wait with --wait, s.
+        #[arg(long, default_value_t = 30.0)]
+        timeout: f64,
+    },
+    /// Profile velocity: run at a speed (stops at the soft position limit).
+    Jog {
+        /// Speed, rad/s.
+        #[arg(long, allow_negative_numbers = true)]
+        velocity: f64,
+        #[command(flatten)]
+        limits: LimitArgs,
+    },
+    /// Halt: decelerate to a standstill and stay enabled.
+    Stop {
+        #[command(flatten)]
+        limits: LimitArgs,
+    },
+    /// Cyclic synchronous position: stream a CSV file of `t, θ[, ω[, τ_ff]]` rows, each
+    /// point sent at its own time.
+    Stream {
+        file: PathBuf,
+        /// How far behind its points the axis plays the stream, s (default: the axis's).
+        #[arg(long)]
+        lead: Option<f64>,
+    },
+    /// Measure command latency: COUNT small relative moves (±1 µrad, the axis enabled), each
+    /// timed from its publication to the first setpoint that carries it out (the
+    /// acknowledgement's timestamp); prints p50/p99/max. A measurement, not a test.
+    Latency {
+        #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
+        count: u32,
+    },
+    /// Declare the present position (at a standstill).
+    SetPosition {
+        #[arg(allow_negative_numbers = true)]
+        position: f64,
+    },
+}
+
+/// A command refused, or the axis in Fault, as the exit code and headline the user reads.
+fn failed(e: ClientError) -> anyhow::Error {
+    let code = match &e {
+        ClientError::Fault { .. } => Outcome::Fault.exit_code(),
+        _ => 1,
+    };
+    Exit {
+        code,
+        headline: e.to_string(),
+    }
+    .into()
+}
+
+fn describe(s: &AxisStatus) -> String {
+    let state = AxisState::from_u32(s.state).map_or("?", |x| x.name());
+    let mode = AxisMode::from_u32(s.mode).map_or("?", |m| m.name());
+    let word = s.statusword as u16;
+    let mut flags = Vec::new();
+    for (bit, name) in [
+        (status_bits::TARGET_REACHED, "target reached"),
+        (status_bits::WARNING, "warning"),
+        (status_bits::INTERNAL_LIMIT, "internal limit"),
+        (status_bits::FOLLOWING_ERROR, "following error"),
+    ] {
+        if word & bit != 0 {
+            flags.push(name);
+        }
+    }
+    format!(
+        "state        {state} (statusword {word:#06x}{})\nmode         {mode}\n\
+         θ            {:.6} rad\nω            {:.4} rad/s\ntorque       {:.4} N·m\n\
+         θ_d − θ      {:.3e} rad\nsetpoint     θ_d {:.6} rad, ω_d {:.4} rad/s, α_d {:.3} rad/s²\n\
+         target       {:.6} rad\nfault        {:#x} (device {:#x}), warning {:#x}\n\
+         last command seq {} (at t = {:.4} s, epoch {})",
+        if flags.is_empty() {
+            String::new()
+        } else {
+            format!(": {}", flags.join(", "))
+        },
+        s.theta_rad,
+        s.omega_rad_s,
+        s.torque_nm,
+        s.following_error_rad,
+        s.theta_d_rad,
+        s.omega_d_rad_s,
+        s.alpha_d_rad_s2,
+        s.target_rad,
+        s.fault,
+        s.device_fault,
+        s.warning,
+        s.last_seq,
+        s.t_s,
+        s.epoch,
+    )
+}
+
+pub fn axis(a: AxisArgs) -> Result<()> {
+    let mut axis = Axis::connect(&a.instance, a.axis).map_err(failed)?;
+    match a.verb {
+        Verb::Status => {
+            let s = axis.status().map_err(failed)?;
+            println!("{}", describe(&s));
+        }
+        Verb::Enable => {
+            axis.enable().map_err(failed)?;
+            println!("enabled: Operation enabled");
+        }
+        Verb::Disable => {
+            axis.disable().map_err(failed)?;
+            println!("disabled: Switch on disabled");
+        }
+        Verb::QuickStop => {
+            axis.quick_stop().map_err(failed)?;
+            println!("quick stop: Quick stop active");
+        }
+        Verb::Reset => {
+            let ack = axis.reset().map_err(failed)?;
+            let state = AxisState::from_u32(ack.state).map_or("?", |s| s.name());
+            println!("fault reset: {state}");
+        }
+        Verb::Move {
+            to,
+            relative,
+            after_current,
+            limits,
+            wait,
+            timeout,
+        } => {
+            let mut flags = 0;
+            if relative {
+                flags |= request_flags::RELATIVE;
+            }
+            if after_current {
+                flags |= request_flags::AFTER_CURRENT;
+            }
+            let mv = axis.move_with(to, limits.limits(), flags).map_err(failed)?;
+            println!("move taken (seq {})", mv.seq);
+            if wait {
+                let timeout = seconds(timeout)
+                    .map_err(anyhow::Error::msg)
+                    .context("--timeout")?;
+                let started = Instant::now();
+                let s = axis.wait_target_reached(&mv, timeout).map_err(failed)?;
+                println!(
+                    "target {:.6} rad reached in {:.3} s: θ {:.6} rad, θ_d − θ {:.2e} rad",
+                    s.target_rad,
+                    started.elapsed().as_secs_f64(),
+                    s.theta_rad,
+                    s.following_error_rad
+                );
+            }
+        }
+        Verb::Jog { velocity, limits } => {
+            axis.jog(velocity, limits.limits()).map_err(failed)?;
+            println!("jogging at {velocity} rad/s");
+        }
+        Verb::Stop { limits } => {
+            axis.stop(limits.limits()).map_err(failed)?;
+            println!("stopping");
+        }
+        Verb::Latency { count } => command_latency(&mut axis, count)?,
+        Verb::SetPosition { position } => {
+            axis.set_position(position).map_err(failed)?;
+            println!("the present position is {position} rad");
+        }
+        Verb::Stream { file, lead } => {
+            let text = std::fs::read_to_string(&file)
+                .with_context(|| format!("cannot read the stream file {}", file.display()))?;
+            let rows = parse_stream(&text).with_context(|| format!("{}", file.display()))?;
+            stream_rows(&mut axis, &rows, lead)?;
+        }
+    }
+    Ok(())
+}
+
+/// Sends each row at its own time after the first (the wall clock's), then ends the
+/// stream.
+fn stream_rows(
+    axis: &mut Axis,
+    rows: &[stepdrive_shared::axis::StreamRow],
+    lead: Option<f64>,
+) -> Result<()> {
+    let mut stream = axis.stream(lead).map_err(failed)?;
+    let t0 = rows.first().map_or(0.0, |r| r.t_s);
+    let started = Instant::now();
+    for row in rows {
+        let due = Duration::from_secs_f64((row.t_s - t0).max(0.0));
+        let now = started.elapsed();
+        if due > now {
+            std::thread::sleep(due - now);
+        }
+        if stepdrive_runtime::poll::termination_requested() {
+            // The axis quick-stops a stream that stops coming.
+            anyhow::bail!("interrupted: the stream stopped; the axis quick-stops");
+        }
+        stream
+            .push(row.t_s, row.theta_rad, row.omega_rad_s, row.torque_ff_nm)
+            .map_err(failed)?;
+    }
+    let sent = stream.sent();
+    stream.end().map_err(failed)?;
+    println!(
+        "{sent} points streamed in {:.3} s",
+        started.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
+/// See [`Verb::Latency`].
+fn command_latency(axis: &mut Axis, count: u32) -> Result<()> {
+    let s = axis.status().map_err(failed)?;
+    if s.axis_state() != Some(AxisState::OperationEnabled) {
+        anyhow::bail!("the latency measurement moves the axis by ±1 µrad: enable it first");
+    }
+    let mut us = Vec::with_capacity(count as usize);
+    for i in 0..count {
+        if stepdrive_runtime::poll::termination_requested() {
+            break;
+        }
+        let delta = if i % 2 == 0 { 1e-6 } else { -1e-6 };
+        let mv = axis
+            .move_with(delta, Limits::default(), request_flags::RELATIVE)
+            .map_err(failed)?;
+        let ns = mv
+            .ack
+            .publish_time_ns
+            .saturating_sub(mv.ack.request.publish_time_ns);
+        us.push(ns as f64 * 1e-3);
+        // Commands a little over a tick apart: each meets a position loop waiting for its
+        // next tick at a different phase.
+        std::thread::sleep(Duration::from_micros(700));
+    }
+    if us.is_empty() {
+        anyhow::bail!("interrupted before the first command");
+    }
+    us.sort_by(f64::total_cmp);
+    let at = |q: f64| us[((us.len() - 1) as f64 * q).round() as usize];
+    println!(
+        "command published → first setpoint carrying it, {} commands: p50 {:.1} µs, p99 {:.1} µs, max {:.1} µs",
+        us.len(),
+        at(0.5),
+        at(0.99),
+        at(1.0)
+    );
+    Ok(())
+}

@@ -1,0 +1,414 @@
+//! Command a stepdrive axis from a program.
+//!
+//! A stack served with `stepdrive serve` has an axis that programs command as a CiA 402
+//! drive is commanded: enable it, send it to a position along a time-optimal jerk-limited
+//! trajectory (and change your mind mid-move), jog it, stream a path to it, stop it, and
+//! read its status. Every command is answered: taken, or refused with the reason (a
+//! non-finite target, a limit that is not positive or beyond the axis's, a target outside
+//! the soft limits, a move while the axis is not enabled, ...); a refused command is never
+//! applied, and nothing is clamped silently.
+//!
+//! ```no_run
+//! use stepdrive_client::{Axis, Limits};
+//! use std::time::Duration;
+//!
+//! # fn main() -> Result<(), stepdrive_client::ClientError> {
+//! let mut axis = Axis::connect("stepdrive", 0)?;
+//! axis.enable()?;
+//! let mv = axis.move_to(6.28, Limits::default())?;
+//! let done = axis.wait_target_reached(&mv, Duration::from_secs(5))?;
+//! println!("at {:.6} rad, following error {:.2e} rad", done.theta_rad, done.following_error_rad);
+//! axis.disable()?;
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! The axis talks through the stack's iceoryx2 services on this host: the command service
+//! (request-response, each command answered within the position loop's tick), the status
+//! topic (every tick, 2 kHz by default) and the stream topic. See the README's "Commanding
+//! the axis" and the CiA 402 table there.
+
+use std::time::{Duration, Instant};
+use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
+use stepdrive_runtime::port::{PortError, Publish, Subscribe};
+use stepdrive_shared::axis::{axis_faults, request_flags, AxisRequest, AxisStreamPoint};
+pub use stepdrive_shared::axis::{AxisAck, AxisMode, AxisState, AxisStatus, Refusal, RequestKind};
+
+/// What went wrong talking to an axis.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// No stack runs on the instance (or it does not serve commands: a lockstep stack runs
+    /// its program only).
+    #[error("no stack serves axis commands on instance `{instance}`: start one with `stepdrive serve --instance {instance}`")]
+    NoStack {
+        instance: String,
+        #[source]
+        source: PortError,
+    },
+    /// The axis did not take the command; nothing of it was applied.
+    #[error("{kind} refused: {reason}")]
+    Refused {
+        kind: &'static str,
+        refusal: Refusal,
+        reason: String,
+    },
+    /// The axis is in Fault (or went there while waiting).
+    #[error("the axis is in Fault ({faults}; following error {following_error:e} rad): reset it (`Axis::reset`) once the cause is gone")]
+    Fault {
+        faults: String,
+        following_error: f64,
+        status: Box<AxisStatus>,
+    },
+    /// What was waited for did not happen in time.
+    #[error("{what} did not happen within {timeout:?}")]
+    Timeout { what: String, timeout: Duration },
+    /// Another command took over the move waited for.
+    #[error("the move was superseded by another command (seq {by})")]
+    Superseded { by: u64 },
+    /// A stream point not after the one before, or not finite: refused here, never sent.
+    #[error("stream point at t = {t} s: {why}")]
+    BadPoint { t: f64, why: &'static str },
+    #[error(transparent)]
+    Port(#[from] PortError),
+}
+
+/// A move's or a jog's limits; `None` takes the axis's move defaults (`[axis]` in the
+/// scenario). Each given must be positive and within the axis's maximum.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Limits {
+    /// Speed, rad/s.
+    pub v: Option<f64>,
+    /// Acceleration, rad/s².
+    pub a: Option<f64>,
+    /// Jerk, rad/s³.
+    pub j: Option<f64>,
+}
+
+impl Limits {
+    fn apply(&self, r: &mut AxisRequest) {
+        for (value, flag, field) in [
+            (self.v, request_flags::HAS_V, &mut r.v_max_rad_s),
+            (self.a, request_flags::HAS_A, &mut r.a_max_rad_s2),
+            (self.j, request_flags::HAS_J, &mut r.j_max_rad_s3),
+        ] {
+            if let Some(v) = value {
+                *field = v;
+                r.flags |= flag;
+            }
+        }
+    }
+}
+
+/// A move that was taken: what to wait for.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Move {
+    /// The command's sequence number (in the status's `last_seq` while it is the newest).
+    pub seq: u64,
+    /// The axis's answer.
+    pub ack: AxisAck,
+}
+
+/// An axis of a served stack. See the crate documentation.
+pub struct Axis {
+    instance: String,
+    axis: u32,
+    bus: IpcBus,
+    commands: CommandClient,
+    status: IpcSubscriber<AxisStatus>,
+    stream: Option<IpcPublisher<AxisStreamPoint>>,
+    next_seq: u64,
+    /// How long a command waits for its answer.
+    pub timeout: Duration,
+}
+
+/// The faults' names.
+fn fault_names(bits: u32) -> String {
+    let names: Vec<&str> = [
+        (axis_faults::FOLLOWING_ERROR, "following error"),
+        (axis_faults::DRIVE, "the drive's fault"),
+        (axis_faults::SETPOINT_STALE, "stale setpoints"),
+        (axis_faults::TRAJECTORY, "trajectory"),
+    ]
+    .into_iter()
+    .filter(|(b, _)| bits & b != 0)
+    .map(|(_, n)| n)
+    .collect();
+    if names.is_empty() {
+        "no fault bits".to_string()
+    } else {
+        names.join(", ")
+    }
+}
+
+impl Axis {
+    /// Connects to axis `axis` of the stack on `instance`, waiting up to 5 s for it to
+    /// come up.
+    pub fn connect(instance: &str, axis: u32) -> Result<Self, ClientError> {
+        let no_stack = |source| ClientError::NoStack {
+            instance: instance.to_string(),
+            source,
+        };
+        let role = format!("client-{}", std::process::id());
+        let bus = IpcBus::attach(instance, &role, Duration::from_secs(5)).map_err(no_stack)?;
+        let commands = bus.command_client().map_err(no_stack)?;
+        let status = bus.subscriber_of::<AxisStatus>(16)?;
+        let mut this = Self {
+            instance: instance.to_string(),
+            axis,
+            bus,
+            commands,
+            status,
+            stream: None,
+            // Sequence numbers of different clients do not collide: the pid is their top.
+            next_seq: u64::from(std::process::id()) << 32,
+            timeout: Duration::from_secs(2),
+        };
+        // A status request answers whether the stack has this axis (an unknown index is
+        // refused by the stack, naming it), before anything is read or sent for it.
+        this.simple(RequestKind::Status)?;
+        Ok(this)
+    }
+
+    pub fn instance(&self) -> &str {
+        &self.instance
+    }
+
+    fn request(&mut self, kind: RequestKind) -> AxisRequest {
+        self.next_seq += 1;
+        AxisRequest {
+            axis: self.axis,
+            kind: kind as u32,
+            seq: self.next_seq,
+            client: std::process::id(),
+            ..Default::default()
+        }
+    }
+
+    /// Sends `r` and waits for its answer; a refusal is an error (nothing was applied).
+    pub fn send(&mut self, mut r: AxisRequest) -> Result<AxisAck, ClientError> {
+        r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
+        let ack = self.commands.request(&r, self.timeout)?;
+        if ack.taken() {
+            return Ok(ack);
+        }
+        let kind = RequestKind::from_u32(r.kind).map_or("a command", |k| k.name());
+        Err(ClientError::Refused {
+            kind,
+            refusal: Refusal::from_u32(ack.refusal).unwrap_or(Refusal::UnknownCommand),
+            reason: ack.text().to_string(),
+        })
+    }
+
+    fn simple(&mut self, kind: RequestKind) -> Result<AxisAck, ClientError> {
+        let r = self.request(kind);
+        self.send(r)
+    }
+
+    /// The axis's newest status (waiting up to `timeout` for one).
+    pub fn status(&mut self) -> Result<AxisStatus, ClientError> {
+        let deadline = Instant::now() + self.timeout;
+        loop {
+            if let Some(s) = self.status.newest()? {
+                if s.axis == self.axis {
+                    return Ok(s);
+                }
+            }
+            if Instant::now() >= deadline {
+                return Err(ClientError::Timeout {
+                    what: "a status from the axis".to_string(),
+                    timeout: self.timeout,
+                });
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+    }
+
+    /// Enables the axis (shutdown, switch on, enable operation): Operation enabled, the
+    /// setpoint where the rotor stands, at rest.
+    pub fn enable(&mut self) -> Result<AxisAck, ClientError> {
+        self.simple(RequestKind::Enable)
+    }
+
+    /// Disables the axis (disable voltage): no torque.
+    pub fn disable(&mut self) -> Result<AxisAck, ClientError> {
+        self.simple(RequestKind::DisableVoltage)
+    }
+
+    /// Quick stop: decelerates at the axis's quick-stop rate to a standstill and holds
+    /// (Quick stop active, until `enable`).
+    pub fn quick_stop(&mut self) -> Result<AxisAck, ClientError> {
+        self.simple(RequestKind::QuickStop)
+    }
+
+    /// Fault reset: from Fault to Switch on disabled, once the cause is gone (the drive's
+    /// own fault is reset with it).
+    pub fn reset(&mut self) -> Result<AxisAck, ClientError> {
+        self.simple(RequestKind::FaultReset)
+    }
+
+    /// Halts: decelerates to a standstill at the move's limits and stays enabled.
+    pub fn stop(&mut self, limits: Limits) -> Result<AxisAck, ClientError> {
+        let mut r = self.request(RequestKind::Stop);
+        limits.apply(&mut r);
+        self.send(r)
+    }
+
+    /// Profile position: to `target` rad, changing any move in progress at once.
+    pub fn move_to(&mut self, target: f64, limits: Limits) -> Result<Move, ClientError> {
+        self.move_with(target, limits, 0)
+    }
+
+    /// Profile position: by `delta` rad from the current target.
+    pub fn move_by(&mut self, delta: f64, limits: Limits) -> Result<Move, ClientError> {
+        self.move_with(delta, limits, request_flags::RELATIVE)
+    }
+
+    /// A move with [`request_flags`] (relative, after the current move).
+    pub fn move_with(
+        &mut self,
+        target: f64,
+        limits: Limits,
+        flags: u32,
+    ) -> Result<Move, ClientError> {
+        let mut r = self.request(RequestKind::Move);
+        r.target_rad = target;
+        r.flags |= flags;
+        limits.apply(&mut r);
+        let seq = r.seq;
+        let ack = self.send(r)?;
+        Ok(Move { seq, ack })
+    }
+
+    /// Waits until the move's target is reached (the trajectory at its target and the
+    /// rotor within the target window); fails if the axis faults or another command takes
+    /// over.
+    pub fn wait_target_reached(
+        &mut self,
+        mv: &Move,
+        timeout: Duration,
+    ) -> Result<AxisStatus, ClientError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let s = self.status()?;
+            if s.axis_state() == Some(AxisState::Fault) {
+                return Err(ClientError::Fault {
+                    faults: fault_names(s.fault),
+                    following_error: s.following_error_rad,
+                    status: Box::new(s),
+                });
+            }
+            if s.last_seq != mv.seq && s.last_seq > mv.seq {
+                return Err(ClientError::Superseded { by: s.last_seq });
+            }
+            if s.last_seq == mv.seq && s.target_reached() {
+                return Ok(s);
+            }
+            if Instant::now() >= deadline {
+                return Err(ClientError::Timeout {
+                    what: format!("the move to {} rad", s.target_rad),
+                    timeout,
+                });
+            }
+            std::thread::sleep(Duration::from_micros(500));
+        }
+    }
+
+    /// Profile velocity: runs at `velocity` rad/s (stops at the soft position limit).
+    pub fn jog(&mut self, velocity: f64, limits: Limits) -> Result<AxisAck, ClientError> {
+        let mut r = self.request(RequestKind::Jog);
+        r.velocity_rad_s = velocity;
+        limits.apply(&mut r);
+        self.send(r)
+    }
+
+    /// The axis's present position is `position` rad from now on (at a standstill).
+    pub fn set_position(&mut self, position: f64) -> Result<AxisAck, ClientError> {
+        let mut r = self.request(RequestKind::SetPosition);
+        r.target_rad = position;
+        self.send(r)
+    }
+
+    /// Starts a cyclic synchronous position stream, played `lead` s behind its points'
+    /// arrival (`None`: the axis's default). Push points with [`Stream::push`] at 100 Hz to
+    /// 2 kHz; a stream that stops coming is quick-stopped by the axis.
+    pub fn stream(&mut self, lead: Option<f64>) -> Result<Stream<'_>, ClientError> {
+        if self.stream.is_none() {
+            self.stream = Some(self.bus.publisher_of::<AxisStreamPoint>()?);
+        }
+        let mut r = self.request(RequestKind::StreamStart);
+        if let Some(l) = lead {
+            r.lead_s = l;
+            r.flags |= request_flags::HAS_LEAD;
+        }
+        let id = r.seq;
+        self.send(r)?;
+        Ok(Stream {
+            axis: self,
+            id,
+            next: 0,
+            last_t: None,
+        })
+    }
+}
+
+/// A stream in progress (see [`Axis::stream`]).
+pub struct Stream<'a> {
+    axis: &'a mut Axis,
+    id: u64,
+    next: u64,
+    last_t: Option<f64>,
+}
+
+impl Stream<'_> {
+    /// Sends the point at stream time `t` s: θ rad, and optionally ω rad/s and a torque
+    /// feed-forward N·m. Time must increase; a point that breaks that, or is not finite,
+    /// is refused here and never sent.
+    pub fn push(
+        &mut self,
+        t: f64,
+        theta: f64,
+        omega: Option<f64>,
+        torque_ff: Option<f64>,
+    ) -> Result<(), ClientError> {
+        let finite = t.is_finite()
+            && theta.is_finite()
+            && omega.is_none_or(f64::is_finite)
+            && torque_ff.is_none_or(f64::is_finite);
+        if !finite {
+            return Err(ClientError::BadPoint {
+                t,
+                why: "not finite",
+            });
+        }
+        if self.last_t.is_some_and(|l| t <= l) {
+            return Err(ClientError::BadPoint {
+                t,
+                why: "stream time must increase",
+            });
+        }
+        let row = stepdrive_shared::axis::StreamRow {
+            t_s: t,
+            theta_rad: theta,
+            omega_rad_s: omega,
+            torque_ff_nm: torque_ff,
+        };
+        let mut p = row.point(self.axis.axis, self.id, self.next);
+        p.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
+        if let Some(publisher) = self.axis.stream.as_mut() {
+            publisher.publish(&p)?;
+        }
+        self.next += 1;
+        self.last_t = Some(t);
+        Ok(())
+    }
+
+    /// Points sent so far.
+    pub fn sent(&self) -> u64 {
+        self.next
+    }
+
+    /// Ends the stream: the axis decelerates to rest and holds.
+    pub fn end(self) -> Result<AxisAck, ClientError> {
+        self.axis.simple(RequestKind::StreamEnd)
+    }
+}

@@ -1,0 +1,1280 @@
+//! The axis: what programs command, as a CiA 402 drive is commanded. A power state machine
+//! with CiA 402's states and transitions; command sources — profile position (moves with
+//! v/a/j limits, changed at once or after the current one), profile velocity (jog),
+//! cyclic synchronous position (a stream), the scenario's own profile — turned into θ_d,
+//! ω_d, α_d by the online trajectory generator ([`otg`]); and a safety envelope that holds
+//! whatever the source: soft position limits, v/a/j limits, a following-error window and
+//! time that fault the axis, a quick stop at its own deceleration, bumpless enable (the
+//! setpoint starts where the rotor is, at rest), and commands refused with their reason,
+//! never applied and never clamped silently.
+//!
+//! Pure: the position loop's node feeds it the measured state and the commands each tick,
+//! and gives (12) the setpoint it returns. No IPC, no clock, no allocation in a tick.
+
+pub mod otg;
+pub mod stream;
+pub mod track;
+
+use otg::{Goal, Limits, Otg, OtgError};
+use stepdrive_shared::axis::{
+    axis_faults, axis_warnings, request_flags, status_bits, AxisMode, AxisParams, AxisRequest,
+    AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
+};
+use stepdrive_shared::trajectory::{Reference, Trapezoid};
+use stream::{Play, Point, PointError, Stream};
+
+/// What the axis sees at a tick: the state sample's time and the measured rotor, and what
+/// the device and the current loop report.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Measured {
+    pub t: f64,
+    pub theta: f64,
+    pub omega: f64,
+    /// The device's latched fault bits (zero: healthy).
+    pub device_fault: u32,
+    /// The current loop stopped the motor on its own (stale setpoints).
+    pub setpoint_stale: bool,
+}
+
+/// What the axis asks of the torque law at a tick.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Setpoint {
+    /// θ_d, ω_d, α_d at the tick's time.
+    pub reference: Reference,
+    /// The motor has torque; off, the current loop applies zero volts.
+    pub outputs_on: bool,
+    /// A stream's torque feed-forward, N·m.
+    pub torque_ff: f64,
+    /// The enable these setpoints belong to.
+    pub epoch: u32,
+    /// The acceleration is continuous (the trajectory generator's, jerk-limited; not the
+    /// scenario's profile, whose acceleration steps at its corners).
+    pub smooth: bool,
+    /// The trajectory's jerk, rad/s³ (0 for the scenario's profile).
+    pub jerk: f64,
+}
+
+/// A command not taken: why, in words with the numbers.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Refused {
+    pub refusal: Refusal,
+    pub text: String,
+}
+
+fn refuse(refusal: Refusal, text: impl Into<String>) -> Refused {
+    Refused {
+        refusal,
+        text: text.into(),
+    }
+}
+
+/// The axis. See the module documentation.
+#[derive(Debug)]
+pub struct Axis {
+    p: AxisParams,
+    period: f64,
+    state: AxisState,
+    mode: AxisMode,
+    otg: Otg,
+    /// The OTG's own time (a whole number of periods after its last restart).
+    otg_t: f64,
+    profile: Option<Trapezoid>,
+    /// The move waiting for the current one to end (`after current`).
+    queued: Option<(f64, Limits)>,
+    target: f64,
+    move_id: u64,
+    /// A stream: its id (its start's seq), its lead, the axis time its first point came
+    /// and that point's stream time.
+    stream: Stream,
+    stream_id: Option<u64>,
+    stream_lead: f64,
+    stream_origin: Option<(f64, f64)>,
+    /// The state a stream is followed from (at the trajectory's time).
+    followed: Reference,
+    refused_points: u64,
+    last_refusal: Refusal,
+    fault: u32,
+    warning: u32,
+    following_since: Option<f64>,
+    setpoint_acked: bool,
+    /// A fault reset waiting for the device's fault to clear.
+    reset_pending: bool,
+    last_kind: u32,
+    last_seq: u64,
+    epoch: u32,
+    /// Axis position = measured θ + offset (set-position).
+    offset: f64,
+    /// The last setpoint, in axis coordinates, and the tick's time.
+    reference: Reference,
+    torque_ff: f64,
+    t: f64,
+}
+
+impl Axis {
+    /// An axis standing disabled (Switch on disabled) at θ = 0; `period_s` is the position
+    /// loop's.
+    pub fn new(p: &AxisParams, period_s: f64) -> Self {
+        let at = Reference::default();
+        Self {
+            otg: Otg::new(period_s, at, move_limits(p)),
+            p: p.clone(),
+            period: period_s,
+            state: AxisState::SwitchOnDisabled,
+            mode: AxisMode::Hold,
+            otg_t: 0.0,
+            profile: None,
+            queued: None,
+            target: 0.0,
+            move_id: 0,
+            stream: Stream::default(),
+            stream_id: None,
+            stream_lead: p.stream_lead_s,
+            stream_origin: None,
+            followed: at,
+            refused_points: 0,
+            last_refusal: Refusal::None,
+            fault: 0,
+            warning: 0,
+            following_since: None,
+            setpoint_acked: false,
+            reset_pending: false,
+            last_kind: 0,
+            last_seq: 0,
+            epoch: 0,
+            offset: 0.0,
+            reference: at,
+            torque_ff: 0.0,
+            t: 0.0,
+        }
+    }
+
+    /// An axis enabled from the start, running the scenario's profile (`run` without a
+    /// program: the paper's experiment).
+    pub fn running_profile(p: &AxisParams, period_s: f64, profile: Trapezoid) -> Self {
+        let mut a = Self::new(p, period_s);
+        a.state = AxisState::OperationEnabled;
+        a.mode = AxisMode::ScenarioProfile;
+        a.profile = Some(profile);
+        a.epoch = 1;
+        a
+    }
+
+    pub fn state(&self) -> AxisState {
+        self.state
+    }
+
+    pub fn mode(&self) -> AxisMode {
+        self.mode
+    }
+
+    pub fn fault(&self) -> u32 {
+        self.fault
+    }
+
+    /// A fault reset was asked while the device has a fault latched: its node asks the
+    /// device to reset.
+    pub fn device_reset_wanted(&self) -> bool {
+        self.reset_pending
+    }
+
+    pub fn warning(&self) -> u32 {
+        self.warning
+    }
+
+    pub fn epoch(&self) -> u32 {
+        self.epoch
+    }
+
+    /// The measured position in axis coordinates.
+    fn position(&self, m: &Measured) -> f64 {
+        m.theta + self.offset
+    }
+
+    /// Restarts the trajectory at the measured position, at rest: a bumpless enable.
+    fn restart_at(&mut self, m: &Measured) {
+        let at = Reference {
+            theta: self.position(m),
+            omega: 0.0,
+            alpha: 0.0,
+        };
+        self.otg.set_limits(move_limits(&self.p));
+        self.otg.restart(at);
+        self.otg_t = m.t;
+        self.reference = at;
+        self.target = at.theta;
+        self.mode = AxisMode::Hold;
+        self.profile = None;
+        self.queued = None;
+        self.end_stream();
+        self.following_since = None;
+        self.torque_ff = 0.0;
+        self.epoch = self.epoch.wrapping_add(1);
+    }
+
+    /// Takes the trajectory from wherever the setpoint is now (a change of source while
+    /// enabled keeps θ_d, ω_d, α_d continuous).
+    fn take_over(&mut self, m: &Measured) {
+        if self.mode == AxisMode::ScenarioProfile || self.mode == AxisMode::CyclicPosition {
+            self.otg.restart(self.reference);
+            self.otg_t = m.t;
+        }
+        self.profile = None;
+        self.end_stream();
+        self.torque_ff = 0.0;
+    }
+
+    fn end_stream(&mut self) {
+        self.stream.clear();
+        self.stream_id = None;
+        self.stream_origin = None;
+    }
+
+    fn power_off(&mut self, to: AxisState) {
+        self.state = to;
+        self.mode = AxisMode::Hold;
+        self.profile = None;
+        self.queued = None;
+        self.end_stream();
+        self.following_since = None;
+    }
+
+    fn enter_fault(&mut self, bits: u32) {
+        self.fault |= bits;
+        self.power_off(AxisState::Fault);
+    }
+
+    /// Quick stop: decelerate at its own rate to standstill, and hold there.
+    fn quick_stop(&mut self, m: &Measured) {
+        self.take_over(m);
+        self.queued = None;
+        self.otg.set_limits(Limits {
+            v: self.p.v_max_rad_s,
+            a: self.p.quick_stop_decel_rad_s2,
+            j: self.p.j_max_rad_s3,
+        });
+        self.otg.set_goal(Goal::Velocity(0.0));
+        self.state = AxisState::QuickStopActive;
+        self.mode = AxisMode::QuickStop;
+    }
+
+    /// The limits a command asks for: its own (valid and within the axis's), or the move
+    /// defaults.
+    fn limits_of(&self, r: &AxisRequest) -> Result<Limits, Refused> {
+        let defaults = move_limits(&self.p);
+        let pick = |has: u32, v: f64, default: f64, max: f64, name: &str, unit: &str| {
+            if r.flags & has == 0 {
+                return Ok(default);
+            }
+            if !v.is_finite() {
+                return Err(refuse(Refusal::NotFinite, format!("{name} is {v}")));
+            }
+            if v <= 0.0 {
+                return Err(refuse(
+                    Refusal::LimitNotPositive,
+                    format!("{name} {v} {unit} is not positive"),
+                ));
+            }
+            if v > max {
+                return Err(refuse(
+                    Refusal::LimitAboveAxis,
+                    format!("{name} {v} {unit} exceeds the axis's {max} {unit}"),
+                ));
+            }
+            Ok(v)
+        };
+        Ok(Limits {
+            v: pick(
+                request_flags::HAS_V,
+                r.v_max_rad_s,
+                defaults.v,
+                self.p.v_max_rad_s,
+                "vmax",
+                "rad/s",
+            )?,
+            a: pick(
+                request_flags::HAS_A,
+                r.a_max_rad_s2,
+                defaults.a,
+                self.p.a_max_rad_s2,
+                "amax",
+                "rad/s²",
+            )?,
+            j: pick(
+                request_flags::HAS_J,
+                r.j_max_rad_s3,
+                defaults.j,
+                self.p.j_max_rad_s3,
+                "jmax",
+                "rad/s³",
+            )?,
+        })
+    }
+
+    fn within_soft_limits(&self, theta: f64) -> Result<(), Refused> {
+        let (lo, hi) = (self.p.position_min_rad, self.p.position_max_rad);
+        if theta < lo || theta > hi {
+            return Err(refuse(
+                Refusal::OutsideSoftLimits,
+                format!("{theta} rad is outside the soft limits [{lo}, {hi}] rad"),
+            ));
+        }
+        Ok(())
+    }
+
+    fn enabled(&self, what: &str) -> Result<(), Refused> {
+        if self.state != AxisState::OperationEnabled {
+            return Err(refuse(
+                Refusal::NotEnabled,
+                format!(
+                    "{what} needs Operation enabled; the axis is in {}",
+                    self.state.name()
+                ),
+            ));
+        }
+        Ok(())
+    }
+
+    fn wrong_state(&self, kind: RequestKind) -> Refused {
+        refuse(
+            Refusal::WrongState,
+            format!("no {} from {}", kind.name(), self.state.name()),
+        )
+    }
+
+    /// One command, at the tick whose measured state is `m`: taken (applied from this tick
+    /// on) or refused with its reason (nothing applied).
+    pub fn request(&mut self, r: &AxisRequest, m: &Measured) -> Result<(), Refused> {
+        let Some(kind) = RequestKind::from_u32(r.kind) else {
+            return Err(refuse(
+                Refusal::UnknownCommand,
+                format!("unknown command {}", r.kind),
+            ));
+        };
+        self.apply(kind, r, m)?;
+        self.last_kind = r.kind;
+        self.last_seq = r.seq;
+        Ok(())
+    }
+
+    fn apply(&mut self, kind: RequestKind, r: &AxisRequest, m: &Measured) -> Result<(), Refused> {
+        use AxisState as S;
+        let s = self.state;
+        match kind {
+            RequestKind::Status => {}
+            RequestKind::Shutdown => match s {
+                S::SwitchOnDisabled | S::SwitchedOn | S::OperationEnabled => {
+                    self.power_off(S::ReadyToSwitchOn)
+                }
+                S::ReadyToSwitchOn => {}
+                _ => return Err(self.wrong_state(kind)),
+            },
+            RequestKind::SwitchOn => match s {
+                S::ReadyToSwitchOn => self.state = S::SwitchedOn,
+                S::SwitchedOn => {}
+                S::OperationEnabled => self.power_off(S::SwitchedOn),
+                _ => return Err(self.wrong_state(kind)),
+            },
+            RequestKind::EnableOperation => match s {
+                S::SwitchedOn => {
+                    self.restart_at(m);
+                    self.state = S::OperationEnabled;
+                }
+                S::QuickStopActive => {
+                    // Hold where the quick stop left it (or is leaving it: it brakes on).
+                    self.otg.set_limits(move_limits(&self.p));
+                    self.otg.hold();
+                    self.mode = AxisMode::Hold;
+                    self.state = S::OperationEnabled;
+                }
+                S::OperationEnabled => {}
+                _ => return Err(self.wrong_state(kind)),
+            },
+            RequestKind::Enable => match s {
+                S::SwitchOnDisabled | S::ReadyToSwitchOn | S::SwitchedOn => {
+                    self.restart_at(m);
+                    self.state = S::OperationEnabled;
+                }
+                S::QuickStopActive => {
+                    self.otg.set_limits(move_limits(&self.p));
+                    self.otg.hold();
+                    self.mode = AxisMode::Hold;
+                    self.state = S::OperationEnabled;
+                }
+                S::OperationEnabled => {}
+                _ => {
+                    return Err(refuse(
+                        Refusal::WrongState,
+                        format!("no enable from {}: reset the fault first", s.name()),
+                    ))
+                }
+            },
+            RequestKind::DisableOperation => match s {
+                S::OperationEnabled => self.power_off(S::SwitchedOn),
+                _ => return Err(self.wrong_state(kind)),
+            },
+            RequestKind::DisableVoltage => match s {
+                S::Fault | S::FaultReactionActive | S::NotReadyToSwitchOn => {
+                    return Err(self.wrong_state(kind))
+                }
+                _ => self.power_off(S::SwitchOnDisabled),
+            },
+            RequestKind::QuickStop => match s {
+                S::OperationEnabled => self.quick_stop(m),
+                S::QuickStopActive => {}
+                S::ReadyToSwitchOn | S::SwitchedOn => self.power_off(S::SwitchOnDisabled),
+                _ => return Err(self.wrong_state(kind)),
+            },
+            RequestKind::FaultReset => {
+                if s == S::Fault || m.device_fault != 0 {
+                    // The axis leaves Fault once the device's own fault is cleared too (its
+                    // node asks the device to reset): at this tick, or when it clears.
+                    self.reset_pending = true;
+                }
+            }
+            RequestKind::Move => {
+                self.enabled("a move")?;
+                let limits = self.limits_of(r)?;
+                if !r.target_rad.is_finite() {
+                    return Err(refuse(
+                        Refusal::NotFinite,
+                        format!("target {}", r.target_rad),
+                    ));
+                }
+                let base = match self.queued {
+                    Some((t, _)) => t,
+                    None => self.target,
+                };
+                let target = if r.flags & request_flags::RELATIVE != 0 {
+                    base + r.target_rad
+                } else {
+                    r.target_rad
+                };
+                self.within_soft_limits(target)?;
+                let busy = self.mode == AxisMode::ProfilePosition && !self.otg.done();
+                if r.flags & request_flags::AFTER_CURRENT != 0 && busy {
+                    self.queued = Some((target, limits));
+                } else {
+                    self.start_move(target, limits, m);
+                }
+                self.setpoint_acked = true;
+            }
+            RequestKind::Jog => {
+                self.enabled("a jog")?;
+                let v = r.velocity_rad_s;
+                if !v.is_finite() {
+                    return Err(refuse(Refusal::NotFinite, format!("velocity {v}")));
+                }
+                if v.abs() > self.p.v_max_rad_s {
+                    return Err(refuse(
+                        Refusal::LimitAboveAxis,
+                        format!(
+                            "jog at {v} rad/s exceeds the axis's {} rad/s",
+                            self.p.v_max_rad_s
+                        ),
+                    ));
+                }
+                let mut limits = self.limits_of(r)?;
+                self.take_over(m);
+                self.queued = None;
+                if v == 0.0 {
+                    self.otg.set_limits(limits);
+                    self.otg.set_goal(Goal::Velocity(0.0));
+                } else {
+                    // A jog is a move to the soft limit at the jog's speed: it stops there.
+                    limits.v = v.abs();
+                    let edge = if v > 0.0 {
+                        self.p.position_max_rad
+                    } else {
+                        self.p.position_min_rad
+                    };
+                    self.otg.set_limits(limits);
+                    self.otg.set_goal(Goal::Position(edge));
+                    self.target = edge;
+                }
+                self.mode = AxisMode::ProfileVelocity;
+            }
+            RequestKind::Stop => {
+                self.enabled("a stop")?;
+                let limits = self.limits_of(r)?;
+                self.take_over(m);
+                self.queued = None;
+                self.otg.set_limits(limits);
+                self.otg.set_goal(Goal::Velocity(0.0));
+                self.mode = AxisMode::Hold;
+            }
+            RequestKind::StreamStart => {
+                self.enabled("a stream")?;
+                let lead = if r.flags & request_flags::HAS_LEAD != 0 {
+                    r.lead_s
+                } else {
+                    self.p.stream_lead_s
+                };
+                if !(lead.is_finite() && (0.0..=10.0).contains(&lead)) {
+                    return Err(refuse(
+                        Refusal::NotFinite,
+                        format!("lead {lead} s must be within 0 … 10 s"),
+                    ));
+                }
+                self.take_over(m);
+                self.queued = None;
+                // The stream's own limits: the axis's, the envelope around whatever it asks.
+                self.otg.set_limits(axis_limits(&self.p));
+                self.stream_id = Some(r.seq);
+                self.stream_lead = lead;
+                self.followed = self.otg.state();
+                self.mode = AxisMode::CyclicPosition;
+            }
+            RequestKind::StreamEnd => {
+                if self.mode != AxisMode::CyclicPosition {
+                    return Err(refuse(Refusal::StreamNotStarted, "no stream is running"));
+                }
+                self.take_over(m);
+                self.otg.set_limits(move_limits(&self.p));
+                self.otg.hold();
+                self.mode = AxisMode::Hold;
+            }
+            RequestKind::SetPosition => {
+                let moving =
+                    self.state.outputs_on() && (!self.otg.done() || self.reference.omega != 0.0);
+                if moving {
+                    return Err(refuse(
+                        Refusal::Moving,
+                        "set-position needs the axis at a standstill",
+                    ));
+                }
+                if !r.target_rad.is_finite() {
+                    return Err(refuse(
+                        Refusal::NotFinite,
+                        format!("position {}", r.target_rad),
+                    ));
+                }
+                self.within_soft_limits(r.target_rad)?;
+                let shift = r.target_rad - self.position(m);
+                self.offset += shift;
+                let at = Reference {
+                    theta: self.reference.theta + shift,
+                    omega: 0.0,
+                    alpha: 0.0,
+                };
+                self.otg.restart(at);
+                self.otg_t = m.t;
+                self.reference = at;
+                self.target += shift;
+            }
+        }
+        Ok(())
+    }
+
+    fn start_move(&mut self, target: f64, limits: Limits, m: &Measured) {
+        self.take_over(m);
+        self.otg.set_limits(limits);
+        self.otg.set_goal(Goal::Position(target));
+        self.target = target;
+        self.mode = AxisMode::ProfilePosition;
+        self.move_id += 1;
+    }
+
+    /// A point of the running stream (the stream of its `StreamStart`); one of another
+    /// stream is not this axis's to take.
+    pub fn stream_point(&mut self, p: &AxisStreamPoint, m: &Measured) -> Result<(), Refused> {
+        if self.mode != AxisMode::CyclicPosition || self.stream_id != Some(p.stream) {
+            return Err(self.point_refused(refuse(
+                Refusal::StreamNotStarted,
+                format!("point of stream {} while none of it runs", p.stream),
+            )));
+        }
+        let point = Point {
+            t: p.t_s,
+            theta: p.theta_rad,
+            omega: (p.flags & stepdrive_shared::axis::point_flags::HAS_OMEGA != 0)
+                .then_some(p.omega_rad_s),
+            torque_ff: (p.flags & stepdrive_shared::axis::point_flags::HAS_TORQUE != 0)
+                .then_some(p.torque_ff_nm),
+        };
+        if self.stream_origin.is_none() && point.t.is_finite() {
+            self.stream_origin = Some((m.t, point.t));
+        }
+        self.stream.push(point).map_err(|e| {
+            let refusal = match e {
+                PointError::NotFinite { .. } => Refusal::NotFinite,
+                PointError::Backwards { .. } => Refusal::StreamOutOfOrder,
+                PointError::Full => Refusal::BufferFull,
+            };
+            self.point_refused(refuse(refusal, e.to_string()))
+        })
+    }
+
+    fn point_refused(&mut self, r: Refused) -> Refused {
+        self.refused_points += 1;
+        self.last_refusal = r.refusal;
+        r
+    }
+
+    /// Steps the trajectory generator to time `t` (whole periods), returns its state
+    /// there.
+    fn otg_to(&mut self, t: f64) -> Result<Reference, OtgError> {
+        let n = ((t - self.otg_t) / self.period).round();
+        let mut s = self.otg.state();
+        if n >= 1.0 {
+            for _ in 0..(n as u64).min(1000) {
+                s = self.otg.step()?;
+            }
+            self.otg_t += n * self.period;
+        }
+        Ok(extrapolate(s, t - self.otg_t))
+    }
+
+    /// The stream's target at played time `played`: its interpolated state (within the
+    /// soft limits), or, run dry, its last state carried on at its speed.
+    fn stream_target(&mut self, played: f64) -> Option<Reference> {
+        let target = match self.stream.play(played) {
+            Play::Waiting => return None,
+            Play::At {
+                reference,
+                torque_ff,
+            } => {
+                self.torque_ff = torque_ff;
+                reference
+            }
+            Play::Dry { by_s, last } => {
+                self.warning |= axis_warnings::STREAM_UNDERRUN;
+                Reference {
+                    theta: last.theta + last.omega * by_s,
+                    omega: last.omega,
+                    alpha: 0.0,
+                }
+            }
+        };
+        let (lo, hi) = (self.p.position_min_rad, self.p.position_max_rad);
+        if target.theta < lo || target.theta > hi {
+            self.warning |= axis_warnings::SOFT_LIMIT;
+            return Some(Reference {
+                theta: target.theta.clamp(lo, hi),
+                omega: 0.0,
+                alpha: 0.0,
+            });
+        }
+        Some(target)
+    }
+
+    /// The stream followed to time `t` within the axis's limits ([`track`]); a stream dry
+    /// past its watchdog is quick-stopped.
+    fn stream_to(&mut self, m: &Measured) -> Result<Reference, OtgError> {
+        let Some((origin, first)) = self.stream_origin else {
+            return self.otg_to(m.t);
+        };
+        let n = ((m.t - self.otg_t) / self.period).round();
+        let limits = axis_limits(&self.p);
+        let mut s = self.followed;
+        for _ in 0..(n.max(0.0) as u64).min(1000) {
+            // Each period from where the stream is at its start to where it is at its end.
+            let played = self.otg_t - origin - self.stream_lead + first;
+            let (Some(now), Some(next)) = (
+                self.stream_target(played),
+                self.stream_target(played + self.period),
+            ) else {
+                // Not started yet: stand where the stream found the axis.
+                self.otg_t += self.period;
+                continue;
+            };
+            let (after, _) =
+                track::follow(s, now, next, limits, track::DEFAULT_BANDWIDTH, self.period);
+            if (after.theta - next.theta).abs() > 1e-9 {
+                self.warning |= axis_warnings::STREAM_LIMITED;
+            }
+            s = after;
+            self.otg_t += self.period;
+        }
+        self.followed = s;
+        let last = self.stream.last_t().unwrap_or(first);
+        let played = m.t - origin - self.stream_lead + first;
+        if played - last > self.p.stream_timeout_s {
+            self.warning |= axis_warnings::STREAM_LOST;
+            // The quick stop starts from where the stream left the setpoint.
+            self.reference = extrapolate(s, m.t - self.otg_t);
+            self.quick_stop(m);
+            return self.otg_to(m.t);
+        }
+        Ok(extrapolate(s, m.t - self.otg_t))
+    }
+
+    /// One tick at the measured state `m`: the device's faults, the source's setpoint, the
+    /// envelope's checks. Returns what the torque law is to follow.
+    pub fn tick(&mut self, m: &Measured) -> Setpoint {
+        self.t = m.t;
+        // The scenario's profile is the paper's experiment, judged by the monitor (step-out,
+        // the device's faults), as it always was: the envelope watches the commanded
+        // sources.
+        let experiment = self.mode == AxisMode::ScenarioProfile;
+        if !experiment {
+            if m.device_fault != 0 && self.state != AxisState::Fault {
+                self.enter_fault(axis_faults::DRIVE);
+            }
+            if m.setpoint_stale && self.state.outputs_on() {
+                self.enter_fault(axis_faults::SETPOINT_STALE);
+            }
+        }
+        if self.reset_pending && m.device_fault == 0 {
+            self.reset_pending = false;
+            self.fault = 0;
+            self.warning = 0;
+            self.power_off(AxisState::SwitchOnDisabled);
+        }
+        let reference = match self.mode {
+            AxisMode::ScenarioProfile => match &self.profile {
+                Some(p) => p.at(m.t),
+                None => self.reference,
+            },
+            _ if !self.state.outputs_on() => {
+                // Outputs off: the setpoint follows the rotor, so that an enable starts
+                // where it stands.
+                let at = Reference {
+                    theta: self.position(m),
+                    omega: 0.0,
+                    alpha: 0.0,
+                };
+                self.otg.restart(at);
+                self.otg_t = m.t;
+                at
+            }
+            AxisMode::CyclicPosition => match self.stream_to(m) {
+                Ok(r) => r,
+                Err(e) => self.trajectory_failed(e),
+            },
+            _ => match self.otg_to(m.t) {
+                Ok(r) => r,
+                Err(e) => self.trajectory_failed(e),
+            },
+        };
+        self.reference = reference;
+        if self.mode == AxisMode::ProfilePosition && self.otg.done() {
+            if let Some((target, limits)) = self.queued.take() {
+                self.start_move(target, limits, m);
+            }
+        }
+        if self.mode == AxisMode::ProfileVelocity && self.otg.done() && self.reference.omega == 0.0
+        {
+            // A jog that reached its soft limit stands there.
+            if self.target == self.p.position_max_rad || self.target == self.p.position_min_rad {
+                self.warning |= axis_warnings::SOFT_LIMIT;
+            }
+        }
+        if !experiment {
+            self.watch_following(m);
+        }
+        Setpoint {
+            reference: Reference {
+                theta: reference.theta - self.offset,
+                ..reference
+            },
+            outputs_on: self.state.outputs_on(),
+            torque_ff: if self.mode == AxisMode::CyclicPosition {
+                self.torque_ff
+            } else {
+                0.0
+            },
+            epoch: self.epoch,
+            smooth: self.mode != AxisMode::ScenarioProfile,
+            jerk: match self.mode {
+                AxisMode::ScenarioProfile => 0.0,
+                _ if !self.state.outputs_on() => 0.0,
+                _ => self.otg.jerk(),
+            },
+        }
+    }
+
+    fn trajectory_failed(&mut self, e: OtgError) -> Reference {
+        let _ = e;
+        self.enter_fault(axis_faults::TRAJECTORY);
+        self.reference
+    }
+
+    /// The following-error window and time: beyond the window for longer than the time,
+    /// the axis faults with its outputs off.
+    fn watch_following(&mut self, m: &Measured) {
+        if !self.state.outputs_on() {
+            self.following_since = None;
+            return;
+        }
+        let e = self.reference.theta - self.position(m);
+        if e.abs() <= self.p.following_error_window_rad {
+            self.following_since = None;
+            return;
+        }
+        let since = *self.following_since.get_or_insert(m.t);
+        if m.t - since >= self.p.following_error_time_s {
+            self.enter_fault(axis_faults::FOLLOWING_ERROR);
+        }
+    }
+
+    /// Notes that the torque asked was limited (a warning, not silent).
+    pub fn torque_limited(&mut self, limited: bool) {
+        if limited {
+            self.warning |= axis_warnings::TORQUE_LIMITED;
+        }
+    }
+
+    /// The torque limit of the envelope, N·m.
+    pub fn torque_max(&self) -> f64 {
+        self.p.torque_max_nm
+    }
+
+    /// The status at the tick just run (`m` its measured state, `torque` what (12) asked).
+    pub fn status(&mut self, m: &Measured, torque: f64) -> AxisStatus {
+        let theta = self.position(m);
+        let e = self.reference.theta - theta;
+        let standing = self.otg.done();
+        let reached = match self.mode {
+            AxisMode::ProfilePosition => {
+                standing && (self.target - theta).abs() <= self.p.target_window_rad
+            }
+            AxisMode::ProfileVelocity => standing,
+            AxisMode::QuickStop => standing && self.reference.omega == 0.0,
+            AxisMode::Hold => e.abs() <= self.p.target_window_rad,
+            AxisMode::CyclicPosition | AxisMode::ScenarioProfile => false,
+        };
+        let mut word = self.state.statusword();
+        if reached {
+            word |= status_bits::TARGET_REACHED;
+        }
+        if std::mem::take(&mut self.setpoint_acked) {
+            word |= status_bits::SETPOINT_ACK;
+        }
+        if self.warning != 0 {
+            word |= status_bits::WARNING;
+        }
+        if self.fault & axis_faults::FOLLOWING_ERROR != 0 {
+            word |= status_bits::FOLLOWING_ERROR;
+        }
+        if self.warning & (axis_warnings::TORQUE_LIMITED | axis_warnings::SOFT_LIMIT) != 0 {
+            word |= status_bits::INTERNAL_LIMIT;
+        }
+        AxisStatus {
+            axis: 0,
+            state: self.state as u32,
+            tick: 0,
+            t_s: m.t,
+            publish_time_ns: 0,
+            statusword: u32::from(word),
+            mode: self.mode as u32,
+            theta_rad: theta,
+            omega_rad_s: m.omega,
+            torque_nm: torque,
+            following_error_rad: e,
+            theta_d_rad: self.reference.theta,
+            omega_d_rad_s: self.reference.omega,
+            alpha_d_rad_s2: self.reference.alpha,
+            target_rad: self.target,
+            fault: self.fault,
+            warning: self.warning,
+            device_fault: m.device_fault,
+            last_kind: self.last_kind,
+            last_seq: self.last_seq,
+            move_id: self.move_id,
+            refused_points: self.refused_points,
+            last_refusal: self.last_refusal as u32,
+            epoch: self.epoch,
+        }
+    }
+}
+
+/// The state `dt` after `s` at its acceleration.
+fn extrapolate(s: Reference, dt: f64) -> Reference {
+    if dt == 0.0 {
+        return s;
+    }
+    Reference {
+        theta: s.theta + s.omega * dt + 0.5 * s.alpha * dt * dt,
+        omega: s.omega + s.alpha * dt,
+        alpha: s.alpha,
+    }
+}
+
+/// A move's limits when it gives none.
+pub fn move_limits(p: &AxisParams) -> Limits {
+    Limits {
+        v: p.move_v_rad_s,
+        a: p.move_a_rad_s2,
+        j: p.move_j_rad_s3,
+    }
+}
+
+/// The most the axis allows.
+pub fn axis_limits(p: &AxisParams) -> Limits {
+    Limits {
+        v: p.v_max_rad_s,
+        a: p.a_max_rad_s2,
+        j: p.j_max_rad_s3,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use stepdrive_shared::axis::point_flags;
+
+    const T: f64 = 500e-6;
+
+    fn request(kind: RequestKind, seq: u64) -> AxisRequest {
+        AxisRequest {
+            kind: kind as u32,
+            seq,
+            ..Default::default()
+        }
+    }
+
+    /// The rotor exactly where the setpoint says (a perfect plant), at time `t`.
+    fn on(t: f64, r: &Reference) -> Measured {
+        Measured {
+            t,
+            theta: r.theta,
+            omega: r.omega,
+            ..Default::default()
+        }
+    }
+
+    /// A stream of 2 sin 2πt at 1 kHz, each point sent at its time: after 0.2 s the setpoint
+    /// is on the stream (played its lead behind), within the limits all the way.
+    #[test]
+    fn a_sine_stream_is_followed_within_the_limits() {
+        let p = AxisParams::default();
+        let mut axis = Axis::new(&p, T);
+        let mut r = Reference::default();
+        axis.request(&request(RequestKind::Enable, 1), &on(0.0, &r))
+            .expect("enable");
+        axis.request(&request(RequestKind::StreamStart, 2), &on(0.0, &r))
+            .expect("stream");
+        let sine = |t: f64| 2.0 * (std::f64::consts::TAU * t).sin();
+        let mut sent = 0u64;
+        let mut worst: f64 = 0.0;
+        let mut prev = r;
+        for k in 0..6000u64 {
+            let t = k as f64 * T;
+            while (sent as f64) * 1e-3 <= t && sent <= 4000 {
+                let ts = sent as f64 * 1e-3;
+                let point = AxisStreamPoint {
+                    stream: 2,
+                    seq: sent,
+                    t_s: ts,
+                    theta_rad: sine(ts),
+                    flags: 0,
+                    ..Default::default()
+                };
+                axis.stream_point(&point, &on(t, &r)).expect("in order");
+                sent += 1;
+            }
+            let _ = point_flags::HAS_OMEGA;
+            let sp = axis.tick(&on(t, &r));
+            assert_eq!(
+                axis.state(),
+                AxisState::OperationEnabled,
+                "t {t}: {:#x}",
+                axis.warning()
+            );
+            r = sp.reference;
+            assert!(r.omega.abs() <= p.v_max_rad_s * (1.0 + 1e-9));
+            assert!(r.alpha.abs() <= p.a_max_rad_s2 * (1.0 + 1e-9));
+            if k > 0 {
+                let jerk = (r.alpha - prev.alpha) / T;
+                assert!(
+                    jerk.abs() <= p.j_max_rad_s3 * (1.0 + 1e-9),
+                    "t {t}: jerk {jerk}"
+                );
+            }
+            prev = r;
+            let played = t - p.stream_lead_s;
+            if (0.2..=2.5).contains(&played) {
+                worst = worst.max((r.theta - sine(played)).abs());
+            }
+        }
+        assert!(worst < 1e-4, "{worst:e}");
+    }
+
+    fn enabled_axis() -> (Axis, AxisParams) {
+        let p = AxisParams::default();
+        let mut axis = Axis::new(&p, T);
+        axis.request(
+            &request(RequestKind::Enable, 1),
+            &on(0.0, &Reference::default()),
+        )
+        .expect("enable");
+        (axis, p)
+    }
+
+    fn move_to(target: f64, seq: u64) -> AxisRequest {
+        AxisRequest {
+            target_rad: target,
+            ..request(RequestKind::Move, seq)
+        }
+    }
+
+    /// The control word's transitions walk CiA 402's states, the status word mirrors each,
+    /// and a transition the state machine does not have is refused by name.
+    #[test]
+    fn the_power_state_machine_follows_cia_402() {
+        let p = AxisParams::default();
+        let mut axis = Axis::new(&p, T);
+        let m = on(0.0, &Reference::default());
+        let word = |a: &mut Axis| a.status(&m, 0.0).statusword as u16 & 0x6F;
+        assert_eq!(axis.state(), AxisState::SwitchOnDisabled);
+        assert_eq!(word(&mut axis) & 0x4F, 0x40);
+        let e = axis
+            .request(&request(RequestKind::EnableOperation, 1), &m)
+            .expect_err("no enable operation from Switch on disabled");
+        assert_eq!(e.refusal, Refusal::WrongState);
+        assert_eq!(axis.state(), AxisState::SwitchOnDisabled);
+        let walk = [
+            (RequestKind::Shutdown, AxisState::ReadyToSwitchOn, 0x21),
+            (RequestKind::SwitchOn, AxisState::SwitchedOn, 0x23),
+            (
+                RequestKind::EnableOperation,
+                AxisState::OperationEnabled,
+                0x27,
+            ),
+            (RequestKind::QuickStop, AxisState::QuickStopActive, 0x07),
+            (
+                RequestKind::EnableOperation,
+                AxisState::OperationEnabled,
+                0x27,
+            ),
+            (RequestKind::DisableOperation, AxisState::SwitchedOn, 0x23),
+            (
+                RequestKind::DisableVoltage,
+                AxisState::SwitchOnDisabled,
+                0x40,
+            ),
+        ];
+        for (i, (kind, to, sw)) in walk.into_iter().enumerate() {
+            axis.request(&request(kind, i as u64 + 2), &m)
+                .unwrap_or_else(|e| panic!("{kind:?}: {}", e.text));
+            axis.tick(&m);
+            assert_eq!(axis.state(), to, "{kind:?}");
+            assert_eq!(word(&mut axis), sw, "{kind:?}");
+        }
+    }
+
+    /// Bad commands are refused with their reason and change nothing: the target, the
+    /// mode and the setpoint stay as they were.
+    #[test]
+    fn bad_commands_are_refused_and_nothing_is_applied() {
+        let p = AxisParams::default();
+        let m = on(0.0, &Reference::default());
+        let mut disabled = Axis::new(&p, T);
+        let e = disabled
+            .request(&move_to(1.0, 1), &m)
+            .expect_err("disabled");
+        assert_eq!(e.refusal, Refusal::NotEnabled);
+        assert!(e.text.contains("Switch on disabled"), "{}", e.text);
+
+        let (mut axis, p) = enabled_axis();
+        let before = axis.tick(&m);
+        let cases: [(AxisRequest, Refusal); 7] = [
+            (move_to(f64::NAN, 2), Refusal::NotFinite),
+            (
+                move_to(p.position_max_rad + 1.0, 3),
+                Refusal::OutsideSoftLimits,
+            ),
+            (
+                AxisRequest {
+                    flags: request_flags::HAS_V,
+                    v_max_rad_s: 0.0,
+                    ..move_to(1.0, 4)
+                },
+                Refusal::LimitNotPositive,
+            ),
+            (
+                AxisRequest {
+                    flags: request_flags::HAS_A,
+                    a_max_rad_s2: -5.0,
+                    ..move_to(1.0, 5)
+                },
+                Refusal::LimitNotPositive,
+            ),
+            (
+                AxisRequest {
+                    flags: request_flags::HAS_J,
+                    j_max_rad_s3: p.j_max_rad_s3 * 2.0,
+                    ..move_to(1.0, 6)
+                },
+                Refusal::LimitAboveAxis,
+            ),
+            (
+                AxisRequest {
+                    velocity_rad_s: f64::INFINITY,
+                    ..request(RequestKind::Jog, 7)
+                },
+                Refusal::NotFinite,
+            ),
+            (
+                AxisRequest {
+                    kind: 99,
+                    ..request(RequestKind::Move, 8)
+                },
+                Refusal::UnknownCommand,
+            ),
+        ];
+        for (r, why) in cases {
+            let e = axis.request(&r, &m).expect_err("refused");
+            assert_eq!(e.refusal, why, "{}", e.text);
+            assert!(!e.text.is_empty());
+        }
+        let after = axis.tick(&on(T, &before.reference));
+        assert_eq!(axis.mode(), AxisMode::Hold);
+        assert_eq!(after.reference, before.reference);
+        assert_eq!(
+            axis.status(&m, 0.0).last_seq,
+            1,
+            "only the enable was taken"
+        );
+
+        // A stream whose time goes backwards: the point is refused and counted.
+        axis.request(&request(RequestKind::StreamStart, 9), &m)
+            .expect("stream");
+        let point = |seq: u64, t_s: f64| AxisStreamPoint {
+            stream: 9,
+            seq,
+            t_s,
+            theta_rad: 0.0,
+            ..Default::default()
+        };
+        axis.stream_point(&point(0, 1.0), &m).expect("first");
+        let e = axis
+            .stream_point(&point(1, 0.5), &m)
+            .expect_err("backwards");
+        assert_eq!(e.refusal, Refusal::StreamOutOfOrder);
+        assert_eq!(axis.status(&m, 0.0).refused_points, 1);
+    }
+
+    /// A rotor that cannot follow (held where it stands while a move runs) faults the axis
+    /// once the following error has been beyond the window for the window's time, outputs
+    /// off; a reset and an enable start the setpoint where the rotor stands, at rest.
+    #[test]
+    fn a_following_error_faults_and_a_reset_enables_without_a_jump() {
+        let (mut axis, p) = enabled_axis();
+        let stuck = on(0.0, &Reference::default());
+        axis.request(&move_to(20.0, 2), &stuck).expect("move");
+        let mut beyond = None;
+        let mut k = 0u64;
+        while axis.state() == AxisState::OperationEnabled {
+            let t = k as f64 * T;
+            let m = Measured { t, ..stuck };
+            let sp = axis.tick(&m);
+            if beyond.is_none() && sp.reference.theta > p.following_error_window_rad {
+                beyond = Some(t);
+            }
+            k += 1;
+            assert!(k < 100_000, "never faulted");
+        }
+        let faulted_at = k as f64 * T - T;
+        let since = beyond.expect("the error grew beyond the window");
+        assert_eq!(axis.state(), AxisState::Fault);
+        assert_ne!(axis.fault() & axis_faults::FOLLOWING_ERROR, 0);
+        let late = faulted_at - since - p.following_error_time_s;
+        assert!((0.0..=2.0 * T).contains(&late), "{late}");
+        let m = on(faulted_at, &Reference::default());
+        let st = axis.status(&m, 0.0);
+        assert_ne!(st.statusword as u16 & status_bits::FOLLOWING_ERROR, 0);
+        assert!(!axis.tick(&m).outputs_on);
+        let e = axis
+            .request(&request(RequestKind::Enable, 3), &m)
+            .expect_err("enable from Fault");
+        assert_eq!(e.refusal, Refusal::WrongState);
+
+        // The rotor has been pushed to 0.37 rad meanwhile: the enable starts there.
+        let moved = Measured {
+            t: faulted_at + 0.1,
+            theta: 0.37,
+            ..Default::default()
+        };
+        axis.request(&request(RequestKind::FaultReset, 4), &moved)
+            .expect("reset");
+        axis.tick(&moved);
+        assert_eq!(axis.state(), AxisState::SwitchOnDisabled);
+        axis.request(&request(RequestKind::Enable, 5), &moved)
+            .expect("enable");
+        let sp = axis.tick(&moved);
+        assert!(sp.outputs_on);
+        assert_eq!(sp.reference.theta, 0.37);
+        assert_eq!((sp.reference.omega, sp.reference.alpha), (0.0, 0.0));
+    }
+
+    /// A quick stop from full jog speed brakes at its own rate (jerk-limited) and holds
+    /// in Quick stop active within ω/a_qs plus the jerk's ramp.
+    #[test]
+    fn a_quick_stop_brakes_at_its_own_rate_and_holds() {
+        let (mut axis, p) = enabled_axis();
+        let mut r = Reference::default();
+        let jog = AxisRequest {
+            velocity_rad_s: 13.0,
+            ..request(RequestKind::Jog, 2)
+        };
+        axis.request(&jog, &on(0.0, &r)).expect("jog");
+        let mut k = 0u64;
+        while r.omega < 13.0 - 1e-9 {
+            r = axis.tick(&on(k as f64 * T, &r)).reference;
+            k += 1;
+        }
+        let t0 = k as f64 * T;
+        axis.request(&request(RequestKind::QuickStop, 3), &on(t0, &r))
+            .expect("quick stop");
+        let mut stopped_at = None;
+        for _ in 0..4000 {
+            let t = k as f64 * T;
+            r = axis.tick(&on(t, &r)).reference;
+            assert!(r.alpha >= -p.quick_stop_decel_rad_s2 * (1.0 + 1e-9));
+            if stopped_at.is_none() && r.omega == 0.0 && r.alpha == 0.0 {
+                stopped_at = Some(t);
+            }
+            k += 1;
+        }
+        let took = stopped_at.expect("stopped") - t0;
+        let bound = 13.0 / p.quick_stop_decel_rad_s2 + p.quick_stop_decel_rad_s2 / p.j_max_rad_s3;
+        assert!(took <= bound + 2.0 * T, "{took} s > {bound} s");
+        assert_eq!(axis.state(), AxisState::QuickStopActive);
+        let st = axis.status(&on(k as f64 * T, &r), 0.0);
+        assert_ne!(st.statusword as u16 & status_bits::TARGET_REACHED, 0);
+    }
+
+    /// "After the current move": the second move waits for the first to arrive, then
+    /// runs; "change immediately" re-targets on the tick it comes.
+    #[test]
+    fn a_move_after_the_current_waits_and_one_at_once_retargets() {
+        let (mut axis, _) = enabled_axis();
+        let mut r = Reference::default();
+        axis.request(&move_to(1.0, 2), &on(0.0, &r)).expect("first");
+        let queued = AxisRequest {
+            flags: request_flags::AFTER_CURRENT,
+            ..move_to(2.0, 3)
+        };
+        axis.request(&queued, &on(0.0, &r)).expect("queued");
+        let mut reached_one = false;
+        let mut k = 0u64;
+        while k < 20_000 && !(r.theta == 2.0 && r.omega == 0.0) {
+            r = axis.tick(&on(k as f64 * T, &r)).reference;
+            reached_one |= r.theta == 1.0 && r.omega == 0.0;
+            assert!(r.theta <= 2.0 + 1e-12);
+            k += 1;
+        }
+        assert!(
+            reached_one,
+            "the first move ended at its target before the second"
+        );
+        assert_eq!(r.theta, 2.0);
+        // At once: mid-move to 5, a move to 0 turns the setpoint back without a step (its
+        // speed changes by no more than the acceleration limit allows in a tick).
+        axis.request(&move_to(5.0, 4), &on(k as f64 * T, &r))
+            .expect("move");
+        for _ in 0..400 {
+            r = axis.tick(&on(k as f64 * T, &r)).reference;
+            k += 1;
+        }
+        let prev = r;
+        axis.request(&move_to(0.0, 5), &on(k as f64 * T, &r))
+            .expect("re-target");
+        let next = axis.tick(&on(k as f64 * T, &r)).reference;
+        let (_, p) = enabled_axis();
+        assert!(prev.omega > 1.0, "mid-move: {prev:?}");
+        assert!((next.omega - prev.omega).abs() <= p.move_a_rad_s2 * T * (1.0 + 1e-9));
+        assert!(next.theta > prev.theta);
+    }
+}

@@ -61,3 +61,67 @@ fn attaching_readers_take_the_scenario_from_the_stack() {
     assert_eq!(doc["scenario"]["run"]["duration_s"].as_f64(), Some(2.0));
     assert!(num(run_of(&doc, "proposed"), "samples") > 1000.0);
 }
+
+/// Finding 1: a position loop stopped for 1 s (SIGSTOP) in a realtime run. Before: the
+/// current loop followed the last setpoint segment on, the rotor ended 3.6 rad away, exit 4
+/// blaming the scenario. Now the current loop stops the motor at the quick-stop rate once
+/// the newest setpoint is 10 ms old and holds it: the rotor stands where that stop puts
+/// it, and the run ends with exit 5 naming the silent position loop.
+#[test]
+fn a_silent_position_loop_is_stood_in_for_by_a_controlled_stop() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("silentpos");
+    // 13.13 rad/s reached in 0.1 s, 3 s of cruise, 0.1 s down, 0.5 s held.
+    let scenario = dir.file(
+        "cruise.toml",
+        "name = \"cruise\"\n[trajectory]\naccel_s = 0.1\ncruise_s = 3.0\ndecel_s = 0.1\nhold_s = 0.5\n",
+    );
+    let inst = instance("silentpos");
+    let json = dir.path("rt.json");
+    let mut args = vec!["run", "--mode", "realtime", "--method", "proposed"];
+    args.extend(realtime_test_args(&scenario, &inst, "3.7"));
+    args.extend(["--json", json.to_str().unwrap()]);
+    let mut run = spawn_run(&args);
+    assert!(
+        wait_until(Duration::from_secs(30), || pid_of_role(
+            &inst,
+            "position-loop"
+        )
+        .is_some()),
+        "the stack did not come up"
+    );
+    let pid = pid_of_role(&inst, "position-loop").expect("position loop");
+    std::thread::sleep(Duration::from_millis(1500));
+    signal(pid, libc::SIGSTOP);
+    std::thread::sleep(Duration::from_secs(1));
+    signal(pid, libc::SIGCONT);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(60));
+    let stdout = stdout_of(&mut run);
+    let stderr = stderr_of(&mut run);
+    assert_eq!(status.code(), Some(5), "{stdout}\n{stderr}");
+    assert!(stdout.contains("POSITION LOOP SILENT"), "{stdout}");
+    assert!(stderr.contains("the position loop is silent"), "{stderr}");
+    let doc = read_json(&json);
+    let r = run_of(&doc, "proposed");
+    let t = num(r, "setpoint_stale_at_s");
+    // Where the stop leaves the rotor: θ_d and ω_d when it began, then ω²/(2 a_qs) on.
+    let (a, v, qs) = (131.3, 13.13, 200.0);
+    let theta_d = |t: f64| match t {
+        t if t < 0.1 => 0.5 * a * t * t,
+        t if t < 3.1 => 0.5 * a * 0.01 + v * (t - 0.1),
+        t => 2.0 * 0.5 * a * 0.01 + v * 3.0 - 0.5 * a * (3.2 - t.min(3.2)).powi(2),
+    };
+    let omega_d = |t: f64| match t {
+        t if t < 0.1 => a * t,
+        t if t < 3.1 => v,
+        t => a * (3.2 - t.min(3.2)),
+    };
+    let stood = theta_d(t) + omega_d(t).powi(2) / (2.0 * qs);
+    let expected = theta_d(3.7) - stood;
+    let final_error = num(r, "final_error_rad");
+    assert!(
+        (final_error - expected).abs() < 1e-2,
+        "stale at {t} s: the rotor stands {final_error} rad from the trajectory's end, the \
+         stop puts it {expected} rad away"
+    );
+}

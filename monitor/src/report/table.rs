@@ -283,7 +283,15 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
 /// what to do. `None` for a run that went well.
 pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
     let code = r.outcome.exit_code();
-    let title = r.outcome.title();
+    let stale = r.outcome == Outcome::ProcessDied
+        && r.setpoint_stale_at_s.is_some()
+        && r.stopped_because.is_none();
+    // No process died: one stopped answering and the current loop stood in for it.
+    let title = if stale {
+        "POSITION LOOP SILENT"
+    } else {
+        r.outcome.title()
+    };
     let method = &r.method;
     let what = match r.outcome {
         Outcome::Ok => return None,
@@ -322,6 +330,22 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
                     .unwrap_or("the monitor saw too little of the run"),
                 r.missed_samples,
                 r.longest_gap_s
+            )
+        }
+        Outcome::ProcessDied if stale => {
+            format!(
+                "the position loop went silent at t = {:.3} s: no setpoint for more than {:.1} \
+                 ms ([axis] setpoint_age_ticks {} of its {} Hz periods). The current loop \
+                 brought the motor to a standstill at the quick-stop rate ({} rad/s²) and held \
+                 it while the trajectory went on ({} rad from it at the end: the motor held, \
+                 not a step-out). What to do: find what stopped the position loop (a stop \
+                 signal, a debugger, a host that starved it).",
+                r.setpoint_stale_at_s.unwrap_or(f64::NAN),
+                f64::from(s.axis.setpoint_age_ticks) / s.rates.position_loop_hz * 1e3,
+                s.axis.setpoint_age_ticks,
+                s.rates.position_loop_hz,
+                s.axis.quick_stop_decel_rad_s2,
+                sci(r.final_error_rad),
             )
         }
         Outcome::ProcessDied | Outcome::Interrupted => format!(

@@ -1035,7 +1035,66 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         })?;
         written.push((p, truth.len()));
     }
+    for (method, acks) in &rec.acks {
+        let p = dir.join(format!("{method}_axis_ack.csv"));
+        let header =
+            "t [s],tick,kind,seq,client,target [rad],velocity [rad/s],flags,refusal,text,state";
+        write_csv(&p, header, acks, |a| {
+            format!(
+                "{},{},{},{},{},{},{},{},{},{},{}",
+                a.t,
+                a.tick,
+                a.kind,
+                a.seq,
+                a.client,
+                a.target,
+                a.velocity,
+                a.flags,
+                a.refusal,
+                csv_text(&a.text),
+                csv_text(&a.state)
+            )
+        })?;
+        written.push((p, acks.len()));
+    }
+    for (method, statuses) in &rec.statuses {
+        let p = dir.join(format!("{method}_axis_status.csv"));
+        let header = "t [s],tick,state,statusword,mode,theta [rad],omega [rad/s],torque [N·m],\
+                      following_error [rad],theta_d [rad],omega_d [rad/s],alpha_d [rad/s²],\
+                      target [rad],fault,warning,move_id,last_seq";
+        write_csv(&p, header, statuses, |s| {
+            let state = AxisState::from_u32(s.state_code).map_or("?", |x| x.name());
+            let mode =
+                stepdrive_shared::axis::AxisMode::from_u32(s.mode_code).map_or("?", |m| m.name());
+            format!(
+                "{},{},{},{:#06x},{},{},{},{},{},{},{},{},{},{:#x},{:#x},{},{}",
+                s.t,
+                s.tick,
+                csv_text(state),
+                s.statusword,
+                csv_text(mode),
+                s.theta,
+                s.omega,
+                s.torque,
+                s.following_error,
+                s.theta_d,
+                s.omega_d,
+                s.alpha_d,
+                s.target,
+                s.fault,
+                s.warning,
+                s.move_id,
+                s.last_seq
+            )
+        })?;
+        written.push((p, statuses.len()));
+    }
     Ok(written)
+}
+
+/// A text field for CSV: quoted, its quotes doubled.
+fn csv_text(t: &str) -> String {
+    format!("\"{}\"", t.replace('"', "\"\""))
 }
 
 /// One CSV file: `header`, then `row` of each item.

@@ -349,11 +349,16 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
             )
         }
         Outcome::ProcessDied | Outcome::Interrupted => format!(
-            "{} after {:.3} s of {:.3} s simulated. The figures above cover what ran (marked \
+            "{} after {:.3} s{} simulated. The figures above cover what ran (marked \
              incomplete).",
             r.stopped_because.as_deref().unwrap_or("stopped"),
             r.sim_time_s,
-            s.duration_s()
+            // A served stack runs until stopped: there is no length to compare with.
+            if s.run.until_stopped {
+                String::new()
+            } else {
+                format!(" of {:.3} s", s.duration_s())
+            }
         ),
     };
     Some(format!("{title} (exit {code}) in the {method} run: {what}"))

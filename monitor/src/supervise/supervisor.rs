@@ -328,9 +328,15 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 break Ending::Stopped(stop);
             }
             if termination_requested() {
+                // An attached reader has no children: the stack it read runs on.
+                let what = if self.children.is_empty() {
+                    "interrupted (SIGINT/SIGTERM); this reader stopped, the stack runs on"
+                } else {
+                    "interrupted (SIGINT/SIGTERM); all stack processes were stopped"
+                };
                 break Ending::Stopped(Stop::new(
                     crate::report::outcome::Outcome::Interrupted,
-                    "interrupted (SIGINT/SIGTERM); all stack processes were stopped",
+                    what,
                 ));
             }
             let limit = if self.observer.metrics().samples() == 0 {

@@ -1068,6 +1068,62 @@ fn drawable(points: &[(f64, f64)]) -> Vec<(f64, f64)> {
     )
 }
 
+/// Where to cut a line drawn through the pixels `px` so that no piece turns back by more
+/// than 120°: (first, last) indices of each piece, a piece ending where the next begins.
+/// plotters's bitmap backend draws a wide line as a polygon whose corner at a turn is where
+/// the offsets of the two segments cross; at a near-reversal that is far off, a spike out
+/// to the image's edge (|e| on a log axis plunges to 1e-15 and back within a pixel). A
+/// piece that ends at the turn has no such corner.
+fn pieces(px: &[(i32, i32)]) -> Vec<(usize, usize)> {
+    if px.is_empty() {
+        return Vec::new();
+    }
+    let mut out = Vec::new();
+    let (mut start, mut last) = (0, 0);
+    let mut heading: Option<(f64, f64)> = None;
+    for (i, p) in px.iter().enumerate().skip(1) {
+        let d = (f64::from(p.0 - px[last].0), f64::from(p.1 - px[last].1));
+        if d == (0.0, 0.0) {
+            continue;
+        }
+        if let Some(h) = heading {
+            let cos = (h.0 * d.0 + h.1 * d.1) / (h.0.hypot(h.1) * d.0.hypot(d.1));
+            if cos < -0.5 {
+                out.push((start, last));
+                start = last;
+            }
+        }
+        heading = Some(d);
+        last = i;
+    }
+    out.push((start, px.len() - 1));
+    out
+}
+
+/// A line of a chart, in pieces that never turn back sharply (see [`pieces`]).
+fn draw_line<DB: DrawingBackend>(
+    chart: &mut ChartContext<'_, DB, Cartesian2d<Axis, Axis>>,
+    points: &[(f64, f64)],
+    stroke: Stroke,
+    style: ShapeStyle,
+) -> Drawn
+where
+    DB::ErrorType: 'static,
+{
+    let px: Vec<(i32, i32)> = points.iter().map(|p| chart.backend_coord(p)).collect();
+    for (a, b) in pieces(&px) {
+        let piece = points[a..=b].iter().copied();
+        match stroke {
+            Stroke::Solid => chart.draw_series(LineSeries::new(piece, style)),
+            Stroke::Dashed { on, off } => {
+                chart.draw_series(DashedLineSeries::new(piece, on, off, style))
+            }
+        }
+        .map_err(err)?;
+    }
+    Ok(())
+}
+
 /// The height of the strip above each plot where fault names go, per row.
 const STRIP_ROW: u32 = 18;
 
@@ -1181,24 +1237,11 @@ where
                 )))
                 .map_err(err)?;
             for edge in [up, low] {
-                match s.stroke {
-                    Stroke::Solid => chart.draw_series(LineSeries::new(edge, style)),
-                    Stroke::Dashed { on, off } => {
-                        chart.draw_series(DashedLineSeries::new(edge, on, off, style))
-                    }
-                }
-                .map_err(err)?;
+                draw_line(&mut chart, &edge, s.stroke, style)?;
             }
             continue;
         }
-        let points = drawable(&s.points);
-        match s.stroke {
-            Stroke::Solid => chart.draw_series(LineSeries::new(points, style)),
-            Stroke::Dashed { on, off } => {
-                chart.draw_series(DashedLineSeries::new(points, on, off, style))
-            }
-        }
-        .map_err(err)?;
+        draw_line(&mut chart, &drawable(&s.points), s.stroke, style)?;
     }
     // Faults over the data: a line at the sample the bits were set on, the name above the
     // plot (in the strip kept for it, never over the data); a fault set before a zoomed
@@ -1693,6 +1736,21 @@ mod tests {
         let (_, cells) = legend_layout(&[2000, 10], 1168);
         assert_eq!(cells, [(0, 0), (0, 1)]);
         assert!(legend_layout(&[], 1168).1.is_empty());
+    }
+
+    #[test]
+    fn a_line_is_cut_where_it_turns_back() {
+        // Down 500 pixels and back up one pixel over: cut at the bottom.
+        assert_eq!(pieces(&[(10, 10), (10, 510), (11, 10)]), [(0, 1), (1, 2)]);
+        // A right angle, and repeated pixels (many samples in one): not cut.
+        assert_eq!(pieces(&[(0, 0), (5, 0), (5, 0), (5, 5), (9, 5)]), [(0, 4)]);
+        // A zig-zag: cut at every turn back.
+        assert_eq!(
+            pieces(&[(0, 0), (0, 9), (1, 0), (1, 9)]),
+            [(0, 1), (1, 2), (2, 3)]
+        );
+        assert_eq!(pieces(&[(3, 3)]), [(0, 0)]);
+        assert!(pieces(&[]).is_empty());
     }
 
     #[test]

@@ -68,8 +68,9 @@ enum Cmd {
     /// its state stream, as `run` does: table, JSON, exit code.
     Monitor(commands::MonitorArgs),
     /// Draw the paper's figures from a recording (run --record): position, tracking error
-    /// (linear and log, eq. (7) bound, cruise window), phase currents, i_d/i_q, voltages and
-    /// the bus, torque; SVG and PNG, methods overlaid.
+    /// (linear and log, eq. (7) bound), phase currents and voltages (full-run envelope beside
+    /// a zoom), i_d/i_q, torque; every pass's cruise window and any fault marked; SVG and
+    /// PNG, methods overlaid.
     Plot(commands::PlotArgs),
     /// Write a recording's topics as CSV files, one per topic (time in s, SI columns).
     Export(commands::ExportArgs),

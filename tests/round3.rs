@@ -125,3 +125,65 @@ fn a_silent_position_loop_is_stood_in_for_by_a_controlled_stop() {
          stop puts it {expected} rad away"
     );
 }
+
+/// Finding 6: `--instance` was used as a path before it was checked (`a/b` and
+/// `../../x/escape` created directories outside the prefix). Now a name that is not one
+/// plain path component is refused by the argument parser, before anything runs.
+#[test]
+fn an_instance_name_that_is_a_path_is_refused_at_once() {
+    for name in ["a/b", "../../x/escape", "", "two words"] {
+        let out = stepdrive(&["run", "--instance", name]);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(2), "{name:?}: {err}");
+        assert!(err.contains("instance name"), "{name:?}: {err}");
+    }
+}
+
+/// Finding 11, the smaller ones: a negative `--duration` is refused naming the field (was:
+/// "unexpected argument '-1'"); a load no motor torque can hold is refused by `--check`
+/// (was: accepted); a served stack stopped by Ctrl-C exits 0 without a child printing
+/// "error: terminated by signal" (was: one such line per process on every normal stop).
+#[test]
+fn small_input_and_exit_findings() {
+    let out = stepdrive(&["run", "--duration", "-1"]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("run.duration_s"), "{err}");
+
+    let dir = TempDir::new("smallfindings");
+    let heavy = dir.file(
+        "heavy.toml",
+        "name = \"heavy\"\n[load]\ntorque_nm = 1000.0\n",
+    );
+    let out = stepdrive(&["scenario", "--check", heavy.to_str().unwrap()]);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("can never be held"), "{err}");
+
+    let _turn = one_stack_at_a_time();
+    let inst = instance("sigstop");
+    let mut serve = spawn_run(&[
+        "serve",
+        "--instance",
+        &inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+    ]);
+    assert!(
+        wait_until(Duration::from_secs(30), || pid_of_role(
+            &inst,
+            "current-loop"
+        )
+        .is_some()),
+        "the stack did not come up"
+    );
+    std::thread::sleep(Duration::from_millis(500));
+    signal(serve.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    let err = stderr_of(&mut serve);
+    assert_eq!(status.code(), Some(0), "{err}");
+    assert!(!err.contains("terminated by signal"), "{err}");
+    assert!(processes_with(&inst).is_empty());
+}

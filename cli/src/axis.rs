@@ -15,7 +15,7 @@ use stepdrive_shared::services::DEFAULT_INSTANCE;
 #[derive(Args, Debug)]
 pub struct AxisArgs {
     /// The served stack's instance name.
-    #[arg(long, default_value = DEFAULT_INSTANCE, global = true)]
+    #[arg(long, default_value = DEFAULT_INSTANCE, global = true, value_parser = stepdrive_shared::services::instance_name)]
     instance: String,
     /// The axis (this stack has axis 0).
     #[arg(long, default_value_t = 0, global = true)]

@@ -131,7 +131,7 @@ pub struct LatencyArgs {
 #[derive(Args, Debug)]
 pub struct ResetArgs {
     /// The stack's instance name.
-    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    #[arg(long, default_value = DEFAULT_INSTANCE, value_parser = stepdrive_shared::services::instance_name)]
     instance: String,
     /// How long to wait for the faults to clear, seconds.
     #[arg(long, value_name = "S", default_value = "2", value_parser = parse_seconds)]
@@ -141,7 +141,7 @@ pub struct ResetArgs {
 #[derive(Args, Debug)]
 pub struct MonitorArgs {
     /// The stack's instance name.
-    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    #[arg(long, default_value = DEFAULT_INSTANCE, value_parser = stepdrive_shared::services::instance_name)]
     instance: String,
     /// The stack's scenario (default: the one the stack announces; given, it must be the
     /// stack's, and the fields that differ are named).
@@ -568,7 +568,7 @@ pub fn export(a: ExportArgs) -> Result<()> {
 #[derive(Args, Debug)]
 pub struct ScopeArgs {
     /// The stack's instance name.
-    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    #[arg(long, default_value = DEFAULT_INSTANCE, value_parser = stepdrive_shared::services::instance_name)]
     instance: String,
     /// The stack's scenario (default: the one the stack announces).
     #[command(flatten)]
@@ -686,7 +686,7 @@ pub struct IdentifyArgs {
     #[arg(long, value_name = "HOST:PORT|PATH")]
     drive: Option<String>,
     /// The stack's instance name (realtime and hardware).
-    #[arg(long, default_value = "identify")]
+    #[arg(long, default_value = "identify", value_parser = stepdrive_shared::services::instance_name)]
     instance: String,
     /// Realtime and hardware: RT throttling, as `run --rt-throttling` (lifted by default).
     #[arg(long, value_enum, default_value_t = Throttling::Off)]

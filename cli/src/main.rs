@@ -158,6 +158,15 @@ fn main() -> ExitCode {
     match dispatch(cli) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
+            let stopped = e
+                .chain()
+                .any(|c| matches!(c.downcast_ref::<RunError>(), Some(RunError::Terminated)));
+            if stopped && e.downcast_ref::<commands::Exit>().is_none() {
+                // A stop asked for (the launcher's SIGTERM, Ctrl-C) is no error: the exit
+                // code (130) says it; whoever asked reports the run.
+                tracing::info!("stopped by SIGINT/SIGTERM");
+                return ExitCode::from(Outcome::Interrupted.exit_code());
+            }
             // One line, prefixed, so a launcher can pick it out of our stderr.
             eprintln!("error: {e:#}");
             if let Some(exit) = e.downcast_ref::<commands::Exit>() {

@@ -197,7 +197,7 @@ impl PlacementArgs {
 #[derive(Args, Debug, Clone)]
 pub struct ProcessArgs {
     /// Instance namespace of the services; stacks with different instances never interact.
-    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    #[arg(long, default_value = DEFAULT_INSTANCE, value_parser = stepdrive_shared::services::instance_name)]
     pub instance: String,
     #[command(flatten)]
     pub scenario: ScenarioOpt,
@@ -236,14 +236,14 @@ pub enum Throttling {
 #[derive(Args, Debug)]
 pub struct StackArgs {
     /// Instance namespace of the services.
-    #[arg(long, default_value = DEFAULT_INSTANCE)]
+    #[arg(long, default_value = DEFAULT_INSTANCE, value_parser = stepdrive_shared::services::instance_name)]
     pub instance: String,
     #[command(flatten)]
     pub deploy: DeployOpt,
     #[command(flatten)]
     pub timeouts: Timeouts,
     /// Run length in seconds; past one pass of the trajectory the move repeats back and forth.
-    #[arg(long, value_name = "S")]
+    #[arg(long, value_name = "S", allow_negative_numbers = true)]
     pub duration: Option<f64>,
     /// Realtime: SCHED_FIFO priority of plant and current loop (position loop: one more;
     /// bridge: one less than the current loop); 0 keeps everything SCHED_OTHER. Default 80.

@@ -68,6 +68,9 @@ pub enum ClientError {
     /// A stream point not after the one before, or not finite: refused here, never sent.
     #[error("stream point at t = {t} s: {why}")]
     BadPoint { t: f64, why: &'static str },
+    /// Not an instance name (see `stepdrive_shared::services::instance_name`).
+    #[error("{0}")]
+    BadInstance(String),
     #[error(transparent)]
     Port(#[from] PortError),
 }
@@ -148,6 +151,7 @@ impl Axis {
             instance: instance.to_string(),
             source,
         };
+        stepdrive_shared::services::instance_name(instance).map_err(ClientError::BadInstance)?;
         let role = format!("client-{}", std::process::id());
         let bus = IpcBus::attach(instance, &role, Duration::from_secs(5)).map_err(no_stack)?;
         let commands = bus.command_client().map_err(no_stack)?;

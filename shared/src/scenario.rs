@@ -415,6 +415,18 @@ impl Scenario {
             1e4,
             "V",
         )?;
+        // The most torque the motor gives at standstill: the bus across one phase's R.
+        let stall_nm = m.torque_constant_nm_per_a * self.drive.bus_voltage_v / m.resistance_ohm;
+        if self.load.torque_nm.abs() >= stall_nm {
+            return Err(invalid(
+                "load.torque_nm",
+                format!(
+                    "{} N·m can never be held: the motor's most torque at standstill is \
+                     K_m·V_bus/R = {stall_nm:.4} N·m",
+                    self.load.torque_nm
+                ),
+            ));
+        }
         if self.drive.command_plan_periods as usize > MAX_PLAN {
             return Err(invalid(
                 "drive.command_plan_periods",
@@ -849,6 +861,9 @@ mod tests {
         assert!(err_of("[rates]\nposition_loop_hz = 3000.0").contains("rates.position_loop_hz"));
         assert!(err_of("[rates]\ncompute_delay_periods = 9").contains("compute_delay_periods"));
         assert!(err_of("[load]\ntorque_nm = nan").contains("load.torque_nm"));
+        // Beyond the stall torque K_m·V_bus/R (0.5 · 24 / 14.8 = 0.81 N·m here).
+        let too_much = err_of("[load]\ntorque_nm = 1000.0");
+        assert!(too_much.contains("can never be held"), "{too_much}");
         assert!(err_of("[drive]\ncommand_plan_periods = 1025").contains("command_plan_periods"));
         assert!(err_of("[metrics]\ncruise_end_s = 9.0").contains("metrics.cruise_end_s"));
         // A typo is an error naming the unknown key, not a silent default.

@@ -12,6 +12,36 @@ use std::fmt::Debug;
 
 pub const DEFAULT_INSTANCE: &str = "stepdrive";
 
+/// The longest instance name.
+pub const INSTANCE_MAX_LEN: usize = 64;
+
+/// Checks an instance name before anything uses it: it names shared-memory services and
+/// the run's files in the temporary directory, so it is one path component of ASCII
+/// letters, digits, `-` and `_` (at most [`INSTANCE_MAX_LEN`]; not starting with `-`).
+/// Returns it, or why not (a clap `value_parser`).
+pub fn instance_name(name: &str) -> Result<String, String> {
+    let ok_char = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_';
+    if name.is_empty() {
+        return Err("an instance name cannot be empty".to_string());
+    }
+    if name.len() > INSTANCE_MAX_LEN {
+        return Err(format!(
+            "an instance name has at most {INSTANCE_MAX_LEN} characters ({} given)",
+            name.len()
+        ));
+    }
+    if let Some(c) = name.chars().find(|&c| !ok_char(c)) {
+        return Err(format!(
+            "{c:?} in instance name {name:?}: use ASCII letters, digits, '-' and '_' (it \
+             names shared-memory services and files, and is no path)"
+        ));
+    }
+    if name.starts_with('-') {
+        return Err(format!("instance name {name:?} starts with '-'"));
+    }
+    Ok(name.to_string())
+}
+
 /// Subscriber queue depths. The monitor's is deep because in lockstep it must see every
 /// sample (the publisher waits for it rather than drop one) while it drains at a low rate.
 pub const MONITOR_BUFFER: usize = 8192;
@@ -228,6 +258,27 @@ impl ServiceNames {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// An instance name is one harmless path component: a slash, `..`, a space or an
+    /// empty name is refused before anything touches the filesystem.
+    #[test]
+    fn instance_names_are_one_plain_path_component() {
+        for ok in ["stepdrive", "axis_2", "cell-7", "A"] {
+            assert_eq!(instance_name(ok).as_deref(), Ok(ok));
+        }
+        for bad in [
+            "a/b",
+            "../../x/escape",
+            "..",
+            "",
+            "a b",
+            "-x",
+            "é",
+            &"x".repeat(65),
+        ] {
+            assert!(instance_name(bad).is_err(), "{bad:?}");
+        }
+    }
 
     #[test]
     fn instance_names_are_checked_and_topics_named_under_them() {

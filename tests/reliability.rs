@@ -148,6 +148,48 @@ fn rt_throttling_is_lifted_for_the_run_and_restored_even_after_a_sigkill() {
         "orphans left: {:?}",
         processes_with(&inst)
     );
+
+    // Round 3, finding 5: the guard itself killed. Before: throttling stayed lifted (-1)
+    // after the run ended with exit 0, and nothing said so. Now the launcher restores it.
+    let mut run = spawn_run(&[
+        "run",
+        "--mode",
+        "realtime",
+        "--method",
+        "proposed",
+        "--duration",
+        "2",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--instance",
+        &inst,
+        "--priority",
+        "1",
+        "--cpus",
+        "none",
+        "--plant-wait",
+        "sleep",
+        "--current-wait",
+        "sleep",
+    ]);
+    assert!(
+        wait_until(Duration::from_secs(30), || read() == Some(-1)),
+        "RT throttling was not lifted for the run"
+    );
+    let guard = std::process::Command::new("pgrep")
+        .args(["-P", &run.id().to_string(), "-f", "rt-throttling-guard"])
+        .output()
+        .expect("pgrep");
+    let pid: u32 = String::from_utf8_lossy(&guard.stdout)
+        .trim()
+        .parse()
+        .expect("the guard's pid");
+    signal(pid, libc::SIGKILL);
+    let status = wait_with_timeout(&mut run, Duration::from_secs(60));
+    let stderr = stderr_of(&mut run);
+    assert!(status.success(), "{stderr}");
+    assert_eq!(read(), Some(before), "{stderr}");
+    assert!(stderr.contains("restored here"), "{stderr}");
 }
 
 /// Finding 2: a child's death and Ctrl-C keep what was gathered: the table (marked

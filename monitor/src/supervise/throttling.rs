@@ -69,6 +69,7 @@ impl Drop for ThrottlingLifted {
         let deadline = Instant::now() + Duration::from_secs(5);
         while Instant::now() < deadline {
             if let Ok(Some(_)) = self.child.try_wait() {
+                self.restore_if_left_lifted();
                 return;
             }
             std::thread::sleep(Duration::from_millis(5));
@@ -77,6 +78,30 @@ impl Drop for ThrottlingLifted {
             "the RT throttling guard did not exit: restore it with `sysctl kernel.sched_rt_runtime_us={}`",
             self.previous
         );
+    }
+}
+
+impl ThrottlingLifted {
+    /// A guard that was killed restored nothing: the launcher puts the value back itself,
+    /// and says so.
+    fn restore_if_left_lifted(&self) {
+        let now = std::fs::read_to_string(RT_RUNTIME)
+            .ok()
+            .and_then(|t| t.trim().parse::<i64>().ok());
+        if now == Some(self.previous) {
+            return;
+        }
+        match std::fs::write(RT_RUNTIME, format!("{}\n", self.previous)) {
+            Ok(()) => tracing::warn!(
+                previous = self.previous,
+                "the RT throttling guard had died without restoring throttling: restored here"
+            ),
+            Err(e) => tracing::error!(
+                "the RT throttling guard died and throttling stays lifted ({RT_RUNTIME}: {e}): \
+                 restore it with `sysctl kernel.sched_rt_runtime_us={}`",
+                self.previous
+            ),
+        }
     }
 }
 

@@ -434,6 +434,9 @@ fn a_killed_launcher_leaves_no_files() {
     let dir = TempDir::new("files");
     let scenario = dir.file("long.toml", LONG);
     let inst = instance("files");
+    // A results file of an earlier run, and a temporary of a launcher long dead.
+    let json = dir.file("results.json", "{\"from\": \"an earlier run\"}");
+    let stale_temp = dir.file(".results.json.999999999.tmp", "");
     let mut run = spawn_run(&[
         "run",
         "--method",
@@ -442,6 +445,8 @@ fn a_killed_launcher_leaves_no_files() {
         &inst,
         "--scenario",
         scenario.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
     ]);
     assert!(
         wait_until(Duration::from_secs(30), || pid_of_role(
@@ -463,6 +468,13 @@ fn a_killed_launcher_leaves_no_files() {
         .filter(|n| n.starts_with(&prefix))
         .collect();
     assert!(left.is_empty(), "left behind: {left:?}");
+    // Round 3, finding 8: no results file (before: one of 0 bytes), not the earlier run's
+    // either, and the dead launcher's temporary is gone.
+    assert!(
+        !json.exists(),
+        "a results file stayed after the launcher was killed"
+    );
+    assert!(!stale_temp.exists(), "a dead launcher's temporary stayed");
     assert!(
         wait_until(Duration::from_secs(5), || processes_with(&inst).is_empty()),
         "orphans left"

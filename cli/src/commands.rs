@@ -177,8 +177,13 @@ pub struct DeployArgs {
 
 /// The JSON results file, opened before anything runs so that a path that cannot be
 /// written fails at once, not after the run.
+/// The results file: written whole at the end or not at all. It is written to a hidden
+/// temporary beside it (created at the start, so that an unwritable path fails before the
+/// run) and renamed over it; a results file of an earlier run is removed at the start, so a
+/// launcher killed mid-run leaves no file, rather than an empty or a stale one.
 pub struct JsonOut {
     path: PathBuf,
+    temp: PathBuf,
     file: std::fs::File,
 }
 
@@ -187,12 +192,72 @@ impl JsonOut {
         let Some(path) = path else {
             return Ok(None);
         };
-        let file = std::fs::File::create(path)
+        let name = path
+            .file_name()
+            .with_context(|| format!("the results file {} names no file", path.display()))?
+            .to_string_lossy()
+            .into_owned();
+        let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
+        let dir = dir.unwrap_or(std::path::Path::new("."));
+        remove_stale_temps(dir, &name);
+        let temp = dir.join(format!(".{name}.{}.tmp", std::process::id()));
+        let file = std::fs::File::create(&temp)
             .with_context(|| format!("cannot write the results file {}", path.display()))?;
+        match std::fs::remove_file(path) {
+            Ok(()) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+            Err(e) => {
+                let _ = std::fs::remove_file(&temp);
+                return Err(e).with_context(|| {
+                    format!("cannot replace the results file {}", path.display())
+                });
+            }
+        }
         Ok(Some(Self {
             path: path.clone(),
+            temp,
             file,
         }))
+    }
+
+    /// Writes `text` and puts the file in its place.
+    fn commit(mut self, text: &str) -> Result<()> {
+        use std::io::Write;
+        self.file
+            .write_all(text.as_bytes())
+            .and_then(|()| self.file.sync_all())
+            .with_context(|| format!("cannot write {}", self.path.display()))?;
+        std::fs::rename(&self.temp, &self.path)
+            .with_context(|| format!("cannot write {}", self.path.display()))
+    }
+}
+
+impl Drop for JsonOut {
+    fn drop(&mut self) {
+        // Renamed already, or the run ended before its results: nothing stays behind.
+        let _ = std::fs::remove_file(&self.temp);
+    }
+}
+
+/// Temporaries of `name` left by launchers that were killed (their pid is gone).
+fn remove_stale_temps(dir: &std::path::Path, name: &str) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let prefix = format!(".{name}.");
+    for entry in entries.flatten() {
+        let file = entry.file_name();
+        let Some(pid) = file
+            .to_str()
+            .and_then(|f| f.strip_prefix(&prefix))
+            .and_then(|rest| rest.strip_suffix(".tmp"))
+            .and_then(|pid| pid.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if !std::path::Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_file(entry.path());
+        }
     }
 }
 
@@ -200,15 +265,13 @@ impl JsonOut {
 /// ended: a headline per run that did not go well, and an error carrying the exit code of
 /// the most severe.
 fn conclude(s: &Scenario, runs: &[RunReport], json: Option<JsonOut>) -> Result<()> {
-    use std::io::Write;
     println!("scenario: {}", s.name);
     print!("{}", table(s, runs));
-    if let Some(mut out) = json {
+    if let Some(out) = json {
         let text = serde_json::to_string_pretty(&document(s, runs))?;
-        out.file
-            .write_all((text + "\n").as_bytes())
-            .with_context(|| format!("cannot write {}", out.path.display()))?;
-        println!("results written to {}", out.path.display());
+        let path = out.path.clone();
+        out.commit(&(text + "\n"))?;
+        println!("results written to {}", path.display());
     }
     let headlines: Vec<String> = runs.iter().filter_map(|r| headline(s, r)).collect();
     for h in &headlines {
@@ -618,18 +681,16 @@ pub fn robustness(a: RobustnessArgs) -> Result<()> {
         started.elapsed().as_secs_f64()
     );
     print!("{}", tables(&cells));
-    if let Some(mut out) = json {
-        use std::io::Write;
+    if let Some(out) = json {
         let doc = RobustnessDocument {
             stepdrive_version: env!("CARGO_PKG_VERSION"),
             scenario: &s,
             cells: &cells,
         };
         let text = serde_json::to_string_pretty(&doc)?;
-        out.file
-            .write_all((text + "\n").as_bytes())
-            .with_context(|| format!("cannot write {}", out.path.display()))?;
-        println!("\nresults written to {}", out.path.display());
+        let path = out.path.clone();
+        out.commit(&(text + "\n"))?;
+        println!("\nresults written to {}", path.display());
     }
     let lost: Vec<String> = cells
         .iter()

@@ -177,6 +177,10 @@ pub struct RunFiles {
 /// The prefix of a run's directory: `stepdrive-<launcher pid>-<instance>`.
 const RUN_DIR_PREFIX: &str = "stepdrive-";
 
+/// The emulated drive's truth file in the temporary directory: this, the launcher's pid, the
+/// instance, `.csv`.
+pub const TRUTH_PREFIX: &str = "stepdrive-truth-";
+
 impl RunFiles {
     pub fn write(s: &Scenario, d: &Deployment, instance: &str) -> Result<Self> {
         Self::remove_leftovers();
@@ -225,17 +229,24 @@ impl RunFiles {
         let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
             return;
         };
+        let pid_after = |name: &str, prefix: &str| {
+            name.strip_prefix(prefix)
+                .and_then(|rest| rest.split('-').next())
+                .and_then(|pid| pid.parse::<u32>().ok())
+        };
+        let dead = |pid: u32| !Path::new(&format!("/proc/{pid}")).exists();
         for entry in entries.flatten() {
             let name = entry.file_name();
-            let pid = name
-                .to_str()
-                .and_then(|n| n.strip_prefix(RUN_DIR_PREFIX))
-                .and_then(|rest| rest.split('-').next())
-                .and_then(|pid| pid.parse::<u32>().ok());
-            let Some(pid) = pid else { continue };
-            let alive = Path::new(&format!("/proc/{pid}")).exists();
-            if !alive && entry.path().join("deploy.toml").exists() {
-                let _ = std::fs::remove_dir_all(entry.path());
+            let Some(name) = name.to_str() else { continue };
+            if let Some(pid) = pid_after(name, RUN_DIR_PREFIX) {
+                if dead(pid) && entry.path().join("deploy.toml").exists() {
+                    let _ = std::fs::remove_dir_all(entry.path());
+                }
+            } else if let Some(pid) = pid_after(name, TRUTH_PREFIX) {
+                // An emulated drive's truth file, left by a launcher that was killed.
+                if dead(pid) && name.ends_with(".csv") {
+                    let _ = std::fs::remove_file(entry.path());
+                }
             }
         }
     }

@@ -114,7 +114,8 @@ fn launch(
     // run so that the report can set the truth against what the sensors said.
     let truth = emulated.then(|| {
         std::env::temp_dir().join(format!(
-            "stepdrive-truth-{}-{}.csv",
+            "{}{}-{}.csv",
+            crate::supervise::children::TRUTH_PREFIX,
             std::process::id(),
             opts.instance
         ))

@@ -239,6 +239,16 @@ impl Drop for JsonOut {
     }
 }
 
+/// Whether a file can be written at `path` (its directory takes a new file), without
+/// leaving one: for outputs written only after a long run.
+fn writable(path: &std::path::Path) -> std::io::Result<()> {
+    let dir = path.parent().filter(|d| !d.as_os_str().is_empty());
+    let dir = dir.unwrap_or(std::path::Path::new("."));
+    let probe = dir.join(format!(".stepdrive-probe.{}", std::process::id()));
+    std::fs::File::create(&probe)?;
+    std::fs::remove_file(&probe)
+}
+
 /// Temporaries of `name` left by launchers that were killed (their pid is gone).
 fn remove_stale_temps(dir: &std::path::Path, name: &str) {
     let Ok(entries) = std::fs::read_dir(dir) else {
@@ -767,6 +777,12 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
     use stepdrive_control::identify::Bounds;
     use stepdrive_monitor::studies::identify::{default_max_speed, identified_scenario, table};
     let s = a.scenario.load()?;
+    writable(&a.out).with_context(|| {
+        format!(
+            "cannot write the identified scenario to {} (checked before the sequence runs)",
+            a.out.display()
+        )
+    })?;
     if a.max_voltage > s.drive.bus_voltage_v {
         anyhow::bail!(
             "--max-voltage {} V exceeds the bus ({} V): the drive cannot apply it",

@@ -19,7 +19,7 @@ pub enum ProgramError {
         #[source]
         source: std::io::Error,
     },
-    #[error("program step {step}: stream file {file}: {source}")]
+    #[error("program step {step}: stream file {file}")]
     Stream {
         step: usize,
         file: String,

@@ -14,7 +14,7 @@ pub const MAX_COMPUTE_DELAY_PERIODS: u32 = 4;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ScenarioError {
-    #[error("cannot read scenario file {path}: {source}")]
+    #[error("cannot read scenario file {path}")]
     Read {
         path: PathBuf,
         #[source]

@@ -12,15 +12,16 @@ use std::fmt::Debug;
 
 pub const DEFAULT_INSTANCE: &str = "stepdrive";
 
-/// The longest instance name.
-pub const INSTANCE_MAX_LEN: usize = 64;
+/// The longest instance name (service names under it stay within iceoryx2's limit).
+pub const INSTANCE_MAX_LEN: usize = 48;
 
 /// Checks an instance name before anything uses it: it names shared-memory services and
 /// the run's files in the temporary directory, so it is one path component of ASCII
-/// letters, digits, `-` and `_` (at most [`INSTANCE_MAX_LEN`]; not starting with `-`).
+/// letters, digits, `.`, `-` and `_` (at most [`INSTANCE_MAX_LEN`]; not starting with `-`,
+/// not `.` or `..`).
 /// Returns it, or why not (a clap `value_parser`).
 pub fn instance_name(name: &str) -> Result<String, String> {
-    let ok_char = |c: char| c.is_ascii_alphanumeric() || c == '-' || c == '_';
+    let ok_char = |c: char| c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_');
     if name.is_empty() {
         return Err("an instance name cannot be empty".to_string());
     }
@@ -32,12 +33,15 @@ pub fn instance_name(name: &str) -> Result<String, String> {
     }
     if let Some(c) = name.chars().find(|&c| !ok_char(c)) {
         return Err(format!(
-            "{c:?} in instance name {name:?}: use ASCII letters, digits, '-' and '_' (it \
-             names shared-memory services and files, and is no path)"
+            "{c:?} in instance name {name:?}: use ASCII letters, digits, '.', '-' and '_' \
+             (it names shared-memory services and files, and is no path)"
         ));
     }
     if name.starts_with('-') {
         return Err(format!("instance name {name:?} starts with '-'"));
+    }
+    if name.chars().all(|c| c == '.') {
+        return Err(format!("instance name {name:?} is a directory's name"));
     }
     Ok(name.to_string())
 }
@@ -47,8 +51,9 @@ pub fn instance_name(name: &str) -> Result<String, String> {
 pub const MONITOR_BUFFER: usize = 8192;
 pub const LOOP_BUFFER: usize = 16;
 
+/// Why a name is no instance name ([`instance_name`]'s reason).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("invalid instance name `{0}`: use 1-48 characters from A-Z a-z 0-9 . _ -")]
+#[error("{0}")]
 pub struct BadInstance(pub String);
 
 /// The publish-subscribe topics of one stack.
@@ -227,18 +232,8 @@ pub struct ServiceNames {
 
 impl ServiceNames {
     pub fn new(instance: &str) -> Result<Self, BadInstance> {
-        let ok = !instance.is_empty()
-            && instance.len() <= 48
-            && instance
-                .chars()
-                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'));
-        if ok {
-            Ok(Self {
-                instance: instance.to_string(),
-            })
-        } else {
-            Err(BadInstance(instance.to_string()))
-        }
+        let instance = instance_name(instance).map_err(BadInstance)?;
+        Ok(Self { instance })
     }
 
     pub fn topic(&self, topic: Topic) -> String {

@@ -36,6 +36,13 @@ pub enum RecordError {
         #[source]
         source: std::io::Error,
     },
+    /// A file the export writes (a CSV file, or its directory).
+    #[error("cannot write {path}")]
+    Export {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("cannot write the recording {path}")]
     Write {
         path: PathBuf,
@@ -921,7 +928,7 @@ fn push<T>(list: &mut Vec<(String, Vec<T>)>, method: &str, item: T) {
 /// names with units, then one row per message); returns the files and their row counts.
 pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, RecordError> {
     let rec = Recorded::read(path)?;
-    std::fs::create_dir_all(dir).map_err(|source| RecordError::Create {
+    std::fs::create_dir_all(dir).map_err(|source| RecordError::Export {
         path: dir.to_path_buf(),
         source,
     })?;
@@ -1105,7 +1112,7 @@ fn write_csv<T>(
     row: impl Fn(&T) -> String,
 ) -> Result<(), RecordError> {
     use std::io::Write;
-    let io = |source| RecordError::Create {
+    let io = |source| RecordError::Export {
         path: path.to_path_buf(),
         source,
     };

@@ -630,6 +630,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<(), EmulatorError> {
         peer_timeout: forever,
         account_host_holds: false,
         linger: Duration::ZERO,
+        report_end: true,
     };
     match Runner::new(node, wire, settings, None).run() {
         // SIGINT/SIGTERM is how a drive is switched off.

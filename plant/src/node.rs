@@ -279,7 +279,7 @@ impl Node for PlantNode {
             state_subscribers: p.subscribers(Topic::State),
         };
         if self.peers.is_none() {
-            tracing::info!(
+            tracing::debug!(
                 waiting_for = self.settings.wait_subscribers,
                 "plant up; waiting for the current loop, the position loop and subscribers"
             );

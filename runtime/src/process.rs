@@ -80,6 +80,7 @@ impl<'a> Process<'a> {
             // not choose, so it cannot tell a hold from a wait.
             account_host_holds: spec.role == Role::CurrentLoop && spec.mode == Mode::Realtime,
             linger: STATS_LINGER,
+            report_end: true,
         };
         tracing::info!(
             instance = spec.instance,

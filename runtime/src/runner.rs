@@ -35,6 +35,9 @@ pub struct Settings {
     /// After the final statistics, wait this long before the ports go away, so that a
     /// monitor draining at ~1 kHz takes them.
     pub linger: Duration,
+    /// Log the node's end (cycles, misses) at info: a process started by hand says it is
+    /// done; the dozens of stacks of an in-process study do not.
+    pub report_end: bool,
 }
 
 impl Settings {
@@ -46,6 +49,7 @@ impl Settings {
             peer_timeout,
             account_host_holds: false,
             linger: Duration::ZERO,
+            report_end: false,
         }
     }
 }
@@ -386,14 +390,16 @@ impl<N: Node> Runner<N> {
         if self.stats_port.is_some() && !self.settings.linger.is_zero() {
             std::thread::sleep(self.settings.linger);
         }
-        tracing::info!(
-            role = %self.role,
-            cycles = self.stats.cycles,
-            misses = self.stats.misses,
-            overruns = self.stats.overruns,
-            "{} done",
-            self.role
-        );
+        if self.settings.report_end {
+            tracing::info!(
+                role = %self.role,
+                cycles = self.stats.cycles,
+                misses = self.stats.misses,
+                overruns = self.stats.overruns,
+                "{} done",
+                self.role
+            );
+        }
         Ok(())
     }
 

@@ -351,6 +351,7 @@ pub fn run(o: &PingPongOptions) -> Result<()> {
         peer_timeout: d.peer_timeout(),
         account_host_holds: false,
         linger: Duration::ZERO,
+        report_end: false,
     };
     if o.ping {
         let ping = Ping {

@@ -601,6 +601,27 @@ fn bad_input_is_refused_at_once_naming_it() {
     assert_eq!(out.status.code(), Some(1));
     assert!(err.contains("--mode hardware"), "{err}");
 
+    // Round 3, finding 10: a drive address that names no drive is bad input (exit 1), said
+    // before anything starts; before, the bridge died on it: exit 5, PROCESS DIED and a
+    // table of NaN.
+    for (drive, said) in [
+        (
+            ["--drive", "nosuchhost.invalid:9"],
+            "is not a drive address",
+        ),
+        (
+            ["--drive-port", "/dev/stepdrive-no-such-line"],
+            "no serial line at",
+        ),
+    ] {
+        let mut args = vec!["run", "--mode", "hardware", "--method", "proposed"];
+        args.extend(drive);
+        let out = stepdrive(&args);
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert_eq!(out.status.code(), Some(1), "{err}");
+        assert!(err.contains(said) && !err.contains("PROCESS DIED"), "{err}");
+    }
+
     let started = Instant::now();
     let out = stepdrive(&["run", "--json", "/nonexistent/dir/results.json"]);
     let err = String::from_utf8_lossy(&out.stderr);

@@ -344,6 +344,9 @@ impl StackArgs {
         if drive.is_some() {
             d.drive.address = drive;
         }
+        if let (Mode::Hardware, Some(addr)) = (mode, &d.drive.address) {
+            check_drive_address(addr)?;
+        }
         d.validate().context("command-line options")?;
         Ok(d)
     }
@@ -354,5 +357,22 @@ impl StackArgs {
             s.validate().context("--duration")?;
         }
         Ok(())
+    }
+}
+
+/// A drive address that cannot name a drive is bad input, said before anything starts (a
+/// bridge failing on it would be reported as a dead process): a UDP address must resolve,
+/// a serial line must exist.
+fn check_drive_address(addr: &str) -> Result<()> {
+    use stepdrive_bridge::node::DriveAddr;
+    match addr.parse::<DriveAddr>() {
+        Err(e) => {
+            Err(anyhow::Error::new(e).context("the drive's address (--drive, [drive] address)"))
+        }
+        Ok(DriveAddr::Serial(path)) if !path.exists() => anyhow::bail!(
+            "no serial line at {} (--drive-port, [drive] address): is the drive connected?",
+            path.display()
+        ),
+        Ok(_) => Ok(()),
     }
 }

@@ -36,6 +36,9 @@ pub struct RunReport {
     /// When the position loop went silent and the current loop stopped the motor, s.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub setpoint_stale_at_s: Option<f64>,
+    /// When |θ_d − θ| first passed the step-out threshold (one electrical period), s.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stepped_out_at_s: Option<f64>,
     /// The first latched fault.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fault: Option<FaultEvent>,
@@ -224,6 +227,8 @@ pub struct Metrics {
     /// The first state whose command came from a current loop stopping the motor on its
     /// own (the position loop went silent), and the axis's first fault.
     first_stale: Option<(u64, f64)>,
+    /// The first sample beyond the step-out threshold, s.
+    stepped_out_at: Option<f64>,
     axis_fault: Option<AxisFaultEvent>,
 }
 
@@ -362,6 +367,7 @@ impl Metrics {
                 moves: Vec::with_capacity(s.program.len()),
             }),
             first_stale: None,
+            stepped_out_at: None,
             axis_fault: None,
         }
     }
@@ -494,6 +500,9 @@ impl Metrics {
         let abs = error.abs();
         if abs.is_nan() || abs > self.max_abs_error {
             self.max_abs_error = abs;
+        }
+        if self.stepped_out_at.is_none() && (abs.is_nan() || abs > self.step_out_rad) {
+            self.stepped_out_at = Some(t);
         }
         if tau >= self.cruise.0 && tau <= self.cruise.1 {
             if abs.is_nan() || abs > self.cruise_max_abs_error {
@@ -694,6 +703,7 @@ impl Metrics {
                 .unwrap_or_default(),
             axis_fault: self.axis_fault.clone(),
             setpoint_stale_at_s: self.first_stale.map(|(_, t)| t),
+            stepped_out_at_s: self.stepped_out_at,
         }
     }
 }

@@ -310,12 +310,14 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
             )
         }
         Outcome::SteppedOut => format!(
-            "|θ_d − θ| reached {} rad, more than one electrical period ({:.3e} rad): the \
-             rotor slipped. What to do: check the scenario's speed, load and V_max against \
-             the method (open-loop microstepping cannot follow once the back-EMF K_m ω \
-             exceeds V_max).",
+            "|θ_d − θ| passed one electrical period ({:.3e} rad) at t = {} s and reached {} \
+             rad: the rotor slipped. What to do: check the scenario's speed, load and V_max \
+             against the method (open-loop microstepping cannot follow once the back-EMF \
+             K_m ω exceeds V_max).",
+            step_out_threshold_rad(s),
+            r.stepped_out_at_s
+                .map_or("?".to_string(), |t| format!("{t:.4}")),
             sci(r.max_abs_error_rad),
-            step_out_threshold_rad(s)
         ),
         Outcome::Unobserved => {
             let wire = r.timing.as_ref().map_or(0, |t| t.frames_lost);

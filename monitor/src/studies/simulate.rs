@@ -326,6 +326,13 @@ mod tests {
         let fast = sim(&Scenario::default(), Method::OpenLoop);
         let step = std::f64::consts::TAU / 200.0;
         assert!(fast.cruise_max_abs_error_rad > 10.0 * step, "{fast:?}");
+        // The report says when (round 3, finding 10: the headline and JSON had no time):
+        // during the acceleration (0 … 0.5 s), when the back-EMF overtakes V_max; never at
+        // the slow speed.
+        assert_eq!(fast.outcome, Outcome::SteppedOut);
+        let at = fast.stepped_out_at_s.expect("a step-out time");
+        assert!((0.2..0.5).contains(&at), "{at}");
+        assert_eq!(r.stepped_out_at_s, None);
     }
 
     /// The in-process reference is deterministic to the bit.

@@ -156,6 +156,31 @@ pub struct MonitorArgs {
     /// Silence of the plant after which the run is declared stuck, seconds.
     #[arg(long, value_name = "S", default_value = "5", value_parser = parse_seconds)]
     peer_timeout_s: std::time::Duration,
+    /// Read at SCHED_FIFO priority P (1-99; root): beside a realtime stack whose loops spin
+    /// at SCHED_FIFO, a reader at ordinary priority gets too little CPU to keep up (its
+    /// misses end the report UNOBSERVED). Below the loops' priorities, so it never delays
+    /// them.
+    #[arg(long, value_name = "P", value_parser = clap::value_parser!(u8).range(1..=99))]
+    priority: Option<u8>,
+}
+
+impl MonitorArgs {
+    /// The reader's scheduling, refused loudly: a reader asked to keep up that cannot is
+    /// no reader.
+    fn apply_priority(&self) -> Result<()> {
+        if let Some(p) = self.priority {
+            stepdrive_runtime::rt::RtOptions {
+                priority: Some(p),
+                cpu: None,
+                lock_memory: false,
+                timer_slack_ns: None,
+                require: true,
+            }
+            .apply()
+            .map_err(|e| anyhow::anyhow!("--priority {p}: {}", e.describe()))?;
+        }
+        Ok(())
+    }
 }
 
 #[derive(Args, Debug)]
@@ -536,6 +561,7 @@ pub fn reset(a: ResetArgs) -> Result<()> {
 }
 
 pub fn monitor(a: MonitorArgs) -> Result<()> {
+    a.apply_priority()?;
     let given = a.scenario.given()?;
     let json = JsonOut::create(a.json.as_ref())?;
     let (bus, s) = attach_reader(&a.instance, Role::Monitor.id(), given.as_ref())?;
@@ -555,6 +581,7 @@ pub struct RecordArgs {
 /// records until its last sample, Ctrl-C, or its silence; the file is finished on each.
 pub fn record(a: RecordArgs) -> Result<()> {
     let w = a.watch;
+    w.apply_priority()?;
     let given = w.scenario.given()?;
     let json = JsonOut::create(w.json.as_ref())?;
     let (bus, s) = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref())?;

@@ -320,18 +320,35 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
             sci(r.max_abs_error_rad),
         ),
         Outcome::Unobserved => {
-            let wire = r.timing.as_ref().map_or(0, |t| t.frames_lost);
+            let seen = r
+                .unobserved
+                .as_deref()
+                .unwrap_or("the monitor saw too little of the run");
+            // Only a hardware run has a wire and a bridge to blame.
+            let (lost, cause) = if r.mode == "hardware" {
+                let wire = r.timing.as_ref().map_or(0, |t| t.frames_lost);
+                (
+                    format!(
+                        "{wire} were lost on the wire; the rest the bridge skipped or the \
+                         monitor's queue overwrote while the monitor had no CPU"
+                    ),
+                    "a drive process spinning at SCHED_FIFO on the plant's CPU leaves it none",
+                )
+            } else {
+                (
+                    "they came before this reader subscribed, or its queue overwrote them \
+                     while it had no CPU"
+                        .to_string(),
+                    "the stack's loops at SCHED_FIFO leave an ordinary-priority reader little; \
+                     an attached `record` or `monitor` takes --priority (below the loops') for \
+                     that",
+                )
+            };
             format!(
-                "{}: the figures above do not stand for the run. Of the {} samples it missed \
-                 (the longest stretch {:.3} s), {wire} were lost on the wire; the rest the \
-                 bridge skipped or the monitor's queue overwrote while the monitor had no CPU. \
-                 What to do: leave the monitor CPU time (a drive process spinning at SCHED_FIFO \
-                 on the plant's CPU leaves it none; see the deployment's CPUs), then run again.",
-                r.unobserved
-                    .as_deref()
-                    .unwrap_or("the monitor saw too little of the run"),
-                r.missed_samples,
-                r.longest_gap_s
+                "{seen}: the figures above do not stand for the run. Of the {} samples it \
+                 missed (the longest stretch {:.3} s), {lost}. What to do: leave the monitor CPU \
+                 time ({cause}; see the deployment's CPUs), then run again.",
+                r.missed_samples, r.longest_gap_s
             )
         }
         Outcome::ProcessDied if stale => {

@@ -259,6 +259,9 @@ const PENDING_STATES: usize = 16_384;
 struct MoveWatch {
     start_s: f64,
     target: f64,
+    /// The move's command, and whether the axis's status has told its target yet.
+    seq: u64,
+    target_told: bool,
     /// The trajectory reached the target (θ_d on it, ω_d zero).
     end_s: Option<f64>,
     peak: f64,
@@ -450,7 +453,8 @@ impl Metrics {
             return;
         };
         if ack.taken() && ack.request.kind == RequestKind::Move as u32 {
-            // The move's target: the axis's, as its status will tell; for a relative move
+            // The move's target until the axis's status tells it (a relative move counts
+            // from the axis's target, which an enable resets to where the rotor stands):
             // the previous target plus the step.
             let base = p.moves.last().map_or(0.0, |m| m.target);
             let target = if ack.request.flags & request_flags::RELATIVE != 0 {
@@ -461,6 +465,8 @@ impl Metrics {
             p.moves.push(MoveWatch {
                 start_s: ack.t_s,
                 target,
+                seq: ack.request.seq,
+                target_told: false,
                 end_s: None,
                 peak: 0.0,
                 last_outside: None,
@@ -471,6 +477,12 @@ impl Metrics {
 
     /// The axis's status: its first fault is the run's.
     pub fn status(&mut self, st: &AxisStatus) {
+        if let Some(m) = self.program.as_mut().and_then(|p| p.moves.last_mut()) {
+            if !m.target_told && st.last_seq == m.seq {
+                m.target = st.target_rad;
+                m.target_told = true;
+            }
+        }
         if st.fault != 0 && self.axis_fault.is_none() {
             self.axis_fault = Some(AxisFaultEvent {
                 sim_time_s: st.t_s,

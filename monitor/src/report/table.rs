@@ -295,6 +295,19 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
     let method = &r.method;
     let what = match r.outcome {
         Outcome::Ok => return None,
+        Outcome::Fault if r.fault.is_none() => {
+            // The axis's own fault (the device is healthy): the envelope stopped it.
+            let f = r.axis_fault.as_ref()?;
+            format!(
+                "the axis went to Fault ({}) at t = {:.4} s, following error {} rad; its \
+                 outputs were off until a fault reset. What to do: a following error means \
+                 the motor could not follow (a load beyond its torque, a move beyond its \
+                 limits); see [axis] following_error_window_rad and following_error_time_s.",
+                f.faults.join(", "),
+                f.sim_time_s,
+                sci(f.following_error_rad),
+            )
+        }
         Outcome::Fault => {
             let f = r.fault.as_ref()?;
             format!(

@@ -1,0 +1,152 @@
+//! The axis through processes: a served stack, commanded by `stepdrive axis` (the client
+//! crate) from other processes, as a user does.
+
+mod common;
+
+use common::*;
+use std::time::Duration;
+
+/// `serve` keeps a stack up with its axis disabled; another process enables it, moves it
+/// and waits for the target, has bad commands refused with their reason, quick-stops it;
+/// Ctrl-C ends `serve` with exit 0.
+#[test]
+fn a_served_axis_is_commanded_from_other_processes() {
+    let _turn = one_stack_at_a_time();
+    let inst = instance("served");
+    let mut serve = spawn_run(&[
+        "serve",
+        "--instance",
+        &inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+    ]);
+    let axis = |args: &[&str]| {
+        let mut all = vec!["axis", "--instance", inst.as_str()];
+        all.extend(args);
+        stepdrive(&all)
+    };
+    let text = |o: &std::process::Output| {
+        format!(
+            "{}{}",
+            String::from_utf8_lossy(&o.stdout),
+            String::from_utf8_lossy(&o.stderr)
+        )
+    };
+    assert!(
+        wait_until(Duration::from_secs(30), || axis(&["status"])
+            .status
+            .success()),
+        "the served stack did not answer"
+    );
+    let st = axis(&["status"]);
+    assert!(text(&st).contains("Switch on disabled"), "{}", text(&st));
+
+    // Refused, with the reason, nothing applied.
+    let refused = axis(&["move", "--to", "1"]);
+    assert_eq!(refused.status.code(), Some(1), "{}", text(&refused));
+    assert!(
+        text(&refused).contains("needs Operation enabled"),
+        "{}",
+        text(&refused)
+    );
+    let unknown = axis(&["--axis", "3", "status"]);
+    assert_eq!(unknown.status.code(), Some(1), "{}", text(&unknown));
+    assert!(text(&unknown).contains("axis 3"), "{}", text(&unknown));
+
+    let on = axis(&["enable"]);
+    assert!(on.status.success(), "{}", text(&on));
+    for (args, why) in [
+        (&["move", "--to", "nan"][..], "target NaN"),
+        (&["move", "--to", "1", "--vmax", "0"][..], "not positive"),
+        (&["move", "--to", "1e9"][..], "outside the soft limits"),
+    ] {
+        let out = axis(args);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {}", text(&out));
+        assert!(text(&out).contains(why), "{args:?}: {}", text(&out));
+    }
+
+    // A move to 1 rad from where the rotor stands, waited for.
+    let mv = axis(&[
+        "move",
+        "--to",
+        "1",
+        "--relative",
+        "--wait",
+        "--timeout",
+        "10",
+    ]);
+    assert!(mv.status.success(), "{}", text(&mv));
+    assert!(text(&mv).contains("reached"), "{}", text(&mv));
+
+    let qs = axis(&["quick-stop"]);
+    assert!(qs.status.success(), "{}", text(&qs));
+    let st = axis(&["status"]);
+    assert!(text(&st).contains("Quick stop active"), "{}", text(&st));
+
+    signal(serve.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    let err = stderr_of(&mut serve);
+    assert_eq!(status.code(), Some(0), "{err}");
+    assert!(processes_with(&inst).is_empty());
+}
+
+/// A load the motor cannot hold (2 N·m against a stall torque of 0.81 N·m, for 0.1 s) in a
+/// lockstep program: the axis faults on its following error within the window's time,
+/// outputs off, and the run exits 3 naming it; a reset and an enable later start where the
+/// rotor was pushed to, and a relative move from there arrives on its target.
+#[test]
+fn a_following_error_faults_the_axis_and_a_reset_resumes_without_a_jump() {
+    let dir = TempDir::new("following");
+    let scenario = dir.file(
+        "fe.toml",
+        r#"name = "following-error"
+[plant.load]
+steps = [{ at_s = 0.2, torque_nm = 2.0 }, { at_s = 0.3, torque_nm = -2.0 }]
+[[program]]
+at_s = 0.0
+command = "enable"
+[[program]]
+at_s = 0.6
+command = "reset"
+[[program]]
+at_s = 0.65
+command = "enable"
+[[program]]
+at_s = 0.7
+command = "move"
+to = 3.0
+relative = true
+"#,
+    );
+    let json = dir.path("fe.json");
+    let out = stepdrive(&[
+        "run",
+        "--method",
+        "proposed",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert_eq!(out.status.code(), Some(3), "{stdout}");
+    assert!(
+        stdout.contains("the axis went to Fault (FOLLOWING_ERROR)"),
+        "{stdout}"
+    );
+    let doc = read_json(&json);
+    let r = run_of(&doc, "proposed");
+    assert_eq!(r["outcome"], "fault");
+    let fault = &r["axis_fault"];
+    // Beyond the 0.1 rad window a few ms after the step, then the 20 ms window time.
+    let at = num(fault, "sim_time_s");
+    assert!((0.22..0.23).contains(&at), "{fault}");
+    let moves = r["moves"].as_array().expect("moves");
+    assert_eq!(moves.len(), 1, "{r}");
+    let mv = &moves[0];
+    assert!(mv["duration_s"].is_number(), "the move never arrived: {mv}");
+    assert!(num(mv, "peak_abs_error_rad") < 1e-3, "{mv}");
+    assert!(num(r, "final_error_rad").abs() < 1e-9, "{r}");
+}

@@ -139,7 +139,8 @@ fn an_instance_name_that_is_a_path_is_refused_at_once() {
     }
 }
 
-/// Finding 11, the smaller ones: a negative `--duration` is refused naming the field (was:
+/// Finding 7 and finding 11, the smaller ones. A second stack on a running stack's
+/// instance is refused naming it. A negative `--duration` is refused naming the field (was:
 /// "unexpected argument '-1'"); a load no motor torque can hold is refused by `--check`
 /// (was: accepted); a served stack stopped by Ctrl-C exits 0 without a child printing
 /// "error: terminated by signal" (was: one such line per process on every normal stop).
@@ -180,6 +181,12 @@ fn small_input_and_exit_findings() {
         "the stack did not come up"
     );
     std::thread::sleep(Duration::from_millis(500));
+    // Finding 7: a second stack on a running stack's instance is refused before it starts
+    // (before: it read the first stack's samples as its own).
+    let second = stepdrive(&["run", "--instance", &inst, "--method", "proposed"]);
+    let err = String::from_utf8_lossy(&second.stderr);
+    assert_eq!(second.status.code(), Some(1), "{err}");
+    assert!(err.contains("in use by a running stack"), "{err}");
     signal(serve.id(), libc::SIGINT);
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
     let err = stderr_of(&mut serve);

@@ -771,6 +771,33 @@ impl Presence for IpcPresence {
     }
 }
 
+/// The live iceoryx2 nodes of `instance` whose role is one of `roles` (node names are
+/// `<instance>.<role>`): a stack's loops, found before another stack is started on the
+/// same instance.
+pub fn live_nodes(instance: &str, roles: &[&str]) -> Vec<String> {
+    let config = iceoryx_config();
+    let mut found = Vec::new();
+    let result = Node::<Ipc>::list(&config, |state| {
+        if let NodeState::Alive(view) = state {
+            if let Some(details) = iceoryx2::node::NodeView::details(&view) {
+                let name = details.name().as_str();
+                let role = name
+                    .strip_prefix(instance)
+                    .and_then(|rest| rest.strip_prefix('.'));
+                if role.is_some_and(|r| roles.contains(&r)) {
+                    found.push(name.to_string());
+                }
+            }
+        }
+        CallbackProgression::Continue
+    });
+    if let Err(e) = result {
+        tracing::warn!(error = ?e, "could not list iceoryx2 nodes");
+    }
+    found.sort();
+    found
+}
+
 /// Removes what crashed processes left behind (nodes, ports, shared memory). Call it
 /// before starting a stack and after its processes have been reaped.
 pub fn cleanup_dead_nodes() -> usize {

@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use std::process::ExitStatus;
 use stepdrive_emulated_drive::truth::TruthRow;
 use stepdrive_runtime::deploy::Deployment;
-use stepdrive_runtime::ipc::{cleanup_dead_nodes, IpcBus, Stamp};
+use stepdrive_runtime::ipc::{cleanup_dead_nodes, live_nodes, IpcBus, Stamp};
 use stepdrive_runtime::port::PortFactory;
 use stepdrive_shared::messages::DriveState;
 use stepdrive_shared::scenario::Mode;
@@ -89,6 +89,23 @@ fn launch(
         tracing::warn!(
             removed,
             "removed resources of dead stepdrive/iceoryx2 nodes"
+        );
+    }
+    // A second stack on a running stack's instance would read the first's samples as its
+    // own (and its loops would answer them): refused before anything starts.
+    let loops = [
+        Role::Plant,
+        Role::Bridge,
+        Role::CurrentLoop,
+        Role::PositionLoop,
+    ];
+    let busy = live_nodes(&opts.instance, &loops.map(|r| r.id()));
+    if !busy.is_empty() {
+        anyhow::bail!(
+            "instance `{}` is in use by a running stack ({}): stop it, or give this one \
+             another --instance",
+            opts.instance,
+            busy.join(", ")
         );
     }
     let emulated = mode == Mode::Hardware && d.drive.address.is_none();

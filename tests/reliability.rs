@@ -333,7 +333,14 @@ fn a_restarted_current_loop_rejoins_and_a_reset_clears_the_fault() {
                 num(r, "final_error_rad").abs() < 1e-4,
                 "control did not resume: {r}"
             );
+            // Round 3, finding 10: the report says the reset cleared it (its headline said
+            // "its outputs were off from then on" after a reset).
+            assert!(
+                num(r, "fault_cleared_at_s") > num(&r["fault"], "sim_time_s"),
+                "{r}"
+            );
         } else {
+            assert!(r.get("fault_cleared_at_s").is_none(), "{r}");
             assert_eq!(plant_status.code(), Some(3), "{plant_log}");
             assert!(plant_log.contains("FAULT (exit 3)"), "{plant_log}");
             assert!(num(r, "final_error_rad").abs() > 1e-3, "{r}");

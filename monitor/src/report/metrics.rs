@@ -36,6 +36,9 @@ pub struct RunReport {
     /// When the position loop went silent and the current loop stopped the motor, s.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub setpoint_stale_at_s: Option<f64>,
+    /// When the first latched fault was cleared (a reset), s; absent: it stayed latched.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub fault_cleared_at_s: Option<f64>,
     /// When |θ_d − θ| first passed the step-out threshold (one electrical period), s.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stepped_out_at_s: Option<f64>,
@@ -227,6 +230,8 @@ pub struct Metrics {
     /// The first state whose command came from a current loop stopping the motor on its
     /// own (the position loop went silent), and the axis's first fault.
     first_stale: Option<(u64, f64)>,
+    /// The first sample after the first latched fault with none latched (a reset), s.
+    cleared_at: Option<f64>,
     /// The first sample beyond the step-out threshold, s.
     stepped_out_at: Option<f64>,
     axis_fault: Option<AxisFaultEvent>,
@@ -370,6 +375,7 @@ impl Metrics {
                 moves: Vec::with_capacity(s.program.len()),
             }),
             first_stale: None,
+            cleared_at: None,
             stepped_out_at: None,
             axis_fault: None,
         }
@@ -566,6 +572,9 @@ impl Metrics {
         if s.fault & !fault_bits::DRIVE_SILENT != 0 {
             self.faults += 1;
         }
+        if self.first_latched.is_some() && s.fault & LATCHED == 0 && self.cleared_at.is_none() {
+            self.cleared_at = Some(t);
+        }
         if s.fault & LATCHED != 0 && self.first_latched.is_none() {
             let seen_unix_s = std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
@@ -716,6 +725,7 @@ impl Metrics {
             axis_fault: self.axis_fault.clone(),
             setpoint_stale_at_s: self.first_stale.map(|(_, t)| t),
             stepped_out_at_s: self.stepped_out_at,
+            fault_cleared_at_s: self.cleared_at,
         }
     }
 }

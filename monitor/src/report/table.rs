@@ -310,15 +310,24 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
         }
         Outcome::Fault => {
             let f = r.fault.as_ref()?;
+            let off = match r.fault_cleared_at_s {
+                Some(t) => format!(
+                    "its outputs were off until a reset cleared it at t = {t:.4} s ({} faulted \
+                     samples in the run)",
+                    r.fault_samples
+                ),
+                None => format!(
+                    "its outputs were off from then on ({} faulted samples)",
+                    r.fault_samples
+                ),
+            };
             format!(
-                "{} latched {} at t = {:.4} s (sample {}, seen {}); its outputs were off from then \
-                 on ({} faulted samples). What to do: {}.",
+                "{} latched {} at t = {:.4} s (sample {}, seen {}); {off}. What to do: {}.",
                 f.latched_by(&r.mode),
                 f.faults.join(" and "),
                 f.sim_time_s,
                 f.sample,
                 utc_time_of_day(f.seen_unix_s),
-                r.fault_samples,
                 f.advice()
             )
         }

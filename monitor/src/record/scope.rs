@@ -19,7 +19,7 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 use stepdrive_runtime::port::PortFactory;
 use stepdrive_shared::frames::dq_currents;
-use stepdrive_shared::messages::DriveState;
+use stepdrive_shared::messages::{state_flags, DriveState};
 use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::stack::{Role, Slot};
 use stepdrive_shared::stats::StatsReport;
@@ -63,6 +63,9 @@ pub struct View {
     last_seq: Option<u64>,
     /// Keep one sample in `every`.
     every: u64,
+    /// The stack's last sample came (its LAST flag), or it went silent: what is shown is
+    /// where it ended.
+    pub ended: Option<&'static str>,
 }
 
 impl View {
@@ -82,6 +85,7 @@ impl View {
             missed: 0,
             last_seq: None,
             every: 1,
+            ended: None,
         };
         v.set_span(3, s.rates.current_loop_hz);
         v
@@ -109,6 +113,7 @@ impl View {
         self.last_seq = Some(st.seq);
         self.samples += 1;
         self.fault = st.fault;
+        self.ended = (st.flags & state_flags::LAST != 0).then_some("ENDED (its last sample)");
         if self.paused || st.seq % self.every != 0 {
             return;
         }
@@ -152,6 +157,12 @@ fn header(v: &View) -> Vec<Line<'static>> {
             if v.paused { "   PAUSED" } else { "" }
         )),
     ])];
+    if let Some(why) = v.ended {
+        lines[0].spans.push(Span::styled(
+            format!("   STACK {why}"),
+            Style::new().add_modifier(Modifier::BOLD | Modifier::REVERSED),
+        ));
+    }
     let mut timing = Vec::new();
     for slot in Slot::ALL {
         let Some(r) = v.stats[slot.index()] else {
@@ -267,6 +278,9 @@ pub fn render(f: &mut Frame, v: &View) {
     }
 }
 
+/// A stack this long without a sample is shown as ended.
+const SILENT: Duration = Duration::from_secs(2);
+
 /// Attaches to `instance` (running `given`, or the scenario it announces) and shows it until
 /// `q`, Ctrl-C, or the stack's end.
 pub fn run_scope(instance: &str, given: Option<&Scenario>) -> Result<()> {
@@ -280,9 +294,14 @@ pub fn run_scope(instance: &str, given: Option<&Scenario>) -> Result<()> {
     let mut terminal = ratatui::init();
     let outcome = (|| -> Result<()> {
         let mut next_frame = Instant::now();
+        let mut heard = Instant::now();
         loop {
             while let Some(st) = states.receive()? {
                 view.push_state(&st);
+                heard = Instant::now();
+            }
+            if view.ended.is_none() && view.samples > 0 && heard.elapsed() > SILENT {
+                view.ended = Some("SILENT (no sample for 2 s)");
             }
             while let Some(r) = stats.receive()? {
                 view.push_stats(&r);
@@ -404,6 +423,18 @@ mod tests {
             Color::Red,
             "the fault line is red"
         );
+        // The stack's last sample: the view says it ended (round 3, finding 11: it kept
+        // its last frame with no mark).
+        assert!(!screen.contains("STACK ENDED"));
+        v.push_state(&DriveState {
+            seq: 20_010,
+            sample_time_s: 20_010.0 / s.rates.current_loop_hz,
+            flags: stepdrive_shared::messages::state_flags::LAST,
+            ..Default::default()
+        });
+        t.draw(|f| render(f, &v)).expect("draw");
+        let screen = text(&t);
+        assert!(screen.contains("STACK ENDED (its last sample)"), "{screen}");
     }
 
     #[test]

@@ -99,6 +99,9 @@ pub fn attach_reader(
 ) -> Result<(IpcBus, Scenario)> {
     let wait = Duration::from_secs(30);
     let deadline = Instant::now() + wait;
+    tracing::info!(
+        "attaching to the stack on instance `{instance}` (waiting up to 30 s for it; Ctrl-C stops)"
+    );
     let mut bus = IpcBus::attach(instance, role, wait)?;
     // The device announces before it publishes its first state (a launcher's monitor may
     // have created the stack's services before the device came up).

@@ -58,7 +58,10 @@ impl Supervised {
             let last_error = Arc::clone(&last_error);
             std::thread::spawn(move || {
                 for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                    eprintln!("[{}] {line}", role.id());
+                    crate::supervise::supervisor::print_beside_progress(&format!(
+                        "[{}] {line}",
+                        role.id()
+                    ));
                     if let Some(msg) = line.strip_prefix("error: ") {
                         if let Ok(mut slot) = last_error.lock() {
                             *slot = Some(msg.to_string());

@@ -459,6 +459,19 @@ impl<'a, 'r> Supervisor<'a, 'r> {
     }
 }
 
+/// The progress bar on the terminal now, if any: a child's log line printed under it
+/// would leave the bar's last frame standing (at 97 %, say) when it is cleared.
+static SHOWN_BAR: std::sync::Mutex<Option<indicatif::ProgressBar>> = std::sync::Mutex::new(None);
+
+/// Prints `line` on stderr, with the progress bar (if one is shown) out of its way.
+pub fn print_beside_progress(line: &str) {
+    let bar = SHOWN_BAR.lock().ok().and_then(|b| b.clone());
+    match bar {
+        Some(bar) => bar.suspend(|| eprintln!("{line}")),
+        None => eprintln!("{line}"),
+    }
+}
+
 /// Progress of a run: a bar on a terminal (simulated time, misses, faults), plain lines
 /// otherwise (a log, CI).
 struct Progress {
@@ -482,6 +495,9 @@ impl Progress {
             bar.set_prefix(label.to_string());
             bar
         });
+        if let (Some(bar), Ok(mut shown)) = (&bar, SHOWN_BAR.lock()) {
+            *shown = Some(bar.clone());
+        }
         Self {
             label: label.to_string(),
             bar,
@@ -539,7 +555,9 @@ impl Progress {
 
     fn finish(&self) {
         if let Some(bar) = &self.bar {
-            // The whole run shown as done when it reached its end.
+            if let Ok(mut shown) = SHOWN_BAR.lock() {
+                *shown = None;
+            }
             bar.finish_and_clear();
         }
     }

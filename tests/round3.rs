@@ -194,3 +194,40 @@ fn small_input_and_exit_findings() {
     assert!(!err.contains("terminated by signal"), "{err}");
     assert!(processes_with(&inst).is_empty());
 }
+
+/// Finding 9: `record` started before a realtime stack missed its first 0.16-0.18 s (3300-
+/// 3600 samples) and ended UNOBSERVED (exit 6): it subscribed to the states only after the
+/// device had announced itself and started publishing. It now subscribes as soon as the
+/// stack's services exist, and sees every sample.
+#[test]
+fn a_recorder_started_before_the_stack_sees_every_sample() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("recordfirst");
+    let scenario = dir.file("short.toml", &format!("{SHORT}\n[run]\nduration_s = 2.0\n"));
+    let inst = instance("recordfirst");
+    let mcap = dir.path("first.mcap");
+    let json = dir.path("first.json");
+    let mut record = spawn_run(&[
+        "record",
+        mcap.to_str().unwrap(),
+        "--instance",
+        &inst,
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    std::thread::sleep(Duration::from_millis(300));
+    let mut args = vec!["run", "--mode", "realtime", "--method", "proposed"];
+    args.extend(realtime_test_args(&scenario, &inst, "2.0"));
+    let run = stepdrive(&args);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stdout)
+    );
+    let status = wait_with_timeout(&mut record, Duration::from_secs(30));
+    let out = stdout_of(&mut record);
+    assert!(status.success(), "{out}");
+    let r = run_of(&read_json(&json), "proposed").clone();
+    assert_eq!(num(&r, "missed_samples"), 0.0, "{r}");
+    assert_eq!(num(&r, "samples"), 40_001.0, "{r}");
+}

@@ -564,8 +564,9 @@ pub fn monitor(a: MonitorArgs) -> Result<()> {
     a.apply_priority()?;
     let given = a.scenario.given()?;
     let json = JsonOut::create(a.json.as_ref())?;
-    let (bus, s) = attach_reader(&a.instance, Role::Monitor.id(), given.as_ref())?;
-    let report = watch(bus, &a.instance, &s, a.method, a.peer_timeout_s, None)?;
+    let attached = attach_reader(&a.instance, Role::Monitor.id(), given.as_ref())?;
+    let s = attached.scenario.clone();
+    let report = watch(attached, &a.instance, a.method, a.peer_timeout_s, None)?;
     conclude(&s, &[report], json)
 }
 
@@ -584,12 +585,12 @@ pub fn record(a: RecordArgs) -> Result<()> {
     w.apply_priority()?;
     let given = w.scenario.given()?;
     let json = JsonOut::create(w.json.as_ref())?;
-    let (bus, s) = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref())?;
+    let attached = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref())?;
+    let s = attached.scenario.clone();
     let mut recording = Recording::create(&a.file, &s)?;
     let report = watch(
-        bus,
+        attached,
         &w.instance,
-        &s,
         w.method,
         w.peer_timeout_s,
         Some(&mut recording),

@@ -20,7 +20,6 @@ use std::time::{Duration, Instant};
 use stepdrive_runtime::port::PortFactory;
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::{state_flags, DriveState};
-use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::stack::{Role, Slot};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::trajectory::Trapezoid;
@@ -285,9 +284,12 @@ const SILENT: Duration = Duration::from_secs(2);
 /// `q`, Ctrl-C, or the stack's end.
 pub fn run_scope(instance: &str, given: Option<&Scenario>) -> Result<()> {
     use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
-    let (mut bus, scenario) = crate::supervise::attach::attach_reader(instance, "scope", given)?;
+    let crate::supervise::attach::Attached {
+        mut bus,
+        scenario,
+        mut states,
+    } = crate::supervise::attach::attach_reader(instance, "scope", given)?;
     let s = &scenario;
-    let mut states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     let mut stats = bus.subscriber::<StatsReport>(4)?;
     let rate = s.rates.current_loop_hz;
     let mut view = View::new(s, instance, bus.mode().as_str());

@@ -92,17 +92,24 @@ pub fn describe(r: &ResetResult) -> String {
 /// the stack's to say: without `given` it is the one the stack announces; with it, it must
 /// be the stack's (the reader's figures would mean nothing for another), and the fields
 /// that differ are named.
-pub fn attach_reader(
-    instance: &str,
-    role: &str,
-    given: Option<&Scenario>,
-) -> Result<(IpcBus, Scenario)> {
+/// A reader attached to a stack: its bus, the stack's scenario, and the state subscriber
+/// it opened first.
+pub struct Attached {
+    pub bus: IpcBus,
+    pub scenario: Scenario,
+    pub states: Box<dyn Subscribe<DriveState>>,
+}
+
+pub fn attach_reader(instance: &str, role: &str, given: Option<&Scenario>) -> Result<Attached> {
     let wait = Duration::from_secs(30);
     let deadline = Instant::now() + wait;
     tracing::info!(
         "attaching to the stack on instance `{instance}` (waiting up to 30 s for it; Ctrl-C stops)"
     );
     let mut bus = IpcBus::attach(instance, role, wait)?;
+    // Subscribed at once, before waiting for the device: a realtime device publishes from
+    // its first period, and every sample before this subscription is one the reader missed.
+    let states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
     // The device announces before it publishes its first state (a launcher's monitor may
     // have created the stack's services before the device came up).
     let presence = bus.presence()?;
@@ -121,8 +128,13 @@ pub fn attach_reader(
         }
         None => None,
     };
+    let attached = |bus, scenario| Attached {
+        bus,
+        scenario,
+        states,
+    };
     match (given, announced) {
-        (None, Some(theirs)) => Ok((bus, theirs)),
+        (None, Some(theirs)) => Ok(attached(bus, theirs)),
         (None, None) => bail!(
             "the stack on instance `{instance}` ({}) does not announce its scenario (a stack \
              of an older stepdrive): give it with --scenario",
@@ -130,7 +142,7 @@ pub fn attach_reader(
         ),
         (Some(ours), theirs) => {
             if bus.stamp() == &Stamp::new(bus.mode(), ours) {
-                return Ok((bus, ours.clone()));
+                return Ok(attached(bus, ours.clone()));
             }
             let differ = match &theirs {
                 Some(t) => differing_fields(t, ours)
@@ -191,13 +203,18 @@ pub fn differing_fields(stack: &Scenario, given: &Scenario) -> Result<Vec<String
 /// labels the report. With `recording`, every sample seen goes to the file, with
 /// the setpoints, commands and (realtime) plans, and those missed are counted.
 pub fn watch(
-    mut bus: IpcBus,
+    attached: Attached,
     instance: &str,
-    scenario: &Scenario,
     method: Method,
     peer_timeout: Duration,
     recording: Option<&mut Recording>,
 ) -> Result<RunReport> {
+    let Attached {
+        mut bus,
+        scenario,
+        states,
+    } = attached;
+    let scenario = &scenario;
     let mode = bus.mode();
     let controls = Controls::open(
         &mut bus,
@@ -206,7 +223,7 @@ pub fn watch(
         !scenario.program.is_empty(),
     )?;
     let feeds = Feeds {
-        states: bus.subscriber::<DriveState>(MONITOR_BUFFER)?,
+        states,
         stats: bus.subscriber::<StatsReport>(4)?,
         controls,
     };

@@ -10,7 +10,7 @@ use crate::program::Program;
 use stepdrive_control::position_loop::{measured, PositionLoop};
 use stepdrive_runtime::inbox::Inbox;
 use stepdrive_runtime::ipc::COMMANDS_PER_CYCLE;
-use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
+use stepdrive_runtime::node::{Awaits, Cx, Flow, Late, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{AxisServer, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
 use stepdrive_shared::axis::{
@@ -268,6 +268,19 @@ impl Node for PositionLoopNode {
             "a current loop subscribed to control/setpoint".to_string()
         } else {
             "drive/state from the plant".to_string()
+        }
+    }
+
+    /// Paced by its input, it sleeps until its next tick's state, or until its queue is
+    /// half full (the plant would wait on a full one).
+    fn awaits(&self) -> Awaits {
+        if self.pace != Pace::Input {
+            return Awaits::Next;
+        }
+        let next = self.latest.map_or(0, |s| s.seq + 1);
+        let tick = next.div_ceil(self.ratio) * self.ratio;
+        Awaits::Later {
+            state: Some(tick.min(next + LOOP_BUFFER as u64 / 2)),
         }
     }
 

@@ -4,6 +4,7 @@
 //! stack's [`Stamp`] as service attributes: a process of another mode or scenario is refused
 //! at once, with both named, instead of exchanging messages that mean something else.
 
+use crate::doorbell::{Doorbells, Ringer};
 use crate::port::{
     BoxedError, Listen, Notify, PortError, PortFactory, Presence, Publish, Serve, Subscribe,
 };
@@ -108,6 +109,8 @@ pub struct IpcBus {
     names: ServiceNames,
     stamp: Stamp,
     verifier: AttributeVerifier,
+    /// Lockstep: the instance's doorbells, rung by every publisher.
+    doorbells: Option<Doorbells>,
 }
 
 impl IpcBus {
@@ -146,11 +149,16 @@ impl IpcBus {
             .require(&mode_key, &mode)
             .and_then(|v| v.require(&scenario_key, &scenario))
             .map_err(|e| attribute_error(boxed(e)))?;
+        let doorbells = match stamp.mode {
+            Mode::Lockstep => Some(Doorbells::open(instance)?),
+            Mode::Realtime | Mode::Hardware => None,
+        };
         Ok(Self {
             node,
             names,
             stamp: stamp.clone(),
             verifier,
+            doorbells,
         })
     }
 
@@ -198,6 +206,11 @@ impl IpcBus {
 
     pub fn stamp(&self) -> &Stamp {
         &self.stamp
+    }
+
+    /// Lockstep: the instance's doorbells (a runner waits on its role's).
+    pub fn doorbells(&self) -> Option<&Doorbells> {
+        self.doorbells.as_ref()
     }
 
     /// The stamp the service `name` was created with, as a sentence.
@@ -319,6 +332,7 @@ impl IpcBus {
         Ok(IpcPublisher {
             publisher,
             service,
+            ringer: self.doorbells.as_ref().map(|d| d.ringer(M::TOPIC)),
             _factory: factory,
         })
     }
@@ -626,6 +640,8 @@ impl IpcBus {
 pub struct IpcPublisher<M: Message> {
     publisher: iceoryx2::port::publisher::Publisher<Ipc, M, ()>,
     service: String,
+    /// Lockstep: wakes the readers that sleep for what was published.
+    ringer: Option<Ringer>,
     _factory: TopicFactory<M>,
 }
 
@@ -633,12 +649,15 @@ impl<M: Message> Publish<M> for IpcPublisher<M> {
     fn publish(&mut self, message: &M) -> Result<(), PortError> {
         self.publisher
             .send_copy(*message)
-            .map(|_| ())
             .map_err(|e| PortError::Transfer {
                 service: self.service.clone(),
                 operation: "send",
                 source: boxed(e),
-            })
+            })?;
+        if let Some(ringer) = &self.ringer {
+            ringer.ring(message.stream_key());
+        }
+        Ok(())
     }
 
     fn connect(&mut self) -> Result<(), PortError> {

@@ -5,13 +5,14 @@
 //! thread ([`simulation`]). Ports are traits ([`port`]) with an iceoryx2 implementation
 //! ([`ipc`]) and an in-memory one ([`memory`]).
 //!
-//! Around it: the clocks ([`clock`], [`pacer`]), waiting and termination ([`poll`]), real-time
+//! Around it: the clocks ([`clock`], [`pacer`]), waiting and termination ([`poll`], lockstep's [`doorbell`]), real-time
 //! setup ([`rt`]), the per-cycle records ([`cycle`]), the host-hold accounting ([`steal`]),
 //! and the deployment settings every process reads ([`deploy`]).
 
 pub mod clock;
 pub mod cycle;
 pub mod deploy;
+pub mod doorbell;
 pub mod error;
 pub mod inbox;
 pub mod ipc;
@@ -27,4 +28,4 @@ pub mod simulation;
 pub mod steal;
 
 pub use error::RunError;
-pub use node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
+pub use node::{Awaits, Cx, Flow, Late, Node, Pace, Poll, Role, Start};

@@ -10,6 +10,17 @@ use crate::error::RunError;
 pub use stepdrive_shared::stack::Role;
 use stepdrive_shared::stats::StatsReport;
 
+/// Lockstep: what a waiting node's next input depends on, so that the runner spins only
+/// for an answer that comes within a hand-off.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Awaits {
+    /// The peer's answer to what it just published: spin a little, then sleep.
+    Next,
+    /// Something a position-loop tick away: sleep at once, woken by any message (None) or
+    /// from that state on (the position loop sleeps through the states between its ticks).
+    Later { state: Option<u64> },
+}
+
 /// What starts a node's cycle.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Pace {
@@ -161,6 +172,11 @@ pub trait Node {
     /// the input comes).
     fn spin_past_due_ns(&self) -> Option<u64> {
         None
+    }
+
+    /// Lockstep: how it waits on its doorbell ([`crate::doorbell`]) for its next input.
+    fn awaits(&self) -> Awaits {
+        Awaits::Next
     }
 
     /// Blocks until input may have arrived, or `until_ns` (it is `now_ns`), on whatever the

@@ -41,6 +41,8 @@ pub enum PortError {
         #[source]
         source: BoxedError,
     },
+    #[error(transparent)]
+    Doorbell(#[from] crate::doorbell::DoorbellError),
     #[error("{operation} on `{service}` failed")]
     Transfer {
         service: String,

@@ -3,6 +3,7 @@
 //! process goes through [`run_process`].
 
 use crate::deploy::Deployment;
+use crate::doorbell::Waiter;
 use crate::error::RunError;
 use crate::ipc::{IpcBus, ScenarioBoard, Stamp};
 use crate::node::{Node, Role};
@@ -35,6 +36,8 @@ const STATS_LINGER: Duration = Duration::from_millis(200);
 pub struct Process<'a> {
     spec: &'a ProcessSpec<'a>,
     stats: Option<Box<dyn crate::port::Publish<stepdrive_shared::stats::StatsReport>>>,
+    /// Lockstep: the doorbell its node sleeps on.
+    bell: Option<Waiter>,
     /// The device announces the stack's scenario to anyone attaching, for as long as it
     /// runs.
     _scenario: Option<ScenarioBoard>,
@@ -62,6 +65,7 @@ impl<'a> Process<'a> {
             Self {
                 spec,
                 stats,
+                bell: bus.doorbells().map(|d| d.waiter(spec.role)),
                 _scenario: scenario,
             },
             bus,
@@ -89,7 +93,9 @@ impl<'a> Process<'a> {
             "{} up",
             spec.role
         );
-        Runner::new(node, ports, settings, self.stats.take()).run()
+        Runner::new(node, ports, settings, self.stats.take())
+            .with_doorbell(self.bell.take())
+            .run()
     }
 }
 

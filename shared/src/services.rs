@@ -186,6 +186,12 @@ pub const STATE_READY: &str = "drive/state-ready";
 #[cfg(feature = "ipc")]
 pub trait Message: Copy + Debug + ZeroCopySend + 'static {
     const TOPIC: Topic;
+    /// Its place in its stream when a lockstep reader may sleep until a given one: a
+    /// state's sequence number (the position loop sleeps through the states between its
+    /// ticks). None: every message of the topic is worth a wake-up.
+    fn stream_key(&self) -> Option<u64> {
+        None
+    }
 }
 
 /// A message type of the stack and the one topic it travels on (without iceoryx2: the
@@ -193,10 +199,23 @@ pub trait Message: Copy + Debug + ZeroCopySend + 'static {
 #[cfg(not(feature = "ipc"))]
 pub trait Message: Copy + Debug + 'static {
     const TOPIC: Topic;
+    /// Its place in its stream when a lockstep reader may sleep until a given one: a
+    /// state's sequence number (the position loop sleeps through the states between its
+    /// ticks). None: every message of the topic is worth a wake-up.
+    fn stream_key(&self) -> Option<u64> {
+        None
+    }
 }
 
 impl Message for DriveState {
     const TOPIC: Topic = Topic::State;
+    /// The last state wakes every reader: it may fall between a reader's ticks.
+    fn stream_key(&self) -> Option<u64> {
+        if self.flags & crate::messages::state_flags::LAST != 0 {
+            return Some(u64::MAX);
+        }
+        Some(self.seq)
+    }
 }
 impl Message for DriveCommand {
     const TOPIC: Topic = Topic::Command;

@@ -241,6 +241,10 @@ pub const IDENTIFY: NodeDecl = NodeDecl {
     writes: &[Topic::Command, Topic::Plan, Topic::Stats],
 };
 
+/// Every node a stack's processes can run (the monitor is not one: it never blocks a
+/// peer).
+pub const NODES: [NodeDecl; 5] = [PLANT, BRIDGE, CURRENT_LOOP, POSITION_LOOP, IDENTIFY];
+
 /// The supervisor: every state (it may fall behind in realtime: what it missed is counted),
 /// and, when it records, every setpoint, command and plan.
 pub const MONITOR: NodeDecl = NodeDecl {

@@ -175,6 +175,8 @@ impl Drop for Supervised {
 /// launcher killed before then leaves it; the next launch removes such leftovers.
 pub struct RunFiles {
     dir: PathBuf,
+    /// The lockstep doorbells' page of the instance goes with the run.
+    instance: String,
 }
 
 /// The prefix of a run's directory: `stepdrive-<launcher pid>-<instance>`.
@@ -191,7 +193,10 @@ impl RunFiles {
             std::env::temp_dir().join(format!("{RUN_DIR_PREFIX}{}-{instance}", std::process::id()));
         std::fs::create_dir_all(&dir)
             .with_context(|| format!("cannot create {}", dir.display()))?;
-        let files = Self { dir };
+        let files = Self {
+            dir,
+            instance: instance.to_string(),
+        };
         let write = |path: PathBuf, text: String| {
             std::fs::write(&path, text).with_context(|| format!("cannot write {}", path.display()))
         };
@@ -258,6 +263,7 @@ impl RunFiles {
 impl Drop for RunFiles {
     fn drop(&mut self) {
         let _ = std::fs::remove_dir_all(&self.dir);
+        stepdrive_runtime::doorbell::remove(&self.instance);
     }
 }
 

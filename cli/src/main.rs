@@ -70,7 +70,8 @@ enum Cmd {
     /// Draw the paper's figures from a recording (run --record): position, tracking error
     /// (linear and log, eq. (7) bound), phase currents and voltages (full-run envelope beside
     /// a zoom), i_d/i_q, torque; every pass's cruise window and any fault marked; SVG and
-    /// PNG, methods overlaid.
+    /// PNG, methods overlaid. A run with a `[[program]]` adds its moves: θ_d against θ, the
+    /// following error, ω_d and ω, α_d, the axis state shaded (program_*.png).
     Plot(commands::PlotArgs),
     /// Write a recording's topics as CSV files, one per topic (time in s, SI columns).
     Export(commands::ExportArgs),

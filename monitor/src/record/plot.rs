@@ -10,7 +10,7 @@
 //! never over the data. What goes where is computed by pure functions (envelopes, ticks,
 //! windows, fault spans, overlaps, the legend's layout); plotters only draws it.
 
-use crate::record::recording::{RecordError, Recorded, StateRecord};
+use crate::record::recording::{RecordError, Recorded, StateRecord, StatusRecord};
 use crate::report::outcome::{fault_names, LATCHED};
 use plotters::coord::ranged1d::{KeyPointHint, NoDefaultFormatting, Ranged, ValueFormatter};
 use plotters::coord::types::RangedCoordf64;
@@ -18,6 +18,7 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 use std::path::{Path, PathBuf};
+use stepdrive_shared::axis::AxisState;
 use stepdrive_shared::trajectory::Trapezoid;
 use stepdrive_shared::Scenario;
 
@@ -116,6 +117,9 @@ enum SpanKind {
     Zoom,
     /// A run's fault bits were set: the name to write above the plot, and the legend's text.
     Fault { label: String, legend: String },
+    /// The axis was in this CiA 402 state (a program's figures; Operation enabled is not
+    /// shaded).
+    Axis(AxisState),
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -977,6 +981,155 @@ fn figures(rec: &Recorded, s: Option<&Scenario>) -> Vec<Figure> {
     ]
 }
 
+/// The shade of an axis state on a program's figures: greys while the power is off, amber
+/// in a quick stop, red in a fault; Operation enabled is not shaded.
+fn axis_fill(state: AxisState) -> RGBColor {
+    match state {
+        AxisState::NotReadyToSwitchOn | AxisState::SwitchOnDisabled => RGBColor(150, 150, 150),
+        AxisState::ReadyToSwitchOn | AxisState::SwitchedOn => RGBColor(120, 160, 210),
+        AxisState::OperationEnabled => WHITE,
+        AxisState::QuickStopActive => RGBColor(240, 170, 40),
+        AxisState::FaultReactionActive | AxisState::Fault => FAULT,
+    }
+}
+
+/// The stretches a run's axis spent in each state but Operation enabled, from its statuses.
+fn axis_spans(statuses: &[StatusRecord]) -> Vec<Span> {
+    let mut spans: Vec<Span> = Vec::new();
+    for (i, r) in statuses.iter().enumerate() {
+        let Some(state) = AxisState::from_u32(r.state_code) else {
+            continue;
+        };
+        let to = statuses.get(i + 1).map_or(r.t, |n| n.t);
+        match spans.last_mut() {
+            Some(last) if last.kind == SpanKind::Axis(state) && last.to >= r.t => last.to = to,
+            _ => spans.push(Span {
+                from: r.t,
+                to,
+                kind: SpanKind::Axis(state),
+            }),
+        }
+    }
+    spans.retain(|s| s.kind != SpanKind::Axis(AxisState::OperationEnabled));
+    spans
+}
+
+/// A program's figures (a run whose position loop published axis statuses): the setpoint
+/// against the motor, the following error, ω_d and α_d of the trajectory generator, the
+/// axis state shaded beneath. None for a run without statuses (the scenario's profile).
+fn program_figures(rec: &Recorded) -> Vec<Figure> {
+    let runs: Vec<(&str, &[StatusRecord])> = rec
+        .statuses
+        .iter()
+        .filter(|(_, v)| !v.is_empty())
+        .map(|(m, v)| (m.as_str(), v.as_slice()))
+        .collect();
+    let Some(&(_, first)) = runs.first() else {
+        return Vec::new();
+    };
+    let several = runs.len() > 1;
+    let named = |label: &str, method: &str| match several {
+        true => format!("{label} ({method})"),
+        false => label.to_string(),
+    };
+    let (start, end) = runs.iter().fold((f64::MAX, f64::MIN), |(a, b), (_, v)| {
+        (
+            a.min(v.first().map_or(a, |r| r.t)),
+            b.max(v.last().map_or(b, |r| r.t)),
+        )
+    });
+    let line = |i: usize, label: &str, f: &dyn Fn(&StatusRecord) -> f64, color, stroke| {
+        let (method, statuses) = runs[i];
+        Series {
+            run: Some(i),
+            ..Series::line(
+                named(label, method),
+                statuses.iter().map(|r| (r.t, f(r))).collect(),
+                color,
+                stroke,
+            )
+        }
+    };
+    let panel = |y_label: &str, series: Vec<Series>| Panel {
+        title: None,
+        y_label: y_label.to_string(),
+        series,
+        window: (start, end),
+        zoomed: false,
+        log: false,
+    };
+    // The first run's axis states (several runs of one program share them but for faults,
+    // which each run's fault spans name).
+    let mut spans = axis_spans(first);
+    for (method, states) in &rec.runs {
+        for f in fault_spans(states) {
+            let name = named(&short_fault_name(f.bits), method);
+            spans.push(Span {
+                from: f.from,
+                to: f.to,
+                kind: SpanKind::Fault {
+                    legend: format!("{name}: set at {:.3} s", f.from),
+                    label: name,
+                },
+            });
+        }
+    }
+    let color = |i: usize| COLORS[i % COLORS.len()];
+    let per_run = |label: &str, f: &dyn Fn(&StatusRecord) -> f64, stroke| -> Vec<Series> {
+        (0..runs.len())
+            .map(|i| line(i, label, f, color(i), stroke))
+            .collect()
+    };
+    let mut position = per_run("θ_d (setpoint)", &|r| r.theta_d, Stroke::Solid);
+    position.extend(
+        (0..runs.len()).map(|i| line(i, "θ (measured)", &|r| r.theta, light(color(i)), SECOND)),
+    );
+    let mut velocity = per_run("ω_d (setpoint)", &|r| r.omega_d, Stroke::Solid);
+    velocity.extend(
+        (0..runs.len()).map(|i| line(i, "ω (measured)", &|r| r.omega, light(color(i)), SECOND)),
+    );
+    let figure = |file, title: &str, panel: Panel| {
+        let mut f = Figure {
+            file,
+            title: title.to_string(),
+            panels: vec![panel],
+            spans: spans.clone(),
+        };
+        for p in &mut f.panels {
+            mark_overlaps(p);
+        }
+        f
+    };
+    vec![
+        figure(
+            "program_position",
+            "Program: setpoint and measured position, the axis state shaded",
+            panel("θ [rad]", position),
+        ),
+        figure(
+            "program_following_error",
+            "Program: following error θ_d − θ at each position-loop tick",
+            panel(
+                "θ_d − θ [rad]",
+                per_run("following error", &|r| r.following_error, Stroke::Solid),
+            ),
+        ),
+        figure(
+            "program_velocity",
+            "Program: the trajectory's velocity and the measured one",
+            panel("ω [rad/s]", velocity),
+        ),
+        figure(
+            "program_acceleration",
+            "Program: the trajectory's acceleration (jerk-limited: ramps, no steps)",
+            panel(
+                "α_d [rad/s²]",
+                per_run("α_d (setpoint)", &|r| r.alpha_d, Stroke::Solid),
+            ),
+        ),
+    ]
+}
+
 /// What a legend entry's swatch shows.
 #[derive(Debug, Clone, Copy, PartialEq)]
 enum Swatch {
@@ -1037,6 +1190,10 @@ fn legend(f: &Figure) -> Vec<(Swatch, String)> {
                 Swatch::Shade(ZOOM_FILL, ZOOM_FILL),
                 format!("zoomed at right: {:.3}–{:.3} s", sp.from, sp.to),
             ),
+            SpanKind::Axis(state) => {
+                let fill = axis_fill(*state);
+                add(Swatch::Shade(fill, fill), format!("axis {}", state.name()));
+            }
             SpanKind::Fault { legend, .. } => {
                 let outside = match shown {
                     Some((_, b)) if sp.from > b => " (after this window)",
@@ -1183,7 +1340,7 @@ where
         .filter(|s| match s.kind {
             // The zoomed panel shows one stretch: only a fault is marked on it.
             SpanKind::Cruise | SpanKind::Zoom => !p.zoomed,
-            SpanKind::Fault { .. } => true,
+            SpanKind::Fault { .. } | SpanKind::Axis(_) => true,
         })
         .filter(|s| s.from <= x1 && s.to >= x0)
         .map(|s| (s.from.max(x0), s.to.min(x1), &s.kind, s.from >= x0))
@@ -1194,6 +1351,7 @@ where
             SpanKind::Cruise => CRUISE_FILL.mix(0.22),
             SpanKind::Zoom => ZOOM_FILL.mix(0.22),
             SpanKind::Fault { .. } => FAULT.mix(0.10),
+            SpanKind::Axis(state) => axis_fill(*state).mix(0.30),
         };
         chart
             .draw_series(std::iter::once(Rectangle::new(
@@ -1420,7 +1578,9 @@ pub fn plot_file(path: &Path, dir: &Path) -> Result<Vec<PathBuf>, PlotError> {
     register_font();
     let scenario = rec.scenario();
     let mut written = Vec::new();
-    for f in figures(&rec, scenario.as_ref()) {
+    let mut all = figures(&rec, scenario.as_ref());
+    all.extend(program_figures(&rec));
+    for f in all {
         let failed = |path: &Path| {
             let path = path.to_path_buf();
             move |message| PlotError::Draw { path, message }
@@ -1821,5 +1981,79 @@ mod tests {
                 "COMMAND_TIMEOUT: latched at 1.200 s"
             ]
         );
+    }
+
+    #[test]
+    fn a_program_is_drawn_with_its_axis_states_and_a_profile_run_is_not() {
+        use stepdrive_shared::axis::AxisState as S;
+        // 1 kHz statuses: disabled to 0.1 s, enabled to 0.5 s, quick stop to 0.7 s, enabled.
+        let state_at = |t: f64| match t {
+            t if t < 0.1 => S::SwitchOnDisabled,
+            t if t < 0.5 => S::OperationEnabled,
+            t if t < 0.7 => S::QuickStopActive,
+            _ => S::OperationEnabled,
+        };
+        let statuses: Vec<StatusRecord> = (0..1000)
+            .map(|k| {
+                let t = f64::from(k) * 1e-3;
+                StatusRecord {
+                    t,
+                    state_code: state_at(t) as u32,
+                    theta_d: t * t,
+                    theta: t * t - 1e-6,
+                    following_error: 1e-6,
+                    omega_d: 2.0 * t,
+                    alpha_d: 2.0,
+                    ..Default::default()
+                }
+            })
+            .collect();
+        let mut rec = Recorded::default();
+        rec.runs.push(("proposed".into(), Vec::new()));
+        assert!(
+            program_figures(&rec).is_empty(),
+            "no statuses: no program figures"
+        );
+        rec.statuses.push(("proposed".into(), statuses));
+        let figures = program_figures(&rec);
+        let files: Vec<&str> = figures.iter().map(|f| f.file).collect();
+        assert_eq!(
+            files,
+            [
+                "program_position",
+                "program_following_error",
+                "program_velocity",
+                "program_acceleration"
+            ]
+        );
+        // Shaded: the disabled start and the quick stop, each once, at their times;
+        // Operation enabled is not.
+        let spans: Vec<(S, f64, f64)> = figures[0]
+            .spans
+            .iter()
+            .filter_map(|s| match s.kind {
+                SpanKind::Axis(state) => Some((state, s.from, s.to)),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(spans.len(), 2, "{spans:?}");
+        assert_eq!(spans[0].0, S::SwitchOnDisabled);
+        assert!(spans[0].1 == 0.0 && (spans[0].2 - 0.1).abs() < 1.5e-3);
+        assert_eq!(spans[1].0, S::QuickStopActive);
+        assert!((spans[1].1 - 0.5).abs() < 1.5e-3 && (spans[1].2 - 0.7).abs() < 1.5e-3);
+        // The legend names both states once.
+        let legend: Vec<String> = legend(&figures[0]).into_iter().map(|(_, t)| t).collect();
+        assert!(
+            legend.contains(&"axis Switch on disabled".to_string()),
+            "{legend:?}"
+        );
+        assert!(
+            legend.contains(&"axis Quick stop active".to_string()),
+            "{legend:?}"
+        );
+        // θ_d and the measured θ are both drawn, the latter dashed.
+        let position = &figures[0].panels[0].series;
+        assert_eq!(position.len(), 2);
+        assert!(matches!(position[1].stroke, Stroke::Dashed { .. }));
     }
 }

@@ -267,7 +267,7 @@ const ACK_FIELDS: [&str; 11] = [
 ];
 
 /// The axis's status as recorded, every tick.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct StatusRecord {
     pub t: f64,
     pub tick: u64,

@@ -81,6 +81,32 @@ pub fn remove(instance: &str) {
     let _ = std::fs::remove_file(path(instance));
 }
 
+/// Removes the doorbell pages of instances `live` says are gone (left by stacks started by
+/// hand or launchers that were killed). A page is created after its process's iceoryx2
+/// node, so a stack starting now is live already.
+pub fn remove_stale(live: &std::collections::BTreeSet<String>) {
+    remove_stale_in(std::path::Path::new("/dev/shm"), live);
+}
+
+fn remove_stale_in(dir: &std::path::Path, live: &std::collections::BTreeSet<String>) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    for entry in entries.flatten() {
+        let name = entry.file_name();
+        let Some(instance) = name
+            .to_str()
+            .and_then(|n| n.strip_prefix("stepdrive-"))
+            .and_then(|n| n.strip_suffix(".doorbells"))
+        else {
+            continue;
+        };
+        if !live.contains(instance) {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
+}
+
 /// An instance's doorbells, shared by the ports and the runner of one process.
 #[derive(Clone)]
 pub struct Doorbells {
@@ -311,6 +337,28 @@ mod tests {
         plant.sleep(armed, Duration::from_millis(100));
         assert!(t0.elapsed() >= Duration::from_millis(100));
         remove(&name);
+    }
+
+    #[test]
+    fn the_pages_of_gone_instances_are_removed_and_live_ones_kept() {
+        let dir = std::env::temp_dir().join(instance("stale"));
+        std::fs::create_dir_all(&dir).expect("dir");
+        for name in [
+            "stepdrive-gone.doorbells",
+            "stepdrive-live.x.doorbells",
+            "stepdrive-gone.mcap",
+        ] {
+            std::fs::write(dir.join(name), b"").expect("file");
+        }
+        remove_stale_in(&dir, &["live.x".to_string()].into());
+        let mut left: Vec<String> = std::fs::read_dir(&dir)
+            .expect("read")
+            .flatten()
+            .filter_map(|e| e.file_name().to_str().map(String::from))
+            .collect();
+        left.sort();
+        assert_eq!(left, ["stepdrive-gone.mcap", "stepdrive-live.x.doorbells"]);
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]

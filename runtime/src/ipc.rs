@@ -793,6 +793,26 @@ impl Presence for IpcPresence {
 /// The live iceoryx2 nodes of `instance` whose role is one of `roles` (node names are
 /// `<instance>.<role>`): a stack's loops, found before another stack is started on the
 /// same instance.
+/// The instances that have a live iceoryx2 node of this project (`<instance>.<role>`).
+pub fn live_instances() -> std::collections::BTreeSet<String> {
+    let mut found = std::collections::BTreeSet::new();
+    let result = Node::<Ipc>::list(&iceoryx_config(), |state| {
+        if let NodeState::Alive(view) = state {
+            if let Some(details) = iceoryx2::node::NodeView::details(&view) {
+                // Role names have no '.'; instance names may.
+                if let Some((instance, _)) = details.name().as_str().rsplit_once('.') {
+                    found.insert(instance.to_string());
+                }
+            }
+        }
+        CallbackProgression::Continue
+    });
+    if let Err(e) = result {
+        tracing::warn!(error = ?e, "could not list iceoryx2 nodes");
+    }
+    found
+}
+
 pub fn live_nodes(instance: &str, roles: &[&str]) -> Vec<String> {
     let config = iceoryx_config();
     let mut found = Vec::new();

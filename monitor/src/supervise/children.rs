@@ -257,6 +257,7 @@ impl RunFiles {
                 }
             }
         }
+        stepdrive_runtime::doorbell::remove_stale(&stepdrive_runtime::ipc::live_instances());
     }
 }
 

@@ -42,6 +42,10 @@ pub struct RunReport {
     /// When |θ_d − θ| first passed the step-out threshold (one electrical period), s.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stepped_out_at_s: Option<f64>,
+    /// The time of the first sample the monitor missed (what an UNOBSERVED run lacks
+    /// begins there), s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first_missed_at_s: Option<f64>,
     /// The first latched fault.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fault: Option<FaultEvent>,
@@ -224,6 +228,9 @@ pub struct Metrics {
     cruise_missed: u64,
     final_missed: u64,
     longest_gap: u64,
+    /// Where the longest gap began, and the first sample missed.
+    longest_gap_from: u64,
+    first_missed: Option<u64>,
     /// A program's run: θ_d from the position loop's setpoints, the states waiting for the
     /// segment that covers them, and each move's figures.
     program: Option<ProgramReference>,
@@ -369,6 +376,8 @@ impl Metrics {
             cruise_missed: 0,
             final_missed: 0,
             longest_gap: 0,
+            longest_gap_from: 0,
+            first_missed: None,
             program: (!s.program.is_empty()).then(|| ProgramReference {
                 segment: None,
                 pending: std::collections::VecDeque::with_capacity(PENDING_STATES),
@@ -386,7 +395,13 @@ impl Metrics {
     fn missed_between(&mut self, from: u64, to: u64) {
         let to = to.min(self.run_samples.max(from));
         self.missed += to - from;
-        self.longest_gap = self.longest_gap.max(to - from);
+        if to - from > self.longest_gap {
+            self.longest_gap = to - from;
+            self.longest_gap_from = from;
+        }
+        if to > from {
+            self.first_missed.get_or_insert(from);
+        }
         for k in from..to {
             let t = k as f64 / self.sample_hz;
             let (tau, _) = self.trajectory.phase(t);
@@ -632,10 +647,13 @@ impl Metrics {
         let gap_s = self.longest_gap as f64 / self.sample_hz;
         if gap_s > MAX_UNSEEN_S {
             return Some(format!(
-                "the monitor missed {:.3} s of the run in a row (at most {MAX_UNSEEN_S} s allowed)",
-                gap_s
+                "the monitor missed {:.3} s of the run in a row from t = {:.4} s (at most \
+                 {MAX_UNSEEN_S} s allowed)",
+                gap_s,
+                self.longest_gap_from as f64 / self.sample_hz
             ));
         }
+        let first = self.first_missed_s().unwrap_or(f64::NAN);
         windows
             .into_iter()
             .find(|&(_, seen, missed)| {
@@ -644,12 +662,17 @@ impl Metrics {
             .map(|(name, seen, missed)| {
                 format!(
                     "the monitor saw {seen} of the {} samples of {name} ({:.1} %; at least {:.0} % \
-                     needed)",
+                     needed; the first it missed at t = {first:.4} s)",
                     seen + missed,
                     100.0 * seen as f64 / (seen + missed) as f64,
                     100.0 * MIN_SEEN_FRACTION
                 )
             })
+    }
+
+    /// The time of the first sample the monitor missed, s.
+    pub fn first_missed_s(&self) -> Option<f64> {
+        self.first_missed.map(|k| k as f64 / self.sample_hz)
     }
 
     /// The report of a run that reached its last sample.
@@ -711,6 +734,7 @@ impl Metrics {
             cruise_missed_samples: self.cruise_missed,
             longest_gap_s: self.longest_gap as f64 / self.sample_hz,
             unobserved: self.unobserved(),
+            first_missed_at_s: self.first_missed_s(),
             voltage_limited_samples: self.limited,
             fault_samples: self.faults,
             silent_samples: self.silent,
@@ -792,6 +816,37 @@ mod tests {
             r.unobserved.as_deref().unwrap().contains("of the run"),
             "{r:?}"
         );
+        // When: the first sample missed, in the words and in the JSON.
+        let first = 17_245.0 / s.rates.current_loop_hz;
+        assert_eq!(r.first_missed_at_s, Some(first));
+        assert!(
+            r.unobserved
+                .as_deref()
+                .unwrap()
+                .contains(&format!("from t = {first:.4} s")),
+            "{r:?}"
+        );
+    }
+
+    #[test]
+    fn a_gap_too_long_is_named_with_where_it_began() {
+        let s = Scenario::default();
+        let total = s.sample_count();
+        let mut m = Metrics::new(&s);
+        // Every sample but 0.3 s from t = 1.0 s: 88 % seen, one gap too long.
+        let hz = s.rates.current_loop_hz;
+        let (from, to) = ((1.0 * hz) as u64, (1.3 * hz) as u64);
+        for k in (0..from).chain(to..total) {
+            m.push(&state(&s, k));
+        }
+        assert_eq!(m.outcome(), Outcome::Unobserved);
+        let r = m.finish(Method::Proposed, "realtime", 2.5);
+        let why = r.unobserved.as_deref().unwrap_or_default();
+        assert!(
+            why.contains("missed 0.300 s of the run in a row from t = 1.0000 s"),
+            "{why}"
+        );
+        assert_eq!(r.first_missed_at_s, Some(1.0));
     }
 
     #[test]

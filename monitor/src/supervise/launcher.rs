@@ -10,6 +10,7 @@ use crate::report::outcome::{Exit, Outcome};
 use crate::supervise::children::{
     free_loopback_port, path_arg, spawn_emulated_drive, RunFiles, Supervised,
 };
+use crate::supervise::cpus;
 use crate::supervise::observer::Observer;
 use crate::supervise::supervisor::{Controls, Ending, Feeds, Supervisor, Until};
 use anyhow::{Context, Result};
@@ -52,6 +53,8 @@ struct Launched {
     feeds: Option<Feeds>,
     /// The monitor's iceoryx2 node: its subscribers must outlive the run.
     _bus: IpcBus,
+    /// Realtime and hardware: the CPUs of its loops, held for the run.
+    _cpu_claim: Option<cpus::CpuClaim>,
     deployment: Deployment,
 }
 
@@ -108,6 +111,22 @@ fn launch(
             busy.join(", ")
         );
     }
+    // Another realtime stack's loops on these CPUs: refused before anything starts.
+    let cpu_claim = match mode {
+        Mode::Lockstep => None,
+        Mode::Realtime | Mode::Hardware => {
+            let pinned: Option<Vec<usize>> =
+                stack.nodes.iter().map(|n| d.rt(n.role, mode).cpu).collect();
+            // A loop that floats may run on any CPU.
+            let cpus = pinned.unwrap_or_else(|| {
+                (0..std::thread::available_parallelism().map_or(1, |n| n.get())).collect()
+            });
+            let mut cpus = cpus;
+            cpus.sort_unstable();
+            cpus.dedup();
+            Some(cpus::claim(&opts.instance, &cpus)?)
+        }
+    };
     let emulated = mode == Mode::Hardware && d.drive.address.is_none();
     if emulated {
         d.drive.address = Some(free_loopback_port()?.to_string());
@@ -156,6 +175,7 @@ fn launch(
             controls,
         }),
         _bus: bus,
+        _cpu_claim: cpu_claim,
         deployment: d,
     })
 }

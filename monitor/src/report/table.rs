@@ -62,6 +62,10 @@ fn sci(v: f64) -> String {
 }
 
 pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
+    // A table of n/a and NaN says nothing: say that nothing ran (the headline says why).
+    if !runs.is_empty() && runs.iter().all(|r| r.samples == 0 && !r.complete) {
+        return "no figures: no sample ran (the headline below says why)\n".to_string();
+    }
     type Row = (&'static str, fn(&RunReport) -> String);
     let rows: [Row; 18] = [
         ("mode", |r| r.mode.clone()),
@@ -286,9 +290,16 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
     let stale = r.outcome == Outcome::ProcessDied
         && r.setpoint_stale_at_s.is_some()
         && r.stopped_because.is_none();
+    // Nothing ran: no sample came (a drive that never answered or was refused, a process
+    // that failed at start). Nothing died mid-run, and there are no figures.
+    let never_ran = r.outcome == Outcome::ProcessDied && r.samples == 0;
     // No process died: one stopped answering and the current loop stood in for it.
     let title = if stale {
         "POSITION LOOP SILENT"
+    } else if never_ran && r.mode == "hardware" {
+        "NO DRIVE RUN"
+    } else if never_ran {
+        "DID NOT START"
     } else {
         r.outcome.title()
     };
@@ -389,6 +400,12 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
                 sci(r.final_error_rad),
             )
         }
+        Outcome::ProcessDied if never_ran => format!(
+            "{}; no sample ran, so there are no figures.",
+            r.stopped_because
+                .as_deref()
+                .unwrap_or("stopped before its first sample"),
+        ),
         Outcome::ProcessDied | Outcome::Interrupted => format!(
             "{} after {:.3} s{} simulated. The figures above cover what ran (marked \
              incomplete).",
@@ -403,4 +420,52 @@ pub fn headline(s: &Scenario, r: &RunReport) -> Option<String> {
         ),
     };
     Some(format!("{title} (exit {code}) in the {method} run: {what}"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::report::metrics::Metrics;
+    use stepdrive_shared::messages::DriveState;
+
+    /// Issue 22, finding 10: a drive that never answered gave "PROCESS DIED" and a table of
+    /// n/a and NaN. A run that never produced a sample says so, and draws no table.
+    #[test]
+    fn a_run_that_never_started_says_so_and_draws_no_table_of_nans() {
+        let s = Scenario::default();
+        let why = "the bridge failed: the drive at udp://127.0.0.1:9 sent no usable CONFIG";
+        let never = Metrics::new(&s).finish_early(
+            stepdrive_shared::Method::Proposed,
+            "hardware",
+            0.0,
+            Outcome::ProcessDied,
+            why.to_string(),
+        );
+        let h = headline(&s, &never).expect("a headline");
+        assert!(
+            h.starts_with("NO DRIVE RUN (exit 5) in the proposed run: "),
+            "{h}"
+        );
+        assert!(h.contains(why) && h.contains("no sample ran"), "{h}");
+        assert!(table(&s, &[never.clone()]).starts_with("no figures: no sample ran"));
+        // A process that died mid-run is still PROCESS DIED, with its figures.
+        let mut m = Metrics::new(&s);
+        for k in 0..100 {
+            m.push(&DriveState {
+                seq: k,
+                sample_time_s: k as f64 / s.rates.current_loop_hz,
+                ..Default::default()
+            });
+        }
+        let died = m.finish_early(
+            stepdrive_shared::Method::Proposed,
+            "realtime",
+            0.1,
+            Outcome::ProcessDied,
+            "the current loop process exited".to_string(),
+        );
+        let h = headline(&s, &died).expect("a headline");
+        assert!(h.starts_with("PROCESS DIED (exit 5)"), "{h}");
+        assert!(table(&s, &[never, died]).contains("max |e|, whole run"));
+    }
 }

@@ -447,7 +447,7 @@ mod tests {
             "{h}"
         );
         assert!(h.contains(why) && h.contains("no sample ran"), "{h}");
-        assert!(table(&s, &[never.clone()]).starts_with("no figures: no sample ran"));
+        assert!(table(&s, std::slice::from_ref(&never)).starts_with("no figures: no sample ran"));
         // A process that died mid-run is still PROCESS DIED, with its figures.
         let mut m = Metrics::new(&s);
         for k in 0..100 {

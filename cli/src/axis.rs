@@ -7,7 +7,7 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use stepdrive_client::{Axis, AxisMode, AxisState, AxisStatus, ClientError, Limits};
+use stepdrive_client::{Axis, AxisMode, AxisState, AxisStatus, ClientError, Limits, RequestKind};
 use stepdrive_monitor::report::outcome::Outcome;
 use stepdrive_shared::axis::{parse_stream, request_flags, status_bits};
 use stepdrive_shared::services::DEFAULT_INSTANCE;
@@ -96,12 +96,34 @@ enum Verb {
         limits: LimitArgs,
     },
     /// Cyclic synchronous position: stream a CSV file of `t, θ[, ω[, τ_ff]]` rows, each
-    /// point sent at its own time.
+    /// point sent when the axis is ready for it (paced by the stream time the axis plays,
+    /// one lead ahead).
     Stream {
         file: PathBuf,
         /// How far behind its points the axis plays the stream, s (default: the axis's).
         #[arg(long)]
         lead: Option<f64>,
+        /// SCHED_FIFO priority of this client, 0 for ordinary: the stack's loops run at
+        /// SCHED_FIFO, and a client at ordinary priority was measured held off the CPU for
+        /// 84 ms, far past the lead.
+        #[arg(long, value_name = "P", default_value_t = stepdrive_client::STREAM_PRIORITY,
+              value_parser = clap::value_parser!(u8).range(0..=99))]
+        priority: u8,
+    },
+    /// Flood the axis with commands, never waiting for answers (a measurement of what a
+    /// runaway client costs the stack): status requests, or with --move relative moves of
+    /// ±1 µrad (the axis enabled). Prints what became of them; compare the loops' deadline
+    /// misses `serve` reports with and without it.
+    Flood {
+        /// Commands per second (1 … 1e6).
+        #[arg(long, default_value_t = 100_000.0, value_parser = flood_rate)]
+        rate: f64,
+        /// How long, s.
+        #[arg(long, default_value = "10", value_parser = crate::options::parse_seconds)]
+        seconds: Duration,
+        /// Relative moves of 1 µrad instead of status requests.
+        #[arg(long = "move")]
+        moves: bool,
     },
     /// Measure command latency: COUNT small relative moves (±1 µrad, the axis enabled), each
     /// timed from its publication to the first setpoint that carries it out (the
@@ -238,11 +260,39 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             println!("stopping");
         }
         Verb::Latency { count } => command_latency(&mut axis, count)?,
+        Verb::Flood {
+            rate,
+            seconds,
+            moves,
+        } => {
+            let kind = if moves {
+                RequestKind::Move
+            } else {
+                RequestKind::Status
+            };
+            let f = axis.flood(kind, 1e-6, rate, seconds).map_err(failed)?;
+            println!(
+                "{} {} commands tried in {:.1} s ({rate} /s): {} taken, {} refused by the axis ({} of them more than one tick applies), {} refused to this client by the service (it holds 4 of a client's requests), {} unanswered at the end",
+                f.tried,
+                kind.name(),
+                seconds.as_secs_f64(),
+                f.taken,
+                f.refused,
+                f.too_many,
+                f.refused_by_service,
+                f.unanswered
+            );
+        }
         Verb::SetPosition { position } => {
             axis.set_position(position).map_err(failed)?;
             println!("the present position is {position} rad");
         }
-        Verb::Stream { file, lead } => {
+        Verb::Stream {
+            file,
+            lead,
+            priority,
+        } => {
+            stepdrive_client::realtime_priority(priority).map_err(failed)?;
             let text = std::fs::read_to_string(&file)
                 .with_context(|| format!("cannot read the stream file {}", file.display()))?;
             let rows = parse_stream(&text).with_context(|| format!("{}", file.display()))?;
@@ -252,22 +302,17 @@ pub fn axis(a: AxisArgs) -> Result<()> {
     Ok(())
 }
 
-/// Sends each row at its own time after the first (the wall clock's), then ends the
-/// stream.
+/// Sends each row when the axis is ready for it (paced by the axis's stream time, one
+/// lead ahead: [`stepdrive_client::Stream::pace`]), then ends the stream.
 fn stream_rows(
     axis: &mut Axis,
     rows: &[stepdrive_shared::axis::StreamRow],
     lead: Option<f64>,
 ) -> Result<()> {
     let mut stream = axis.stream(lead).map_err(failed)?;
-    let t0 = rows.first().map_or(0.0, |r| r.t_s);
     let started = Instant::now();
     for row in rows {
-        let due = Duration::from_secs_f64((row.t_s - t0).max(0.0));
-        let now = started.elapsed();
-        if due > now {
-            std::thread::sleep(due - now);
-        }
+        stream.pace(row.t_s).map_err(failed)?;
         if stepdrive_runtime::poll::termination_requested() {
             // The axis quick-stops a stream that stops coming.
             anyhow::bail!("interrupted: the stream stopped; the axis quick-stops");
@@ -283,6 +328,14 @@ fn stream_rows(
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// A flood's rate, commands/s.
+fn flood_rate(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && (1.0..=1e6).contains(&v) => Ok(v),
+        _ => Err(format!("must be 1 … 1e6 commands per second (got {s})")),
+    }
 }
 
 /// See [`Verb::Latency`].

@@ -126,7 +126,14 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Cmd::Run(a) => commands::run(a),
         Cmd::Serve(a) => commands::serve(a),
-        Cmd::Axis(a) => crate::axis::axis(a),
+        Cmd::Axis(a) => {
+            // A client's output piped into `head` ends it quietly, as any Unix tool (Rust
+            // ignores SIGPIPE and the print would panic). Not for the launchers: a stack's
+            // supervisor must never die of its reader going away.
+            // SAFETY: restoring a signal's default disposition has no preconditions.
+            unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
+            crate::axis::axis(a)
+        }
         Cmd::Simulate(a) => commands::simulate(a),
         Cmd::Robustness(a) => commands::robustness(a),
         Cmd::Identify(a) => commands::identify(a),

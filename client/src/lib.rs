@@ -31,8 +31,10 @@
 use std::time::{Duration, Instant};
 use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
 use stepdrive_runtime::port::{PortError, Publish, Subscribe};
-use stepdrive_shared::axis::{axis_faults, request_flags, AxisRequest, AxisStreamPoint};
-pub use stepdrive_shared::axis::{AxisAck, AxisMode, AxisState, AxisStatus, Refusal, RequestKind};
+pub use stepdrive_shared::axis::{
+    axis_faults, axis_warnings, AxisAck, AxisMode, AxisState, AxisStatus, Refusal, RequestKind,
+};
+use stepdrive_shared::axis::{request_flags, AxisRequest, AxisStreamPoint};
 
 /// What went wrong talking to an axis.
 #[derive(Debug, thiserror::Error)]
@@ -68,11 +70,45 @@ pub enum ClientError {
     /// A stream point not after the one before, or not finite: refused here, never sent.
     #[error("stream point at t = {t} s: {why}")]
     BadPoint { t: f64, why: &'static str },
+    /// The axis left the stream (a quick stop, a disable, another command took over).
+    #[error("the axis left the stream: it is in {state}, mode {mode}")]
+    StreamLeft {
+        state: &'static str,
+        mode: &'static str,
+    },
+    /// The system refused the scheduling asked for (see [`realtime_priority`]).
+    #[error("{0}")]
+    Scheduling(String),
     /// Not an instance name (see `stepdrive_shared::services::instance_name`).
     #[error("{0}")]
     BadInstance(String),
     #[error(transparent)]
     Port(#[from] PortError),
+}
+
+/// The SCHED_FIFO priority a streaming client takes by default: below the stack's loops
+/// (80 and 81), above everything at ordinary priority.
+pub const STREAM_PRIORITY: u8 = 10;
+
+/// Runs the calling process at SCHED_FIFO `priority` (1–99; 0 leaves it at SCHED_OTHER).
+/// A client that streams needs it: on two cores the stack's loops run at SCHED_FIFO with
+/// RT throttling lifted, and a client at ordinary priority was measured held off the CPU
+/// for up to 84 ms, eight times the default stream lead, so its stream ran dry and the
+/// axis quick-stopped. Refused loudly: a stream that cannot keep up is no stream.
+pub fn realtime_priority(priority: u8) -> Result<(), ClientError> {
+    if priority == 0 {
+        return Ok(());
+    }
+    stepdrive_runtime::rt::RtOptions {
+        priority: Some(priority),
+        cpu: None,
+        lock_memory: false,
+        timer_slack_ns: None,
+        require: true,
+    }
+    .apply()
+    .map(|_| ())
+    .map_err(|e| ClientError::Scheduling(e.describe()))
 }
 
 /// A move's or a jog's limits; `None` takes the axis's move defaults (`[axis]` in the
@@ -325,6 +361,36 @@ impl Axis {
         self.send(r)
     }
 
+    /// Floods the axis with `request`-kind commands (status requests, or relative moves of
+    /// `move_rad`) at `rate_hz` for `duration`, never waiting for answers: a measurement of
+    /// what a runaway client costs the stack, not a way to command it. Each request sent
+    /// is answered (taken, or refused with a reason: more than the position loop applies
+    /// in one tick) or refused to this client by the service (it holds a few of a
+    /// client's requests at once).
+    pub fn flood(
+        &mut self,
+        kind: RequestKind,
+        move_rad: f64,
+        rate_hz: f64,
+        duration: Duration,
+    ) -> Result<stepdrive_runtime::ipc::Flood, ClientError> {
+        let mut template = self.request(kind);
+        template.target_rad = move_rad;
+        template.flags |= request_flags::RELATIVE;
+        let mut seq = template.seq;
+        let counts = self.commands.flood(
+            &template,
+            || {
+                seq += 1;
+                seq
+            },
+            rate_hz,
+            duration,
+        );
+        self.next_seq = seq;
+        Ok(counts?)
+    }
+
     /// The axis's present position is `position` rad from now on (at a standstill).
     pub fn set_position(&mut self, position: f64) -> Result<AxisAck, ClientError> {
         let mut r = self.request(RequestKind::SetPosition);
@@ -345,12 +411,14 @@ impl Axis {
             r.flags |= request_flags::HAS_LEAD;
         }
         let id = r.seq;
-        self.send(r)?;
+        let ack = self.send(r)?;
         Ok(Stream {
             axis: self,
             id,
+            start_tick: ack.tick,
             next: 0,
             last_t: None,
+            seen: None,
         })
     }
 }
@@ -359,8 +427,11 @@ impl Axis {
 pub struct Stream<'a> {
     axis: &'a mut Axis,
     id: u64,
+    /// The position-loop tick that took the stream's start.
+    start_tick: u64,
     next: u64,
     last_t: Option<f64>,
+    seen: Option<AxisStatus>,
 }
 
 impl Stream<'_> {
@@ -404,6 +475,79 @@ impl Stream<'_> {
         self.next += 1;
         self.last_t = Some(t);
         Ok(())
+    }
+
+    /// Waits until the axis is ready for the point at stream time `t`: the first point at
+    /// once, each later one when the stream time the axis plays (its status's
+    /// `stream_time_s`, on the stack's clock) is within the stream's lead of `t`. Paced so,
+    /// the axis holds one lead of points whatever the two clocks do: a simulated plant's
+    /// time pauses while its process is held up, and a wall-clock sender would run ahead
+    /// of it. Fails if the axis faults or leaves the stream, or its stream time stands
+    /// still for the client's timeout.
+    pub fn pace(&mut self, t: f64) -> Result<(), ClientError> {
+        if self.next == 0 {
+            return Ok(());
+        }
+        let mut moved = (f64::NAN, Instant::now());
+        loop {
+            // Statuses of ticks before the stream's start say nothing of it.
+            let start = self.start_tick;
+            let axis = self.axis.axis;
+            if let Some(s) = self
+                .axis
+                .status
+                .newest()?
+                .filter(|s| s.axis == axis && s.tick >= start)
+            {
+                self.seen = Some(s);
+            }
+            if let Some(s) = self.seen {
+                if s.axis_state() == Some(AxisState::Fault) {
+                    return Err(ClientError::Fault {
+                        faults: fault_names(s.fault),
+                        following_error: s.following_error_rad,
+                        status: Box::new(s),
+                    });
+                }
+                if AxisMode::from_u32(s.mode) != Some(AxisMode::CyclicPosition) {
+                    return Err(ClientError::StreamLeft {
+                        state: s.axis_state().map_or("?", |x| x.name()),
+                        mode: AxisMode::from_u32(s.mode).map_or("?", |m| m.name()),
+                    });
+                }
+                if t <= s.stream_time_s + s.stream_lead_s {
+                    return Ok(());
+                }
+                if s.stream_time_s.is_finite() && s.stream_time_s != moved.0 {
+                    moved = (s.stream_time_s, Instant::now());
+                }
+            }
+            if moved.1.elapsed() >= self.axis.timeout {
+                return Err(ClientError::Timeout {
+                    what: format!("the axis's stream time to reach {t} s"),
+                    timeout: self.axis.timeout,
+                });
+            }
+            std::thread::sleep(Duration::from_micros(100));
+        }
+    }
+
+    /// The newest status [`Stream::pace`] read (none before the first wait): a streaming
+    /// program judges its tracking by it without a wait of its own.
+    pub fn last_status(&self) -> Option<&AxisStatus> {
+        self.seen.as_ref()
+    }
+
+    /// [`Stream::pace`], then [`Stream::push`].
+    pub fn push_paced(
+        &mut self,
+        t: f64,
+        theta: f64,
+        omega: Option<f64>,
+        torque_ff: Option<f64>,
+    ) -> Result<(), ClientError> {
+        self.pace(t)?;
+        self.push(t, theta, omega, torque_ff)
     }
 
     /// Points sent so far.

@@ -515,6 +515,111 @@ impl CommandClient {
     }
 }
 
+/// What a flood of requests came to ([`CommandClient::flood`]).
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Flood {
+    /// Requests the flood tried to send.
+    pub tried: u64,
+    /// Not sent: the service holds at most `max_active_requests_per_client` of a client's
+    /// requests at once, and refuses the next one to the client itself.
+    pub refused_by_service: u64,
+    /// Answered: taken, or refused by the axis with a reason (`too_many` of them because
+    /// more came in one tick than the position loop applies).
+    pub taken: u64,
+    pub refused: u64,
+    pub too_many: u64,
+    /// Sent and still unanswered when the flood ended (abandoned).
+    pub unanswered: u64,
+}
+
+impl CommandClient {
+    /// Sends copies of `template` (each with the seq `next_seq` gives) at `rate_hz` for
+    /// `duration`, never waiting for an answer: what a runaway or hostile client does. The
+    /// answers that come are counted; requests the service will not hold are counted as
+    /// refused to the client. Spins: the flood is meant to load the machine.
+    pub fn flood(
+        &mut self,
+        template: &AxisRequest,
+        mut next_seq: impl FnMut() -> u64,
+        rate_hz: f64,
+        duration: Duration,
+    ) -> Result<Flood, PortError> {
+        let mut counts = Flood::default();
+        let mut pending = Vec::with_capacity(64);
+        let started = Instant::now();
+        let answers = |pending: &mut Vec<_>, counts: &mut Flood| -> Result<(), PortError> {
+            let mut i = 0;
+            while i < pending.len() {
+                let p: &iceoryx2::pending_response::PendingResponse<
+                    Ipc,
+                    AxisRequest,
+                    (),
+                    AxisAck,
+                    (),
+                > = &pending[i];
+                match p.receive() {
+                    Ok(Some(answer)) => {
+                        let ack: AxisAck = *answer.payload();
+                        if ack.taken() {
+                            counts.taken += 1;
+                        } else {
+                            counts.refused += 1;
+                            if ack.refusal == stepdrive_shared::axis::Refusal::TooMany as u32 {
+                                counts.too_many += 1;
+                            }
+                        }
+                        pending.swap_remove(i);
+                    }
+                    Ok(None) => i += 1,
+                    Err(e) => {
+                        return Err(PortError::Transfer {
+                            service: self.service.clone(),
+                            operation: "receive",
+                            source: boxed(e),
+                        })
+                    }
+                }
+            }
+            Ok(())
+        };
+        loop {
+            let elapsed = started.elapsed();
+            if elapsed >= duration || crate::poll::termination_requested() {
+                break;
+            }
+            let due = (elapsed.as_secs_f64() * rate_hz) as u64;
+            while counts.tried < due {
+                counts.tried += 1;
+                let mut r = *template;
+                r.seq = next_seq();
+                r.publish_time_ns = crate::clock::monotonic_ns();
+                match self.client.send_copy(r) {
+                    Ok(p) => pending.push(p),
+                    Err(iceoryx2::port::client::RequestSendError::ExceedsMaxActiveRequests) => {
+                        counts.refused_by_service += 1
+                    }
+                    Err(e) => {
+                        return Err(PortError::Transfer {
+                            service: self.service.clone(),
+                            operation: "send",
+                            source: boxed(e),
+                        })
+                    }
+                }
+            }
+            answers(&mut pending, &mut counts)?;
+            std::hint::spin_loop();
+        }
+        // The last answers, for one position-loop period or two.
+        let end = Instant::now() + Duration::from_millis(5);
+        while !pending.is_empty() && Instant::now() < end {
+            answers(&mut pending, &mut counts)?;
+        }
+        counts.unanswered = pending.len() as u64;
+        Ok(counts)
+    }
+}
+
 impl IpcBus {
     fn command_service(&self) -> Result<(String, CommandFactory), PortError> {
         let name = self.names.topic(Topic::AxisCommand);

@@ -691,7 +691,7 @@ pub mod axis_warnings {
 #[cfg_attr(
     feature = "ipc",
     derive(ZeroCopySend),
-    type_name("stepdrive.AxisStatus.v1")
+    type_name("stepdrive.AxisStatus.v2")
 )]
 #[repr(C)]
 pub struct AxisStatus {
@@ -730,6 +730,17 @@ pub struct AxisStatus {
     pub last_refusal: u32,
     /// Counts every (re-)enable: the setpoints of one enable carry it.
     pub epoch: u32,
+    /// Cyclic synchronous position: the stream time played at this tick (the axis's clock
+    /// since the first point came, less the lead, from that point's time), s; NaN when no
+    /// stream plays. A client paces its points by it (the drive's clock, not its own) and
+    /// judges tracking against its path at this time.
+    pub stream_time_s: f64,
+    /// The newest point's stream time less `stream_time_s`: how far ahead the stream is
+    /// buffered, s; and the stream's lead, s (NaN when no stream plays). A client that
+    /// sends the point at stream time t once `stream_time_s + stream_lead_s ≥ t` keeps the
+    /// buffer one lead deep whatever the two clocks do.
+    pub stream_ahead_s: f64,
+    pub stream_lead_s: f64,
 }
 
 impl AxisStatus {

@@ -1,8 +1,13 @@
 //! A cyclic synchronous position stream: timestamped points (θ, optional ω and τ
 //! feed-forward) at 100 Hz–2 kHz, played a lead behind their arrival and interpolated to
-//! the position loop's tick with continuous velocity (cubic Hermite; ω by central
-//! differences where a point carries none). A fixed ring: nothing allocates after
-//! construction.
+//! the position loop's tick with continuous velocity and acceleration (quintic Hermite; ω
+//! by central differences where a point carries none, α by second differences). A fixed
+//! ring: nothing allocates after construction.
+//!
+//! Why quintic: the follower ([`crate::axis::track`]) feeds the stream's jerk forward and
+//! corrects the rest at 100 rad/s. A cubic Hermite's acceleration jumps at every point
+//! (its ω from differences is off by θ‴h²/6); each jump was a correction the follower
+//! made over tens of ms, and a 1 kHz sine of 2 rad was followed 7.5e-5 rad off.
 
 use stepdrive_shared::trajectory::Reference;
 
@@ -133,6 +138,17 @@ impl Stream {
         }
     }
 
+    /// The acceleration at point `i`: the second divided difference with its neighbours (0
+    /// at the stream's ends, where a stream starts or stops).
+    fn alpha(&self, i: usize) -> f64 {
+        if i == 0 || i + 1 >= self.len {
+            return 0.0;
+        }
+        let (a, p, b) = (self.at(i - 1), self.at(i), self.at(i + 1));
+        let slope = |x: &Point, y: &Point| (y.theta - x.theta) / (y.t - x.t);
+        2.0 * (slope(p, b) - slope(a, p)) / (b.t - a.t)
+    }
+
     /// The stream at time `t`, dropping the points it no longer needs (all but the one
     /// before `t`, and its predecessor for the differences).
     pub fn play(&mut self, t: f64) -> Play {
@@ -168,25 +184,25 @@ impl Stream {
             }
         };
         let (a, b) = (*self.at(i), *self.at(i + 1));
-        let (wa, wb) = (self.omega(i), self.omega(i + 1));
         let h = b.t - a.t;
+        // Quintic Hermite on [a, b] in s = (t − a.t)/h: θ(s) = Σ c_k s^k matching θ, ω, α
+        // at both ends.
+        let (dv0, dv1) = (h * self.omega(i), h * self.omega(i + 1));
+        let (da0, da1) = (h * h * self.alpha(i), h * h * self.alpha(i + 1));
+        let dp = b.theta - a.theta;
+        let c = [
+            a.theta,
+            dv0,
+            0.5 * da0,
+            10.0 * dp - 6.0 * dv0 - 4.0 * dv1 - 1.5 * da0 + 0.5 * da1,
+            -15.0 * dp + 8.0 * dv0 + 7.0 * dv1 + 1.5 * da0 - da1,
+            6.0 * dp - 3.0 * dv0 - 3.0 * dv1 - 0.5 * da0 + 0.5 * da1,
+        ];
         let s = (t - a.t) / h;
-        // Cubic Hermite on [a, b]: θ(s), and its derivatives in time.
-        let (s2, s3) = (s * s, s * s * s);
-        let theta = (2.0 * s3 - 3.0 * s2 + 1.0) * a.theta
-            + (s3 - 2.0 * s2 + s) * h * wa
-            + (-2.0 * s3 + 3.0 * s2) * b.theta
-            + (s3 - s2) * h * wb;
-        let omega = ((6.0 * s2 - 6.0 * s) * a.theta
-            + (3.0 * s2 - 4.0 * s + 1.0) * h * wa
-            + (-6.0 * s2 + 6.0 * s) * b.theta
-            + (3.0 * s2 - 2.0 * s) * h * wb)
-            / h;
-        let alpha = ((12.0 * s - 6.0) * a.theta
-            + (6.0 * s - 4.0) * h * wa
-            + (-12.0 * s + 6.0) * b.theta
-            + (6.0 * s - 2.0) * h * wb)
-            / (h * h);
+        let theta = c[0] + s * (c[1] + s * (c[2] + s * (c[3] + s * (c[4] + s * c[5]))));
+        let omega =
+            (c[1] + s * (2.0 * c[2] + s * (3.0 * c[3] + s * (4.0 * c[4] + s * 5.0 * c[5])))) / h;
+        let alpha = (2.0 * c[2] + s * (6.0 * c[3] + s * (12.0 * c[4] + s * 20.0 * c[5]))) / (h * h);
         let torque_ff = match (a.torque_ff, b.torque_ff) {
             (Some(x), Some(y)) => x + (y - x) * s,
             (Some(x), None) | (None, Some(x)) => x,

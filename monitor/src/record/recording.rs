@@ -288,9 +288,13 @@ pub struct StatusRecord {
     pub warning: u32,
     pub move_id: u64,
     pub last_seq: u64,
+    /// The stream time played at this tick (absent when no stream plays, and in
+    /// recordings made before it was recorded).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stream_time: Option<f64>,
 }
 
-const STATUS_FIELDS: [&str; 17] = [
+const STATUS_FIELDS: [&str; 18] = [
     "t",
     "tick",
     "state_code",
@@ -308,6 +312,7 @@ const STATUS_FIELDS: [&str; 17] = [
     "warning",
     "move_id",
     "last_seq",
+    "stream_time",
 ];
 
 fn schema(title: &str, fields: &[&str]) -> String {
@@ -673,6 +678,7 @@ impl Recording {
             warning: st.warning,
             move_id: st.move_id,
             last_seq: st.last_seq,
+            stream_time: st.stream_time_s.is_finite().then_some(st.stream_time_s),
         };
         self.put(ch.status, st.t_s, &rec)
     }
@@ -1068,13 +1074,13 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         let p = dir.join(format!("{method}_axis_status.csv"));
         let header = "t [s],tick,state,statusword,mode,theta [rad],omega [rad/s],torque [N·m],\
                       following_error [rad],theta_d [rad],omega_d [rad/s],alpha_d [rad/s²],\
-                      target [rad],fault,warning,move_id,last_seq";
+                      target [rad],fault,warning,move_id,last_seq,stream_time [s]";
         write_csv(&p, header, statuses, |s| {
             let state = AxisState::from_u32(s.state_code).map_or("?", |x| x.name());
             let mode =
                 stepdrive_shared::axis::AxisMode::from_u32(s.mode_code).map_or("?", |m| m.name());
             format!(
-                "{},{},{},{:#06x},{},{},{},{},{},{},{},{},{},{:#x},{:#x},{},{}",
+                "{},{},{},{:#06x},{},{},{},{},{},{},{},{},{},{:#x},{:#x},{},{},{}",
                 s.t,
                 s.tick,
                 csv_text(state),
@@ -1091,7 +1097,8 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
                 s.fault,
                 s.warning,
                 s.move_id,
-                s.last_seq
+                s.last_seq,
+                s.stream_time.map_or(String::new(), |t| t.to_string())
             )
         })?;
         written.push((p, statuses.len()));

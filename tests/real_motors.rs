@@ -215,7 +215,7 @@ fn identify_through_a_faulting_drive_exits_3_naming_the_fault() {
     let listen = format!("127.0.0.1:{}", free_udp_port());
     let mut args = vec!["emulate-drive", "--listen", &listen];
     args.extend(ORDINARY_SCHEDULING);
-    args.extend(["--scenario", bench, "--overcurrent-after", "0.5"]);
+    args.extend(["--scenario", bench, "--overcurrent-after", "1.5"]);
     let mut drive = spawn_logged(&args);
     let inst = instance("identify-fault");
     let out = stepdrive(&[

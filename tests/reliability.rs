@@ -71,7 +71,7 @@ fn a_drive_fault_exits_3_naming_the_drive() {
     let mut drive = spawn_logged(
         &[
             &["emulate-drive", "--listen", &listen, "--scenario"][..],
-            &[scenario.to_str().unwrap(), "--overcurrent-after", "0.45"][..],
+            &[scenario.to_str().unwrap(), "--overcurrent-after", "0.6"][..],
             &ORDINARY_SCHEDULING[..],
         ]
         .concat(),

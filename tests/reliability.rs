@@ -151,6 +151,10 @@ fn rt_throttling_is_lifted_for_the_run_and_restored_even_after_a_sigkill() {
 
     // Round 3, finding 5: the guard itself killed. Before: throttling stayed lifted (-1)
     // after the run ended with exit 0, and nothing said so. Now the launcher restores it.
+    // On an instance of its own: the killed stack's services can outlive it for a moment,
+    // and a plant that counts its dead position loop as a peer starts before the new one
+    // (seen in CI: STEPPED OUT at 0.0406 s, the rotor unpowered until the loop came).
+    let inst = instance("throttle-guard");
     let mut run = spawn_run(&[
         "run",
         "--mode",

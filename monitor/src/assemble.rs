@@ -22,8 +22,12 @@ use stepdrive_shared::stack::{Role, Stack};
 use stepdrive_shared::{Method, Scenario};
 
 /// Realtime: the plant's first deadline this long after it sees its peers, so that every
-/// process is in its loop by then.
-const START_DELAY_NS: u64 = 20_000_000;
+/// process is in its loop by then. A peer's ports exist before its loop runs; with 20 ms a
+/// position loop on a loaded two-core machine (CI) came ~40 ms after the plant's start,
+/// the current loop kept the outputs off until its first setpoint, and the loaded rotor
+/// was pushed a period behind the profile by t = 0.0406 s (STEPPED OUT, four CI runs in
+/// one day). 200 ms costs that much once per run.
+const START_DELAY_NS: u64 = 200_000_000;
 
 /// What building a stack's nodes needs beside the declaration.
 #[derive(Debug, Clone)]

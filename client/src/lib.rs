@@ -179,6 +179,18 @@ fn fault_names(bits: u32) -> String {
     }
 }
 
+/// An axis in Fault is an error, naming the faults.
+fn faulted(s: &AxisStatus) -> Result<(), ClientError> {
+    if s.axis_state() == Some(AxisState::Fault) {
+        return Err(ClientError::Fault {
+            faults: fault_names(s.fault),
+            following_error: s.following_error_rad,
+            status: Box::new(*s),
+        });
+    }
+    Ok(())
+}
+
 impl Axis {
     /// Connects to axis `axis` of the stack on `instance`, waiting up to 5 s for it to
     /// come up.
@@ -330,13 +342,7 @@ impl Axis {
         let deadline = Instant::now() + timeout;
         loop {
             let s = self.status()?;
-            if s.axis_state() == Some(AxisState::Fault) {
-                return Err(ClientError::Fault {
-                    faults: fault_names(s.fault),
-                    following_error: s.following_error_rad,
-                    status: Box::new(s),
-                });
-            }
+            faulted(&s)?;
             if s.last_seq != mv.seq && s.last_seq > mv.seq {
                 return Err(ClientError::Superseded { by: s.last_seq });
             }
@@ -502,13 +508,7 @@ impl Stream<'_> {
                 self.seen = Some(s);
             }
             if let Some(s) = self.seen {
-                if s.axis_state() == Some(AxisState::Fault) {
-                    return Err(ClientError::Fault {
-                        faults: fault_names(s.fault),
-                        following_error: s.following_error_rad,
-                        status: Box::new(s),
-                    });
-                }
+                faulted(&s)?;
                 if AxisMode::from_u32(s.mode) != Some(AxisMode::CyclicPosition) {
                     return Err(ClientError::StreamLeft {
                         state: s.axis_state().map_or("?", |x| x.name()),

@@ -233,8 +233,8 @@ file = "{}"
             continue;
         };
         let t: f64 = f[t_col].parse().expect("t");
-        // The first point came at the program's 0.05 s; the default lead is 10 ms.
-        assert!((played - (t - 0.06)).abs() < 1e-9, "t {t}: played {played}");
+        // The first point came at the program's 0.05 s; the default lead is 50 ms.
+        assert!((played - (t - 0.1)).abs() < 1e-9, "t {t}: played {played}");
         if (0.2..=2.0).contains(&played) {
             let theta: f64 = f[theta_col].parse().expect("theta");
             worst = worst.max((theta - 2.0 * (std::f64::consts::TAU * played).sin()).abs());

@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
 use stepdrive_monitor::latency::session::{run_latency, table as latency_table, LatencyOptions};
-use stepdrive_monitor::record::recording::Recording;
+use stepdrive_monitor::record::recording::{Chunks, Recording};
 use stepdrive_monitor::report::metrics::RunReport;
 use stepdrive_monitor::report::outcome::Outcome;
 use stepdrive_monitor::report::table::{document, headline, overall, table};
@@ -49,6 +49,10 @@ pub struct RunArgs {
     /// finished on every exit the run controls, Ctrl-C and a dead child included.
     #[arg(long, value_name = "FILE")]
     record: Option<PathBuf>,
+    /// Write the recording's chunks uncompressed (default: zstd, ~4× smaller), for tools
+    /// that read MCAP without its compression.
+    #[arg(long)]
+    uncompressed: bool,
     /// Draw the paper's figures of the run into DIR (SVG and PNG). Without --record the
     /// recording they are drawn from is kept as DIR/run.mcap.
     #[arg(long, value_name = "DIR")]
@@ -360,6 +364,15 @@ fn lift_throttling(
     Ok(None)
 }
 
+/// The recording's chunks as `--uncompressed` says.
+fn chunks(uncompressed: bool) -> Chunks {
+    if uncompressed {
+        Chunks::Uncompressed
+    } else {
+        Chunks::Zstd
+    }
+}
+
 pub fn run(a: RunArgs) -> Result<()> {
     let mut s = a.select.scenario.load()?;
     a.stack.apply_duration(&mut s)?;
@@ -375,7 +388,7 @@ pub fn run(a: RunArgs) -> Result<()> {
             .with_context(|| format!("cannot create the plot directory {}", dir.display()))?;
     }
     let mut recording = match &record_path {
-        Some(p) => Some(Recording::create(p, &s)?),
+        Some(p) => Some(Recording::create(p, &s, chunks(a.uncompressed))?),
         None => None,
     };
     let _throttling = throttling_guard(&a.stack, &deployment, a.mode)?;
@@ -574,6 +587,9 @@ pub fn monitor(a: MonitorArgs) -> Result<()> {
 pub struct RecordArgs {
     /// The recording to write (MCAP; see `run --record`).
     file: PathBuf,
+    /// Write its chunks uncompressed (default: zstd, ~4× smaller).
+    #[arg(long)]
+    uncompressed: bool,
     #[command(flatten)]
     watch: MonitorArgs,
 }
@@ -587,7 +603,7 @@ pub fn record(a: RecordArgs) -> Result<()> {
     let json = JsonOut::create(w.json.as_ref())?;
     let attached = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref())?;
     let s = attached.scenario.clone();
-    let mut recording = Recording::create(&a.file, &s)?;
+    let mut recording = Recording::create(&a.file, &s, chunks(a.uncompressed))?;
     let report = watch(
         attached,
         &w.instance,

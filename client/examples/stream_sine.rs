@@ -10,7 +10,9 @@
 //!
 //! Options: `--seconds S` (5), `--rate HZ` (1000), `--amplitude RAD` (2), `--frequency HZ`
 //! (1), `--bound RAD` (1e-4: exit 1 above it), `--lead S` (the axis's), `--priority P` (SCHED_FIFO, 10; 0: ordinary,
-//! see [`stepdrive_client::realtime_priority`] for why not), `--instance NAME` (stepdrive).
+//! see [`stepdrive_client::realtime_priority`] for why not), `--instance NAME` (stepdrive),
+//! `--trace 1` (print every judged status beyond the bound: its tick, the stream time, the
+//! setpoint's and the rotor's distance from the sine, the warnings).
 //! The axis is enabled if it is not; it is left holding at the end of the stream.
 
 use std::f64::consts::TAU;
@@ -29,6 +31,7 @@ struct Options {
     priority: u8,
     lead: Option<f64>,
     instance: String,
+    trace: bool,
 }
 
 fn options() -> Result<Options, String> {
@@ -41,6 +44,7 @@ fn options() -> Result<Options, String> {
         priority: stepdrive_client::STREAM_PRIORITY,
         lead: None,
         instance: "stepdrive".to_string(),
+        trace: false,
     };
     let mut args = std::env::args().skip(1);
     while let Some(flag) = args.next() {
@@ -67,6 +71,13 @@ fn options() -> Result<Options, String> {
             }
             "--lead" => o.lead = Some(number()?),
             "--instance" => o.instance = value,
+            "--trace" => {
+                o.trace = match value.as_str() {
+                    "1" => true,
+                    "0" => false,
+                    _ => return Err(format!("--trace {value}: 0 or 1")),
+                }
+            }
             other => return Err(format!("unknown option {other}")),
         }
     }
@@ -80,7 +91,7 @@ fn main() -> ExitCode {
     let o = match options() {
         Ok(o) => o,
         Err(e) => {
-            eprintln!("stream_sine: {e}\nusage: stream_sine [--seconds S] [--rate HZ] [--amplitude RAD] [--frequency HZ] [--bound RAD] [--lead S] [--priority P] [--instance NAME]");
+            eprintln!("stream_sine: {e}\nusage: stream_sine [--seconds S] [--rate HZ] [--amplitude RAD] [--frequency HZ] [--bound RAD] [--lead S] [--priority P] [--instance NAME] [--trace 1]");
             return ExitCode::from(2);
         }
     };
@@ -104,7 +115,7 @@ struct Tracking {
 }
 
 impl Tracking {
-    fn take(&mut self, s: &AxisStatus, path: impl Fn(f64) -> f64) {
+    fn take(&mut self, s: &AxisStatus, path: impl Fn(f64) -> f64, o: &Options) {
         if self.last_tick == Some(s.tick) || !s.stream_time_s.is_finite() {
             return;
         }
@@ -112,13 +123,11 @@ impl Tracking {
         self.seen += 1;
         if s.stream_time_s >= SETTLE_S {
             self.least_ahead = self.least_ahead.min(s.stream_ahead_s);
-            self.errors
-                .push((s.theta_rad - path(s.stream_time_s)).abs());
-            if std::env::var_os("DBG").is_some()
-                && (s.theta_rad - path(s.stream_time_s)).abs() > 1e-4
-            {
+            let e = (s.theta_rad - path(s.stream_time_s)).abs();
+            self.errors.push(e);
+            if o.trace && e > o.bound {
                 eprintln!(
-                    "tick {} st {:.5} t {:.5} ahead {:.5} e {:.3e} e_d {:.3e} fe {:.3e} w {:#x}",
+                    "tick {} stream time {:.5} s, axis time {:.5} s, ahead {:.5} s: θ − θ_stream {:.3e}, θ_d − θ_stream {:.3e}, following error {:.3e} rad, warnings {:#x}",
                     s.tick,
                     s.stream_time_s,
                     s.t_s,
@@ -153,7 +162,7 @@ fn run(o: &Options) -> Result<bool, ClientError> {
         let t = k as f64 / o.rate;
         stream.push_paced(t, path(t), None, None)?;
         if let Some(st) = stream.last_status() {
-            tracking.take(st, path);
+            tracking.take(st, path, o);
         }
     }
     stream.end()?;

@@ -11,7 +11,7 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use stepdrive_monitor::record::plot::plot_file;
-use stepdrive_monitor::record::recording::Recording;
+use stepdrive_monitor::record::recording::{Chunks, Recording};
 use stepdrive_shared::messages::fault_bits;
 use stepdrive_shared::trajectory::Trapezoid;
 use stepdrive_shared::{DriveState, Method, Scenario};
@@ -70,7 +70,7 @@ fn scenario(duration_s: Option<f64>) -> Scenario {
 /// off, its currents decay, its rotor stops.
 fn record(dir: &Path, s: &Scenario, fault_at: Option<f64>) -> PathBuf {
     let path = dir.join("run.mcap");
-    let mut rec = Recording::create(&path, s).expect("a recording");
+    let mut rec = Recording::create(&path, s, Chunks::Zstd).expect("a recording");
     let tr = Trapezoid::new(&s.trajectory);
     let n_r = s.motor.n_r();
     for method in [Method::Proposed, Method::Lyapunov] {

@@ -517,3 +517,123 @@ fn recordings_are_zstd_compressed_unless_asked_and_hold_the_same_messages() {
         size(&plain)
     );
 }
+
+/// `serve --foxglove ADDR --foxglove-rate 50`: a Foxglove WebSocket client (written from the
+/// protocol: subprotocol `foxglove.sdk.v1`, JSON `advertise` and `subscribe`, binary
+/// message data = opcode 1, subscription id u32, log time u64, payload) finds the state
+/// channel with its JSON Schema, subscribes, and gets JSON states 20 ms of stack time apart;
+/// Ctrl-C still ends `serve` with exit 0.
+#[test]
+fn a_live_view_serves_the_state_channel_decimated_to_its_rate() {
+    use tungstenite::{client::IntoClientRequest, Message};
+    let _turn = one_stack_at_a_time();
+    let inst = instance("live");
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let addr = format!("127.0.0.1:{port}");
+    let mut serve = spawn_run(&[
+        "serve",
+        "--instance",
+        &inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+        "--foxglove",
+        &addr,
+        "--foxglove-rate",
+        "50",
+    ]);
+    let mut socket = None;
+    assert!(
+        wait_until(Duration::from_secs(30), || {
+            let Ok(tcp) = std::net::TcpStream::connect(&addr) else {
+                return false;
+            };
+            let mut req = format!("ws://{addr}")
+                .into_client_request()
+                .expect("a request");
+            req.headers_mut().insert(
+                "sec-websocket-protocol",
+                "foxglove.sdk.v1".parse().expect("a header"),
+            );
+            match tungstenite::client(req, tcp) {
+                Ok((ws, _)) => {
+                    socket = Some(ws);
+                    true
+                }
+                Err(_) => false,
+            }
+        }),
+        "no live view on {addr}"
+    );
+    let mut ws = socket.expect("connected");
+    ws.get_mut()
+        .set_read_timeout(Some(Duration::from_secs(10)))
+        .expect("a timeout");
+    // The advertisements: the state channel, JSON with its schema.
+    let mut state_channel = None;
+    let deadline = std::time::Instant::now() + Duration::from_secs(20);
+    while state_channel.is_none() && std::time::Instant::now() < deadline {
+        let Message::Text(text) = ws.read().expect("a message") else {
+            continue;
+        };
+        let v: serde_json::Value = serde_json::from_str(&text).expect("JSON");
+        if v["op"] != "advertise" {
+            continue;
+        }
+        for c in v["channels"].as_array().expect("channels") {
+            if c["topic"] == "/proposed/state" {
+                assert_eq!(c["encoding"], "json", "{c}");
+                assert_eq!(c["schemaEncoding"], "jsonschema", "{c}");
+                assert!(c["schema"]
+                    .as_str()
+                    .expect("a schema")
+                    .contains("\"theta\""));
+                state_channel = c["id"].as_u64();
+            }
+        }
+    }
+    let channel = state_channel.expect("the state channel advertised");
+    let subscribe = serde_json::json!({
+        "op": "subscribe",
+        "subscriptions": [{"id": 7, "channelId": channel}],
+    });
+    ws.send(Message::text(subscribe.to_string()))
+        .expect("subscribed");
+    let mut times = Vec::new();
+    let start = std::time::Instant::now();
+    while start.elapsed() < Duration::from_secs(3) {
+        let Message::Binary(b) = ws.read().expect("a message") else {
+            continue;
+        };
+        assert_eq!(b[0], 1, "message data");
+        assert_eq!(u32::from_le_bytes(b[1..5].try_into().unwrap()), 7);
+        let log_ns = u64::from_le_bytes(b[5..13].try_into().unwrap());
+        let state: serde_json::Value = serde_json::from_slice(&b[13..]).expect("a JSON state");
+        let t = state["t"].as_f64().expect("t");
+        assert!(
+            state["theta"].is_number() && state["error"].is_number(),
+            "{state}"
+        );
+        assert_eq!(log_ns, (t * 1e9).round() as u64);
+        times.push(t);
+    }
+    signal(serve.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    assert!(status.success(), "{}", stderr_of(&mut serve));
+    assert!(times.len() >= 50, "{} states in 3 s", times.len());
+    // One a 20 ms of stack time: never closer, and no more than a sample (50 µs) later
+    // unless the monitor missed samples there.
+    let gaps: Vec<f64> = times.windows(2).map(|w| w[1] - w[0]).collect();
+    assert!(gaps.iter().all(|g| *g >= 0.02 - 1e-9), "{gaps:?}");
+    let mut sorted = gaps.clone();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    assert!(
+        (median - 0.02).abs() <= 50e-6 + 1e-9,
+        "median gap {median} s"
+    );
+}

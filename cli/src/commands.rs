@@ -1,7 +1,7 @@
 //! The sub-commands that are not a process of the stack: launching and simulating runs,
 //! measuring latency, printing and checking configuration.
 
-use crate::options::{parse_seconds, seconds, ScenarioOpt, StackArgs, Throttling};
+use crate::options::{parse_seconds, seconds, LiveArgs, ScenarioOpt, StackArgs, Throttling};
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -58,6 +58,8 @@ pub struct RunArgs {
     #[arg(long, value_name = "DIR")]
     plots: Option<PathBuf>,
     #[command(flatten)]
+    live: LiveArgs,
+    #[command(flatten)]
     stack: StackArgs,
 }
 
@@ -70,6 +72,8 @@ pub struct ServeArgs {
     /// clock: commands come when they come.
     #[arg(long, value_enum, default_value_t = ServeMode::Realtime)]
     mode: ServeMode,
+    #[command(flatten)]
+    live: LiveArgs,
     #[command(flatten)]
     stack: StackArgs,
 }
@@ -387,9 +391,17 @@ pub fn run(a: RunArgs) -> Result<()> {
         std::fs::create_dir_all(dir)
             .with_context(|| format!("cannot create the plot directory {}", dir.display()))?;
     }
-    let mut recording = match &record_path {
-        Some(p) => Some(Recording::create(p, &s, chunks(a.uncompressed))?),
-        None => None,
+    let live = a.live.start()?;
+    let mut recording = match (&record_path, live) {
+        (Some(p), live) => {
+            let file = Recording::create(p, &s, chunks(a.uncompressed))?;
+            Some(match live {
+                Some(view) => file.with_live(view),
+                None => file,
+            })
+        }
+        (None, Some(view)) => Some(Recording::live_only(view, &s)),
+        (None, None) => None,
     };
     let _throttling = throttling_guard(&a.stack, &deployment, a.mode)?;
     let opts = LaunchOptions {
@@ -457,7 +469,9 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         mode.as_str(),
         opts.instance
     );
-    let r = stepdrive_monitor::supervise::launcher::serve_stack(&s, &opts)?;
+    let mut live = a.live.start()?.map(|view| Recording::live_only(view, &s));
+    let r = stepdrive_monitor::supervise::launcher::serve_stack(&s, &opts, live.as_mut())?;
+    drop(live);
     println!(
         "served {:.1} s ({} samples, {} deadline misses): {}",
         r.served_s, r.samples, r.misses, r.because
@@ -480,7 +494,9 @@ pub fn serve(a: ServeArgs) -> Result<()> {
 /// Finishes the recording (its summary makes it complete) and draws its plots; a failure
 /// here is said, and never hides the run's own outcome.
 fn close_recording(recording: Option<Recording>, plots: Option<&std::path::Path>) {
-    let Some(r) = recording else { return };
+    let Some(r) = recording.filter(Recording::has_file) else {
+        return;
+    };
     let path = r.path().to_path_buf();
     match r.finish() {
         Ok(()) => println!("recording written to {}", path.display()),

@@ -376,3 +376,39 @@ fn check_drive_address(addr: &str) -> Result<()> {
         Ok(_) => Ok(()),
     }
 }
+
+/// The live view in Foxglove or Lichtblick.
+#[derive(Args, Debug)]
+pub struct LiveArgs {
+    /// Serve a live view of the stack on ADDR (e.g. 127.0.0.1:8765; port 0: a free one,
+    /// logged) over the Foxglove WebSocket protocol: the recording's channels, each with its
+    /// JSON Schema. In Foxglove (or Lichtblick): Open connection → Foxglove WebSocket →
+    /// ws://ADDR, then a Plot panel of e.g. /proposed/state.error.
+    #[arg(long, value_name = "ADDR")]
+    pub foxglove: Option<std::net::SocketAddr>,
+    /// The live view's rate for the streams (state, setpoints, commands, axis status), Hz,
+    /// by the stack's time; the events (faults, axis acknowledgements, loop statistics) go
+    /// out as they come.
+    #[arg(long, value_name = "HZ", default_value_t = stepdrive_monitor::record::live::DEFAULT_RATE_HZ)]
+    pub foxglove_rate: f64,
+}
+
+impl LiveArgs {
+    /// The live view, started, if one was asked for.
+    pub fn start(&self) -> Result<Option<stepdrive_monitor::record::live::LiveView>> {
+        let Some(addr) = self.foxglove else {
+            if self.foxglove_rate != stepdrive_monitor::record::live::DEFAULT_RATE_HZ {
+                anyhow::bail!("--foxglove-rate is the live view's: give --foxglove ADDR too");
+            }
+            return Ok(None);
+        };
+        let view = stepdrive_monitor::record::live::LiveView::start(addr, self.foxglove_rate)
+            .context("--foxglove")?;
+        tracing::info!(
+            "live view on ws://{} (Foxglove WebSocket, streams at {} Hz)",
+            view.addr(),
+            self.foxglove_rate
+        );
+        Ok(Some(view))
+    }
+}

@@ -14,6 +14,7 @@
 //! itself) and, when the file is finished, `recording` (samples written and lost per
 //! method).
 
+use super::live::{Every, LiveView};
 use mcap::records::{MessageHeader, Metadata};
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -315,6 +316,22 @@ const STATUS_FIELDS: [&str; 18] = [
     "stream_time",
 ];
 
+/// Every message type's name and JSON Schema, in the order of [`Recording`]'s `schemas`.
+fn schema_texts() -> [(&'static str, String); 9] {
+    let named = |name: &'static str, fields: &[&str]| (name, schema(name, fields));
+    [
+        named("stepdrive.State", &STATE_FIELDS.map(|f| f.0)),
+        named("stepdrive.Stats", &STATS_FIELDS),
+        named("stepdrive.Fault", &FAULT_FIELDS),
+        named("stepdrive.Setpoint", &SETPOINT_FIELDS),
+        named("stepdrive.Truth", &TRUTH_FIELDS),
+        named("stepdrive.Command", &COMMAND_FIELDS),
+        named("stepdrive.Plan", &PLAN_FIELDS),
+        named("stepdrive.AxisAck", &ACK_FIELDS),
+        named("stepdrive.AxisStatus", &STATUS_FIELDS),
+    ]
+}
+
 fn schema(title: &str, fields: &[&str]) -> String {
     let props: Vec<String> = fields
         .iter()
@@ -359,7 +376,12 @@ struct Channels {
 /// An MCAP file being written. Finished (summary and indexes written) by [`Self::finish`],
 /// or when dropped on any other path.
 pub struct Recording {
+    /// The file (none once finished, or for a live view alone).
     writer: Option<mcap::Writer<BufWriter<File>>>,
+    /// The Foxglove live view the same messages go to, decimated.
+    live: Option<LiveView>,
+    /// The channel ids of a live view without a file.
+    next_channel: u16,
     path: PathBuf,
     schemas: [u16; 9],
     channels: Vec<Channels>,
@@ -422,71 +444,12 @@ impl Recording {
             .profile("")
             .create(BufWriter::new(file))
             .map_err(wrap)?;
-        let schemas = [
-            writer
-                .add_schema(
-                    "stepdrive.State",
-                    "jsonschema",
-                    schema("stepdrive.State", &STATE_FIELDS.map(|f| f.0)).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.Stats",
-                    "jsonschema",
-                    schema("stepdrive.Stats", &STATS_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.Fault",
-                    "jsonschema",
-                    schema("stepdrive.Fault", &FAULT_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.Setpoint",
-                    "jsonschema",
-                    schema("stepdrive.Setpoint", &SETPOINT_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.Truth",
-                    "jsonschema",
-                    schema("stepdrive.Truth", &TRUTH_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.Command",
-                    "jsonschema",
-                    schema("stepdrive.Command", &COMMAND_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.Plan",
-                    "jsonschema",
-                    schema("stepdrive.Plan", &PLAN_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.AxisAck",
-                    "jsonschema",
-                    schema("stepdrive.AxisAck", &ACK_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-            writer
-                .add_schema(
-                    "stepdrive.AxisStatus",
-                    "jsonschema",
-                    schema("stepdrive.AxisStatus", &STATUS_FIELDS).as_bytes(),
-                )
-                .map_err(wrap)?,
-        ];
+        let mut schemas = [0u16; 9];
+        for (id, (name, text)) in schemas.iter_mut().zip(schema_texts()) {
+            *id = writer
+                .add_schema(name, "jsonschema", text.as_bytes())
+                .map_err(wrap)?;
+        }
         let toml = s.to_toml_string().unwrap_or_default();
         writer
             .write_metadata(&Metadata {
@@ -494,8 +457,31 @@ impl Recording {
                 metadata: BTreeMap::from([("toml".to_string(), toml)]),
             })
             .map_err(wrap)?;
-        Ok(Self {
-            writer: Some(writer),
+        Ok(Self::new(Some(writer), path, schemas, s))
+    }
+
+    /// No file: the messages go to `live` alone (decimated there; a message the view does
+    /// not take is not even encoded).
+    pub fn live_only(live: LiveView, s: &Scenario) -> Self {
+        Self::new(None, Path::new(""), [0; 9], s).with_live(live)
+    }
+
+    /// The same messages to `live` too.
+    pub fn with_live(mut self, live: LiveView) -> Self {
+        self.live = Some(live);
+        self
+    }
+
+    fn new(
+        writer: Option<mcap::Writer<BufWriter<File>>>,
+        path: &Path,
+        schemas: [u16; 9],
+        s: &Scenario,
+    ) -> Self {
+        Self {
+            writer,
+            live: None,
+            next_channel: 0,
             path: path.to_path_buf(),
             schemas,
             channels: Vec::new(),
@@ -506,7 +492,12 @@ impl Recording {
             period_s: s.sample_period_s(),
             sequence: 0,
             buf: Vec::with_capacity(512),
-        })
+        }
+    }
+
+    /// Whether it writes a file (not a live view alone).
+    pub fn has_file(&self) -> bool {
+        self.writer.is_some()
     }
 
     pub fn path(&self) -> &Path {
@@ -515,40 +506,14 @@ impl Recording {
 
     /// The channels of `method`'s run; what follows is recorded on them.
     pub fn begin(&mut self, method: Method) -> Result<(), RecordError> {
-        let wrap = write_error(&self.path);
-        let Some(w) = self.writer.as_mut() else {
-            return Ok(());
-        };
-        let none = BTreeMap::new();
-        let state = w
-            .add_channel(self.schemas[0], &topic(method, "state"), "json", &none)
-            .map_err(wrap)?;
-        let stats = w
-            .add_channel(self.schemas[1], &topic(method, "stats"), "json", &none)
-            .map_err(wrap)?;
-        let fault = w
-            .add_channel(self.schemas[2], &topic(method, "fault"), "json", &none)
-            .map_err(wrap)?;
-        let setpoint = w
-            .add_channel(self.schemas[3], &topic(method, "setpoint"), "json", &none)
-            .map_err(wrap)?;
-        let command = w
-            .add_channel(self.schemas[5], &topic(method, "command"), "json", &none)
-            .map_err(wrap)?;
-        let plan = w
-            .add_channel(self.schemas[6], &topic(method, "plan"), "json", &none)
-            .map_err(wrap)?;
-        let ack = w
-            .add_channel(self.schemas[7], &topic(method, "axis/ack"), "json", &none)
-            .map_err(wrap)?;
-        let status = w
-            .add_channel(
-                self.schemas[8],
-                &topic(method, "axis/status"),
-                "json",
-                &none,
-            )
-            .map_err(wrap)?;
+        let state = self.channel(0, method, "state", Every::Period)?;
+        let stats = self.channel(1, method, "stats", Every::Message)?;
+        let fault = self.channel(2, method, "fault", Every::Message)?;
+        let setpoint = self.channel(3, method, "setpoint", Every::Period)?;
+        let command = self.channel(5, method, "command", Every::Period)?;
+        let plan = self.channel(6, method, "plan", Every::Period)?;
+        let ack = self.channel(7, method, "axis/ack", Every::Message)?;
+        let status = self.channel(8, method, "axis/status", Every::Period)?;
         self.channels.push(Channels {
             method,
             state,
@@ -568,11 +533,43 @@ impl Recording {
         Ok(())
     }
 
+    /// A channel of `method`'s run for messages of `schema` (its index in `schemas`): in
+    /// the file, and in the live view, which takes each message or one a period (`every`).
+    fn channel(
+        &mut self,
+        schema: usize,
+        method: Method,
+        kind: &str,
+        every: Every,
+    ) -> Result<u16, RecordError> {
+        let name = topic(method, kind);
+        let id = match self.writer.as_mut() {
+            Some(w) => w
+                .add_channel(self.schemas[schema], &name, "json", &BTreeMap::new())
+                .map_err(write_error(&self.path))?,
+            None => {
+                self.next_channel += 1;
+                self.next_channel
+            }
+        };
+        if let Some(live) = self.live.as_mut() {
+            let (schema_name, text) = schema_texts()[schema].clone();
+            live.add_channel(id, &name, schema_name, text, every);
+        }
+        Ok(id)
+    }
+
     fn put(&mut self, channel: u16, t: f64, json: &impl Serialize) -> Result<(), RecordError> {
+        let ns = (t.max(0.0) * 1e9).round() as u64;
+        if self.writer.is_none() && !self.live.as_ref().is_some_and(|l| l.due(channel, ns)) {
+            return Ok(());
+        }
         self.buf.clear();
         // Serialising plain numbers into a Vec cannot fail.
         let _ = serde_json::to_writer(&mut self.buf, json);
-        let ns = (t.max(0.0) * 1e9).round() as u64;
+        if let Some(live) = self.live.as_mut() {
+            live.put(channel, ns, &self.buf);
+        }
         self.sequence = self.sequence.wrapping_add(1);
         let header = MessageHeader {
             channel_id: channel,

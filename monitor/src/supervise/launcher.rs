@@ -287,11 +287,16 @@ pub struct ServeReport {
 /// `stepdrive serve`: brings the stack up (the axis disabled, waiting for commands) and
 /// keeps it up, supervised like any run, until Ctrl-C or until it breaks (a process dies
 /// or goes silent). Ctrl-C is how a served stack is meant to end: its outcome is then ok,
-/// unless the device has a fault latched at that moment.
-pub fn serve_stack(s: &Scenario, opts: &LaunchOptions) -> Result<ServeReport> {
+/// unless the device has a fault latched at that moment. With `live` (a live view), what
+/// the stack does goes to it as to a recording, on the proposed method's channels.
+pub fn serve_stack(
+    s: &Scenario,
+    opts: &LaunchOptions,
+    live: Option<&mut Recording>,
+) -> Result<ServeReport> {
     let mode = opts.mode;
     let stack = stack(mode, Purpose::Control);
-    let mut l = launch(&stack, s, opts, false, &|_| Vec::new())?;
+    let mut l = launch(&stack, s, opts, live.is_some(), &|_| Vec::new())?;
     let timeouts = (l.deployment.startup_timeout(), l.deployment.peer_timeout());
     let feeds = l
         .feeds
@@ -302,7 +307,7 @@ pub fn serve_stack(s: &Scenario, opts: &LaunchOptions) -> Result<ServeReport> {
         mode,
         "serve",
         feeds,
-        Observer::new(s, mode),
+        Observer::new(s, mode).recording(live, Method::Proposed),
         &mut l.children,
         Some(&l.files),
         timeouts,

@@ -451,6 +451,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         anyhow::bail!("--duration is for `run`: a served stack runs until Ctrl-C");
     }
     s.run.until_stopped = true;
+    let mut live = a.live.start()?.map(|view| Recording::live_only(view, &s));
     let mode = match a.mode {
         ServeMode::Realtime => Mode::Realtime,
         ServeMode::Hardware => Mode::Hardware,
@@ -469,7 +470,6 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         mode.as_str(),
         opts.instance
     );
-    let mut live = a.live.start()?.map(|view| Recording::live_only(view, &s));
     let r = stepdrive_monitor::supervise::launcher::serve_stack(&s, &opts, live.as_mut())?;
     drop(live);
     println!(

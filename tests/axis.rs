@@ -244,3 +244,69 @@ file = "{}"
     assert!(judged > 3500, "{judged} statuses judged");
     assert!(worst < 2e-5, "peak |θ − θ_stream| {worst:e} rad");
 }
+
+/// A program's moves table: a move replaced mid-way ("change immediately") is reported as
+/// re-targeted at the replacing move's tick, with no duration; a move queued "after the
+/// current move" is timed from where the one before it arrives, and both of those arrive.
+#[test]
+fn retargeted_and_queued_moves_are_reported_as_such() {
+    let dir = TempDir::new("retarget");
+    let scenario = dir.file(
+        "retarget.toml",
+        r#"name = "retarget"
+[[program]]
+at_s = 0.0
+command = "enable"
+[[program]]
+at_s = 0.05
+command = "move"
+to = 10.0
+[[program]]
+at_s = 0.3
+command = "move"
+to = 2.0
+[[program]]
+at_s = 0.35
+command = "move"
+to = 4.0
+after_current = true
+"#,
+    );
+    let json = dir.path("retarget.json");
+    let inst = instance("retarget");
+    let out = stepdrive(&[
+        "run",
+        "--instance",
+        &inst,
+        "--method",
+        "proposed",
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--duration",
+        "2.0",
+        "--json",
+        json.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(out.status.success(), "{stdout}");
+    assert!(stdout.contains("re-targeted 0.3000"), "{stdout}");
+    let doc = read_json(&json);
+    let moves = run_of(&doc, "proposed")["moves"]
+        .as_array()
+        .expect("moves")
+        .clone();
+    assert_eq!(moves.len(), 3, "{moves:?}");
+    assert!(moves[0]["duration_s"].is_null(), "{}", moves[0]);
+    assert!((num(&moves[0], "retargeted_at_s") - 0.3).abs() < 1e-9);
+    let second_end = num(&moves[1], "start_s") + num(&moves[1], "duration_s");
+    assert!(moves[1]["retargeted_at_s"].is_null(), "{}", moves[1]);
+    // The queued move starts where the second arrives, not at its command's 0.35 s.
+    assert!(
+        (num(&moves[2], "start_s") - second_end).abs() < 1e-9,
+        "{moves:?}"
+    );
+    assert!(num(&moves[2], "start_s") > 0.35, "{moves:?}");
+    assert_eq!(num(&moves[2], "target_rad"), 4.0, "{}", moves[2]);
+    assert!(num(&moves[2], "duration_s") > 0.1, "{}", moves[2]);
+    assert!(num(&moves[2], "peak_abs_error_rad") < 1e-3, "{}", moves[2]);
+}

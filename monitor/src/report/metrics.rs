@@ -280,6 +280,10 @@ struct MoveWatch {
     /// After the end: the last sample outside the settle window, and the last seen.
     last_outside: Option<f64>,
     last_seen: f64,
+    /// Taken "after the current move" while one played: starts where that one ends.
+    queued: bool,
+    /// Replaced by a later move ("change immediately") before it ended, at this time.
+    retargeted_s: Option<f64>,
 }
 
 /// One move's figures.
@@ -287,8 +291,11 @@ struct MoveWatch {
 pub struct MoveReport {
     pub start_s: f64,
     pub target_rad: f64,
-    /// From the command to the trajectory at its target, s (null: never got there).
+    /// From the command (a queued move: from the end of the one before it) to the trajectory
+    /// at its target, s (null: never got there).
     pub duration_s: Option<f64>,
+    /// A later move replaced it before it got there, at this time, s (null: it was not).
+    pub retargeted_at_s: Option<f64>,
     /// max |θ_d − θ| over the move, rad.
     pub peak_abs_error_rad: f64,
     /// From the trajectory's end until |target − θ| stays within [`RECOVERED_RAD`], s (null:
@@ -325,6 +332,7 @@ impl MoveWatch {
             start_s: self.start_s,
             target_rad: self.target,
             duration_s: self.end_s.map(|e| e - self.start_s),
+            retargeted_at_s: self.retargeted_s,
             peak_abs_error_rad: self.peak,
             settle_s,
         }
@@ -478,6 +486,16 @@ impl Metrics {
             // from the axis's target, which an enable resets to where the rotor stands):
             // the previous target plus the step.
             let base = p.moves.last().map_or(0.0, |m| m.target);
+            let playing = p
+                .moves
+                .last()
+                .is_some_and(|m| m.end_s.is_none() && m.retargeted_s.is_none());
+            let queued = playing && ack.request.flags & request_flags::AFTER_CURRENT != 0;
+            if playing && !queued {
+                if let Some(m) = p.moves.last_mut() {
+                    m.retargeted_s = Some(ack.t_s);
+                }
+            }
             let target = if ack.request.flags & request_flags::RELATIVE != 0 {
                 base + ack.request.target_rad
             } else {
@@ -487,11 +505,16 @@ impl Metrics {
                 start_s: ack.t_s,
                 target,
                 seq: ack.request.seq,
-                target_told: false,
+                // A queued move's target is its command's: the status names the axis's
+                // target, the playing move's until the queued one starts (and the monitor
+                // may read a status after the state that starts it).
+                target_told: queued,
                 end_s: None,
                 peak: 0.0,
                 last_outside: None,
                 last_seen: ack.t_s,
+                queued,
+                retargeted_s: None,
             });
         }
     }
@@ -553,13 +576,27 @@ impl Metrics {
         if let Some(w) = self.step.as_mut() {
             w.push(t, abs);
         }
-        if let Some(m) = self
-            .program
-            .as_mut()
-            .and_then(|p| p.moves.last_mut())
-            .filter(|m| t >= m.start_s)
-        {
-            m.push(t, s.theta_rad, &reference);
+        if let Some(p) = self.program.as_mut() {
+            let n = p.moves.len();
+            // A queued move starts where the one before it reaches its target; until then
+            // that one is the move playing.
+            if n >= 2 && p.moves[n - 1].queued {
+                if let Some(end) = p.moves[n - 2].end_s {
+                    p.moves[n - 1].start_s = end;
+                    p.moves[n - 1].queued = false;
+                }
+            }
+            let playing = match p.moves.last() {
+                Some(m) if m.queued => n.checked_sub(2),
+                Some(_) => n.checked_sub(1),
+                None => None,
+            };
+            if let Some(m) = playing
+                .and_then(|i| p.moves.get_mut(i))
+                .filter(|m| t >= m.start_s && m.retargeted_s.is_none())
+            {
+                m.push(t, s.theta_rad, &reference);
+            }
         }
         if s.flags & state_flags::SETPOINT_STALE != 0 && self.first_stale.is_none() {
             self.first_stale = Some((s.seq, t));

@@ -177,7 +177,7 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         }
         let _ = writeln!(
             out,
-            "\n{} moves:\n  {:>3} {:>10} {:>14} {:>13} {:>16} {:>20}",
+            "\n{} moves:\n  {:>3} {:>10} {:>14} {:>20} {:>16} {:>20}",
             r.method,
             "#",
             "start [s]",
@@ -190,11 +190,14 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         for (i, m) in r.moves.iter().enumerate() {
             let _ = writeln!(
                 out,
-                "  {:>3} {:>10.4} {:>14.6} {:>13} {:>16} {:>20}",
+                "  {:>3} {:>10.4} {:>14.6} {:>20} {:>16} {:>20}",
                 i + 1,
                 m.start_s,
                 m.target_rad,
-                or_na(m.duration_s, &|d| format!("{d:.4}")),
+                match m.retargeted_at_s {
+                    Some(t) => format!("re-targeted {t:.4}"),
+                    None => or_na(m.duration_s, &|d| format!("{d:.4}")),
+                },
                 sci(m.peak_abs_error_rad),
                 or_na(m.settle_s, &|d| format!("{:.1}", d * 1e3)),
             );

@@ -42,7 +42,7 @@ pub struct AxisParams {
     /// A cyclic stream's lead (how far behind the newest point the axis plays it), s, and
     /// its watchdog: a stream silent this long is quick-stopped. The lead's default, 50 ms,
     /// is what a client at SCHED_FIFO 10 beside the realtime loops on two cores needs: it
-    /// was held off up to 46 ms (docs/axis.md), and a 10 ms lead ran dry in 1 of 6 runs.
+    /// was held off up to 46 ms (docs/axis.md), and a 10 ms lead ran dry in 3 of 12 runs.
     pub stream_lead_s: f64,
     pub stream_timeout_s: f64,
     /// The current loop brings the motor to a stop on its own when the newest setpoint is

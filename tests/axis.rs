@@ -13,15 +13,7 @@ use std::time::Duration;
 fn a_served_axis_is_commanded_from_other_processes() {
     let _turn = one_stack_at_a_time();
     let inst = instance("served");
-    let mut serve = spawn_run(&[
-        "serve",
-        "--instance",
-        &inst,
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
-    ]);
+    let mut serve = spawn_serve(&inst, &[]);
     let axis = |args: &[&str]| {
         let mut all = vec!["axis", "--instance", inst.as_str()];
         all.extend(args);
@@ -122,17 +114,7 @@ relative = true
     );
     let json = dir.path("fe.json");
     let inst = instance("following");
-    let out = stepdrive(&[
-        "run",
-        "--instance",
-        &inst,
-        "--method",
-        "proposed",
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+    let out = run_proposed(&inst, &scenario, &["--json", json.to_str().unwrap()]);
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert_eq!(out.status.code(), Some(3), "{stdout}");
     assert!(
@@ -186,19 +168,11 @@ file = "{}"
     );
     let recording = dir.path("stream.mcap");
     let inst = instance("stream-sine");
-    let out = stepdrive(&[
-        "run",
-        "--instance",
+    let out = run_proposed(
         &inst,
-        "--method",
-        "proposed",
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--duration",
-        "2.2",
-        "--record",
-        recording.to_str().unwrap(),
-    ]);
+        &scenario,
+        &["--duration", "2.2", "--record", recording.to_str().unwrap()],
+    );
     assert!(
         out.status.success(),
         "{}",
@@ -274,19 +248,11 @@ after_current = true
     );
     let json = dir.path("retarget.json");
     let inst = instance("retarget");
-    let out = stepdrive(&[
-        "run",
-        "--instance",
+    let out = run_proposed(
         &inst,
-        "--method",
-        "proposed",
-        "--scenario",
-        scenario.to_str().unwrap(),
-        "--duration",
-        "2.0",
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+        &scenario,
+        &["--duration", "2.0", "--json", json.to_str().unwrap()],
+    );
     let stdout = String::from_utf8_lossy(&out.stdout);
     assert!(out.status.success(), "{stdout}");
     assert!(stdout.contains("re-targeted 0.3000"), "{stdout}");

@@ -474,19 +474,9 @@ fn recordings_are_zstd_compressed_unless_asked_and_hold_the_same_messages() {
     let inst = instance("zstd");
     let record = |file: &str, extra: &[&str]| {
         let path = dir.path(file);
-        let mut args = vec![
-            "run",
-            "--instance",
-            &inst,
-            "--method",
-            "proposed",
-            "--scenario",
-            scenario.to_str().unwrap(),
-            "--record",
-            path.to_str().unwrap(),
-        ];
+        let mut args = vec!["--record", path.to_str().unwrap()];
         args.extend_from_slice(extra);
-        let out = stepdrive(&args);
+        let out = run_proposed(&inst, &scenario, &args);
         assert!(
             out.status.success(),
             "{}",
@@ -528,24 +518,8 @@ fn a_live_view_serves_the_state_channel_decimated_to_its_rate() {
     use tungstenite::{client::IntoClientRequest, Message};
     let _turn = one_stack_at_a_time();
     let inst = instance("live");
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port();
-    let addr = format!("127.0.0.1:{port}");
-    let mut serve = spawn_run(&[
-        "serve",
-        "--instance",
-        &inst,
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
-        "--foxglove",
-        &addr,
-        "--foxglove-rate",
-        "50",
-    ]);
+    let addr = format!("127.0.0.1:{}", free_tcp_port());
+    let mut serve = spawn_serve(&inst, &["--foxglove", &addr, "--foxglove-rate", "50"]);
     let mut socket = None;
     assert!(
         wait_until(Duration::from_secs(30), || {

@@ -163,15 +163,7 @@ fn small_input_and_exit_findings() {
 
     let _turn = one_stack_at_a_time();
     let inst = instance("sigstop");
-    let mut serve = spawn_run(&[
-        "serve",
-        "--instance",
-        &inst,
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
-    ]);
+    let mut serve = spawn_serve(&inst, &[]);
     assert!(
         wait_until(Duration::from_secs(30), || pid_of_role(
             &inst,

@@ -295,6 +295,46 @@ pub fn free_udp_port() -> u16 {
         .port()
 }
 
+/// A TCP port free on 127.0.0.1 at the time of asking.
+pub fn free_tcp_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("free port")
+        .port()
+}
+
+/// `stepdrive serve` on `inst` in the background, ordinary scheduling and no pinning (tests
+/// share two cores), with `extra` options.
+pub fn spawn_serve(inst: &str, extra: &[&str]) -> Child {
+    let mut args = vec![
+        "serve",
+        "--instance",
+        inst,
+        "--priority",
+        "0",
+        "--cpus",
+        "none",
+    ];
+    args.extend_from_slice(extra);
+    spawn_run(&args)
+}
+
+/// `stepdrive run` of the proposed method alone on `inst`, lockstep, with `scenario` and
+/// `extra` options.
+pub fn run_proposed(inst: &str, scenario: &Path, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "run",
+        "--instance",
+        inst,
+        "--method",
+        "proposed",
+        "--scenario",
+        scenario.to_str().expect("a UTF-8 path"),
+    ];
+    args.extend_from_slice(extra);
+    stepdrive(&args)
+}
+
 pub fn spawn_logged(args: &[&str]) -> Child {
     Command::new(exe())
         .args(args)

@@ -389,7 +389,7 @@ pub struct LiveArgs {
     /// The live view's rate for the streams (state, setpoints, commands, axis status), Hz,
     /// by the stack's time; the events (faults, axis acknowledgements, loop statistics) go
     /// out as they come.
-    #[arg(long, value_name = "HZ", default_value_t = stepdrive_monitor::record::live::DEFAULT_RATE_HZ)]
+    #[arg(long, value_name = "HZ", requires = "foxglove", default_value_t = stepdrive_monitor::record::live::DEFAULT_RATE_HZ)]
     pub foxglove_rate: f64,
 }
 
@@ -397,9 +397,6 @@ impl LiveArgs {
     /// The live view, started, if one was asked for.
     pub fn start(&self) -> Result<Option<stepdrive_monitor::record::live::LiveView>> {
         let Some(addr) = self.foxglove else {
-            if self.foxglove_rate != stepdrive_monitor::record::live::DEFAULT_RATE_HZ {
-                anyhow::bail!("--foxglove-rate is the live view's: give --foxglove ADDR too");
-            }
             return Ok(None);
         };
         let view = stepdrive_monitor::record::live::LiveView::start(addr, self.foxglove_rate)

@@ -147,6 +147,9 @@ pub struct Sequence {
     start_theta: Option<f64>,
     /// Spin: the field angle so far (integrated, so the profile's speed is exact).
     field: f64,
+    /// The sample the last voltages answered: a realtime caller that skipped samples (the
+    /// host stalled it) must find the field where the profile has it by now, not behind.
+    last_t: Option<f64>,
 }
 
 impl Sequence {
@@ -167,6 +170,7 @@ impl Sequence {
             top_speed: bounds.speed_rad_s / 1.5,
             start_theta: None,
             field: std::f64::consts::FRAC_PI_2,
+            last_t: None,
         }
     }
 
@@ -238,13 +242,18 @@ impl Sequence {
     /// The voltages of the period after the sample at `t`.
     fn voltages(&mut self, t: f64) -> [f64; 2] {
         let dc = LEVELS as f64 * LEVEL_S;
+        let periods = match self.last_t {
+            Some(last) => ((t - last) / self.period).round().max(0.0),
+            None => 1.0,
+        };
+        self.last_t = Some(t);
         let v = match Self::part(t) {
             Part::PhaseA => [self.level(t), 0.0],
             Part::Turn => [0.0, self.dc_v * 0.5],
             Part::PhaseB => [0.0, self.level(t - dc - TURN_S)],
             Part::Spin => {
                 let w = self.speed(t - 2.0 * dc - TURN_S);
-                self.field += self.n_r * w * self.period;
+                self.field += self.n_r * w * self.period * periods;
                 // Eq. (2) with the nominal back-EMF added, so the current stays near its
                 // amplitude at every speed.
                 let amplitude = self.r * self.spin_a + self.k_m * w.abs();
@@ -669,6 +678,44 @@ mod tests {
             }
         }
         assert!(checked as u64 > end / 2, "{checked}");
+    }
+
+    /// A realtime caller the host stalled sees only the newest state: after skipped
+    /// samples the field is where the profile has it by now, as for a caller that saw every
+    /// sample (the field once lagged one period per skipped sample, a jolt to an open-loop
+    /// rotor at speed).
+    #[test]
+    fn skipped_samples_leave_the_field_where_the_profile_has_it() {
+        let period = 50e-6;
+        let bounds = Bounds::default();
+        let mut every = Sequence::new(&MotorParams::default(), bounds, period);
+        let mut skipping = Sequence::new(&MotorParams::default(), bounds, period);
+        let state = |k: u64| DriveState {
+            seq: k,
+            sample_time_s: k as f64 * period,
+            ..Default::default()
+        };
+        let end = (Sequence::duration_s() / period) as u64;
+        let mut compared = 0;
+        for k in 0..end {
+            let v = every.next(&state(k)).expect("within bounds");
+            // Within the spin, a stall of 40 samples every 1000.
+            let spin = Sequence::part(state(k).sample_time_s) == Part::Spin;
+            if spin && k % 1000 < 40 {
+                continue;
+            }
+            let w = skipping.next(&state(k)).expect("within bounds");
+            if spin {
+                let angle = |v: [f64; 2]| v[1].atan2(v[0]);
+                let diff = (angle(v) - angle(w) + std::f64::consts::PI)
+                    .rem_euclid(std::f64::consts::TAU)
+                    - std::f64::consts::PI;
+                // One period of the top speed's field: the skip uses the speed at its end.
+                assert!(diff.abs() < 0.05, "sample {k}: field {diff:e} rad apart");
+                compared += 1;
+            }
+        }
+        assert!(compared > 10_000, "{compared}");
     }
 
     /// The rotor resting under load at each DC level gives the electrical zero: a measured θ

@@ -20,6 +20,10 @@ pub struct AxisArgs {
     /// The axis (this stack has axis 0).
     #[arg(long, default_value_t = 0, global = true)]
     axis: u32,
+    /// Reach the stack through the `stepdrive gateway` at this Zenoh endpoint
+    /// (tcp/HOST:PORT), from this host or another, instead of its services on this host.
+    #[arg(long, value_name = "tcp/HOST:PORT", global = true)]
+    connect: Option<String>,
     #[command(subcommand)]
     verb: Verb,
 }
@@ -127,7 +131,8 @@ enum Verb {
     },
     /// Measure command latency: COUNT small relative moves (±1 µrad, the axis enabled), each
     /// timed from its publication to the first setpoint that carries it out (the
-    /// acknowledgement's timestamp); prints p50/p99/max. A measurement, not a test.
+    /// acknowledgement's timestamp); prints p50/p99/max. With --connect, each command's
+    /// round trip through the gateway on this host's clock. A measurement, not a test.
     Latency {
         #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
         count: u32,
@@ -196,7 +201,11 @@ fn describe(s: &AxisStatus) -> String {
 }
 
 pub fn axis(a: AxisArgs) -> Result<()> {
-    let mut axis = Axis::connect(&a.instance, a.axis).map_err(failed)?;
+    let mut axis = match &a.connect {
+        Some(endpoint) => Axis::connect_remote(endpoint, &a.instance, a.axis),
+        None => Axis::connect(&a.instance, a.axis),
+    }
+    .map_err(failed)?;
     match a.verb {
         Verb::Status => {
             let s = axis.status().map_err(failed)?;
@@ -254,6 +263,9 @@ pub fn axis(a: AxisArgs) -> Result<()> {
         Verb::Jog { velocity, limits } => {
             axis.jog(velocity, limits.limits()).map_err(failed)?;
             println!("jogging at {velocity} rad/s");
+            if axis.endpoint().is_some() {
+                hold_remote_jog(&mut axis, limits.limits())?;
+            }
         }
         Verb::Stop { limits } => {
             axis.stop(limits.limits()).map_err(failed)?;
@@ -302,6 +314,27 @@ pub fn axis(a: AxisArgs) -> Result<()> {
     Ok(())
 }
 
+/// A jog through a gateway lasts as long as its client: the gateway quick-stops a jog whose
+/// client went away (its lease), so this command holds the lease until Ctrl-C, then stops
+/// the axis (a deceleration at the jog's limits) and exits. Exit 3 if the axis faults.
+fn hold_remote_jog(axis: &mut Axis, limits: Limits) -> Result<()> {
+    println!("through the gateway: the jog lasts while this command runs; Ctrl-C stops it");
+    while !stepdrive_runtime::poll::termination_requested() {
+        let s = axis.status().map_err(failed)?;
+        if s.axis_state() == Some(AxisState::Fault) {
+            return Err(failed(ClientError::Fault {
+                faults: format!("fault bits {:#x}", s.fault),
+                following_error: s.following_error_rad,
+                status: Box::new(s),
+            }));
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    axis.stop(limits).map_err(failed)?;
+    println!("stopping");
+    Ok(())
+}
+
 /// Sends each row when the axis is ready for it (paced by the axis's stream time, one
 /// lead ahead: [`stepdrive_client::Stream::pace`]), then ends the stream.
 fn stream_rows(
@@ -344,19 +377,26 @@ fn command_latency(axis: &mut Axis, count: u32) -> Result<()> {
     if s.axis_state() != Some(AxisState::OperationEnabled) {
         anyhow::bail!("the latency measurement moves the axis by ±1 µrad: enable it first");
     }
+    // Through a gateway the two ends' clocks are different hosts' (or at least the
+    // acknowledgement's timestamp is the stack's): the round trip is timed here instead.
+    let remote = axis.endpoint().is_some();
     let mut us = Vec::with_capacity(count as usize);
     for i in 0..count {
         if stepdrive_runtime::poll::termination_requested() {
             break;
         }
         let delta = if i % 2 == 0 { 1e-6 } else { -1e-6 };
+        let sent = Instant::now();
         let mv = axis
             .move_with(delta, Limits::default(), request_flags::RELATIVE)
             .map_err(failed)?;
-        let ns = mv
-            .ack
-            .publish_time_ns
-            .saturating_sub(mv.ack.request.publish_time_ns);
+        let ns = if remote {
+            sent.elapsed().as_nanos() as u64
+        } else {
+            mv.ack
+                .publish_time_ns
+                .saturating_sub(mv.ack.request.publish_time_ns)
+        };
         us.push(ns as f64 * 1e-3);
         // Commands a little over a tick apart: each meets a position loop waiting for its
         // next tick at a different phase.
@@ -367,8 +407,13 @@ fn command_latency(axis: &mut Axis, count: u32) -> Result<()> {
     }
     us.sort_by(f64::total_cmp);
     let at = |q: f64| us[((us.len() - 1) as f64 * q).round() as usize];
+    let what = if remote {
+        "command sent → its acknowledgement back through the gateway (round trip)"
+    } else {
+        "command published → first setpoint carrying it"
+    };
     println!(
-        "command published → first setpoint carrying it, {} commands: p50 {:.1} µs, p99 {:.1} µs, max {:.1} µs",
+        "{what}, {} commands: p50 {:.1} µs, p99 {:.1} µs, max {:.1} µs",
         us.len(),
         at(0.5),
         at(0.99),

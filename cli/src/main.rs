@@ -42,6 +42,10 @@ enum Cmd {
     /// Command a served stack's axis: status, enable, disable, quick-stop, reset, move, jog,
     /// stop, stream, set-position (`stepdrive axis --help`).
     Axis(crate::axis::AxisArgs),
+    /// The axis on Zenoh for clients on other hosts: commands answered as the local command
+    /// service answers them, the status at --status-rate, streams, and a lease per remote
+    /// client (`serve --gateway` starts one; `stepdrive axis --connect` is its client).
+    Gateway(commands::GatewayArgs),
     /// The same nodes in one process on virtual time, no IPC: the reference a `run` must
     /// reproduce exactly; with --stall, what a host stall of the current loop costs.
     Simulate(commands::SimulateArgs),
@@ -111,7 +115,8 @@ enum Cmd {
 fn init_logging() {
     use tracing_subscriber::EnvFilter;
     iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Warn);
-    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let filter =
+        EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn"));
     // SAFETY: isatty only inspects a descriptor.
     let ansi = unsafe { libc::isatty(libc::STDERR_FILENO) } == 1;
     tracing_subscriber::fmt()
@@ -134,6 +139,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
             unsafe { libc::signal(libc::SIGPIPE, libc::SIG_DFL) };
             crate::axis::axis(a)
         }
+        Cmd::Gateway(a) => commands::gateway(a),
         Cmd::Simulate(a) => commands::simulate(a),
         Cmd::Robustness(a) => commands::robustness(a),
         Cmd::Identify(a) => commands::identify(a),

@@ -11,7 +11,8 @@
 //! Options: `--seconds S` (5), `--rate HZ` (1000), `--amplitude RAD` (2), `--frequency HZ`
 //! (1), `--bound RAD` (1e-4: exit 1 above it), `--lead S` (the axis's), `--priority P` (SCHED_FIFO, 10; 0: ordinary,
 //! see [`stepdrive_client::realtime_priority`] for why not), `--instance NAME` (stepdrive),
-//! `--trace 1` (print every judged status beyond the bound: its tick, the stream time, the
+//! `--connect tcp/HOST:PORT` (through a `stepdrive gateway`, from another host: the status
+//! comes at the gateway's rate, and the lead defaults to 0.1 s), `--trace 1` (print every judged status beyond the bound: its tick, the stream time, the
 //! setpoint's and the rotor's distance from the sine, the warnings).
 //! The axis is enabled if it is not; it is left holding at the end of the stream.
 
@@ -31,6 +32,7 @@ struct Options {
     priority: u8,
     lead: Option<f64>,
     instance: String,
+    connect: Option<String>,
     trace: bool,
 }
 
@@ -44,6 +46,7 @@ fn options() -> Result<Options, String> {
         priority: stepdrive_client::STREAM_PRIORITY,
         lead: None,
         instance: "stepdrive".to_string(),
+        connect: None,
         trace: false,
     };
     let mut args = std::env::args().skip(1);
@@ -71,6 +74,7 @@ fn options() -> Result<Options, String> {
             }
             "--lead" => o.lead = Some(number()?),
             "--instance" => o.instance = value,
+            "--connect" => o.connect = Some(value),
             "--trace" => {
                 o.trace = match value.as_str() {
                     "1" => true,
@@ -144,7 +148,10 @@ impl Tracking {
 
 fn run(o: &Options) -> Result<bool, ClientError> {
     stepdrive_client::realtime_priority(o.priority)?;
-    let mut axis = Axis::connect(&o.instance, 0)?;
+    let mut axis = match &o.connect {
+        Some(endpoint) => Axis::connect_remote(endpoint, &o.instance, 0)?,
+        None => Axis::connect(&o.instance, 0)?,
+    };
     if axis.status()?.axis_state() != Some(AxisState::OperationEnabled) {
         axis.enable()?;
     }

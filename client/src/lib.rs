@@ -23,10 +23,15 @@
 //! # }
 //! ```
 //!
-//! The axis talks through the stack's iceoryx2 services on this host: the command service
-//! (request-response, each command answered within the position loop's tick), the status
-//! topic (every tick, 2 kHz by default) and the stream topic. See the README's "Commanding
-//! the axis" and the CiA 402 table there.
+//! On the stack's host the axis talks through the stack's iceoryx2 services: the command
+//! service (request-response, each command answered within the position loop's tick), the
+//! status topic (every tick, 2 kHz by default) and the stream topic. From another host,
+//! [`Axis::connect_remote`] talks to a `stepdrive gateway` over Zenoh with the same verbs
+//! (the status at the gateway's rate, 100 Hz by default; docs/remote.md). See the README's
+//! "Commanding the axis" and the CiA 402 table there.
+
+pub mod gateway;
+pub mod remote;
 
 use std::time::{Duration, Instant};
 use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
@@ -84,6 +89,12 @@ pub enum ClientError {
     BadInstance(String),
     #[error(transparent)]
     Port(#[from] PortError),
+    /// The link to a gateway on another host failed (see [`Axis::connect_remote`]).
+    #[error("gateway at {endpoint}: {message}")]
+    Remote { endpoint: String, message: String },
+    /// What only the stack's own host can do (a command flood of the local service).
+    #[error("{0} works on the stack's host only, not through a gateway")]
+    LocalOnly(&'static str),
 }
 
 /// The SCHED_FIFO priority a streaming client takes by default: below the stack's loops
@@ -151,13 +162,60 @@ pub struct Move {
 pub struct Axis {
     instance: String,
     axis: u32,
+    link: Link,
+    next_seq: u64,
+    /// How long a command waits for its answer.
+    pub timeout: Duration,
+}
+
+/// How an axis is reached: the stack's services on this host, or a gateway.
+enum Link {
+    Local(Box<LocalLink>),
+    Remote(Box<remote::RemoteLink>),
+}
+
+struct LocalLink {
     bus: IpcBus,
     commands: CommandClient,
     status: IpcSubscriber<AxisStatus>,
     stream: Option<IpcPublisher<AxisStreamPoint>>,
-    next_seq: u64,
-    /// How long a command waits for its answer.
-    pub timeout: Duration,
+}
+
+impl Link {
+    fn request(&mut self, r: &AxisRequest, timeout: Duration) -> Result<AxisAck, ClientError> {
+        match self {
+            Link::Local(l) => Ok(l.commands.request(r, timeout)?),
+            Link::Remote(l) => l.request(r, timeout),
+        }
+    }
+
+    fn newest_status(&mut self) -> Result<Option<AxisStatus>, ClientError> {
+        match self {
+            Link::Local(l) => Ok(l.status.newest()?),
+            Link::Remote(l) => l.newest_status(),
+        }
+    }
+
+    fn open_stream(&mut self) -> Result<(), ClientError> {
+        if let Link::Local(l) = self {
+            if l.stream.is_none() {
+                l.stream = Some(l.bus.publisher_of::<AxisStreamPoint>()?);
+            }
+        }
+        Ok(())
+    }
+
+    fn publish_point(&mut self, p: &AxisStreamPoint) -> Result<(), ClientError> {
+        match self {
+            Link::Local(l) => {
+                if let Some(publisher) = l.stream.as_mut() {
+                    publisher.publish(p)?;
+                }
+                Ok(())
+            }
+            Link::Remote(l) => l.publish_point(p),
+        }
+    }
 }
 
 /// The faults' names.
@@ -204,21 +262,49 @@ impl Axis {
         let bus = IpcBus::attach(instance, &role, Duration::from_secs(5)).map_err(no_stack)?;
         let commands = bus.command_client().map_err(no_stack)?;
         let status = bus.subscriber_of::<AxisStatus>(16)?;
-        let mut this = Self {
-            instance: instance.to_string(),
-            axis,
+        let link = Link::Local(Box::new(LocalLink {
             bus,
             commands,
             status,
             stream: None,
-            // Sequence numbers of different clients do not collide: the pid is their top.
-            next_seq: u64::from(std::process::id()) << 32,
+        }));
+        // Sequence numbers of different clients do not collide: the pid is their top.
+        Self::checked(instance, axis, link, std::process::id())
+    }
+
+    /// Connects to axis `axis` of the stack on `instance` through the `stepdrive gateway`
+    /// at `endpoint` (`tcp/HOST:PORT`), from this host or another: the same verbs as
+    /// [`Axis::connect`]. The status comes at the gateway's rate (100 Hz by default), a
+    /// stream's default lead is [`remote::REMOTE_STREAM_LEAD_S`], and while this value
+    /// lives it holds a lease at the gateway: if this process ends or its link is silent
+    /// for [`remote::LEASE`], a stream or jog it started is quick-stopped.
+    pub fn connect_remote(endpoint: &str, instance: &str, axis: u32) -> Result<Self, ClientError> {
+        stepdrive_shared::services::instance_name(instance).map_err(ClientError::BadInstance)?;
+        let client = remote_client_id();
+        let link = remote::RemoteLink::open(endpoint, instance, axis, client)?;
+        Self::checked(instance, axis, Link::Remote(Box::new(link)), client)
+    }
+
+    fn checked(instance: &str, axis: u32, link: Link, client: u32) -> Result<Self, ClientError> {
+        let mut this = Self {
+            instance: instance.to_string(),
+            axis,
+            link,
+            next_seq: u64::from(client) << 32,
             timeout: Duration::from_secs(2),
         };
         // A status request answers whether the stack has this axis (an unknown index is
         // refused by the stack, naming it), before anything is read or sent for it.
         this.simple(RequestKind::Status)?;
         Ok(this)
+    }
+
+    /// The gateway's endpoint, for an axis reached through one.
+    pub fn endpoint(&self) -> Option<&str> {
+        match &self.link {
+            Link::Local(_) => None,
+            Link::Remote(l) => Some(l.endpoint()),
+        }
     }
 
     pub fn instance(&self) -> &str {
@@ -231,7 +317,7 @@ impl Axis {
             axis: self.axis,
             kind: kind as u32,
             seq: self.next_seq,
-            client: std::process::id(),
+            client: (self.next_seq >> 32) as u32,
             ..Default::default()
         }
     }
@@ -239,7 +325,7 @@ impl Axis {
     /// Sends `r` and waits for its answer; a refusal is an error (nothing was applied).
     pub fn send(&mut self, mut r: AxisRequest) -> Result<AxisAck, ClientError> {
         r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
-        let ack = self.commands.request(&r, self.timeout)?;
+        let ack = self.link.request(&r, self.timeout)?;
         if ack.taken() {
             return Ok(ack);
         }
@@ -260,7 +346,7 @@ impl Axis {
     pub fn status(&mut self) -> Result<AxisStatus, ClientError> {
         let deadline = Instant::now() + self.timeout;
         loop {
-            if let Some(s) = self.status.newest()? {
+            if let Some(s) = self.link.newest_status()? {
                 if s.axis == self.axis {
                     return Ok(s);
                 }
@@ -343,7 +429,9 @@ impl Axis {
         loop {
             let s = self.status()?;
             faulted(&s)?;
-            if s.last_seq != mv.seq && s.last_seq > mv.seq {
+            // After the tick that took the move, any other last command took over (whatever
+            // its client: sequence numbers of different clients do not compare).
+            if s.tick > mv.ack.tick && s.last_seq != mv.seq {
                 return Err(ClientError::Superseded { by: s.last_seq });
             }
             if s.last_seq == mv.seq && s.target_reached() {
@@ -380,11 +468,20 @@ impl Axis {
         rate_hz: f64,
         duration: Duration,
     ) -> Result<stepdrive_runtime::ipc::Flood, ClientError> {
-        let mut template = self.request(kind);
+        let Link::Local(local) = &mut self.link else {
+            return Err(ClientError::LocalOnly("a command flood"));
+        };
+        let mut template = AxisRequest {
+            axis: self.axis,
+            kind: kind as u32,
+            seq: self.next_seq + 1,
+            client: (self.next_seq >> 32) as u32,
+            ..Default::default()
+        };
         template.target_rad = move_rad;
         template.flags |= request_flags::RELATIVE;
         let mut seq = template.seq;
-        let counts = self.commands.flood(
+        let counts = local.commands.flood(
             &template,
             || {
                 seq += 1;
@@ -408,10 +505,12 @@ impl Axis {
     /// arrival (`None`: the axis's default). Push points with [`Stream::push`] at 100 Hz to
     /// 2 kHz; a stream that stops coming is quick-stopped by the axis.
     pub fn stream(&mut self, lead: Option<f64>) -> Result<Stream<'_>, ClientError> {
-        if self.stream.is_none() {
-            self.stream = Some(self.bus.publisher_of::<AxisStreamPoint>()?);
-        }
+        self.link.open_stream()?;
         let mut r = self.request(RequestKind::StreamStart);
+        let lead = match (&self.link, lead) {
+            (Link::Remote(_), None) => Some(remote::REMOTE_STREAM_LEAD_S),
+            (_, lead) => lead,
+        };
         if let Some(l) = lead {
             r.lead_s = l;
             r.flags |= request_flags::HAS_LEAD;
@@ -475,9 +574,7 @@ impl Stream<'_> {
         };
         let mut p = row.point(self.axis.axis, self.id, self.next);
         p.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
-        if let Some(publisher) = self.axis.stream.as_mut() {
-            publisher.publish(&p)?;
-        }
+        self.axis.link.publish_point(&p)?;
         self.next += 1;
         self.last_t = Some(t);
         Ok(())
@@ -501,8 +598,8 @@ impl Stream<'_> {
             let axis = self.axis.axis;
             if let Some(s) = self
                 .axis
-                .status
-                .newest()?
+                .link
+                .newest_status()?
                 .filter(|s| s.axis == axis && s.tick >= start)
             {
                 self.seen = Some(s);
@@ -559,4 +656,15 @@ impl Stream<'_> {
     pub fn end(self) -> Result<AxisAck, ClientError> {
         self.axis.simple(RequestKind::StreamEnd)
     }
+}
+
+/// A remote client's id (the top of its commands' sequence numbers and its lease's name):
+/// the pid alone may repeat across hosts, so the clock's nanoseconds are mixed in.
+fn remote_client_id() -> u32 {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.subsec_nanos());
+    // Odd ids beyond 2^22 never equal a Linux pid (at most 2^22), so a remote client never
+    // shares a local one's sequence numbers.
+    (std::process::id() ^ nanos.rotate_left(11)) | (1 << 31) | 1
 }

@@ -13,6 +13,7 @@ pub mod services;
 pub mod stack;
 pub mod stats;
 pub mod trajectory;
+pub mod wire;
 
 pub use messages::{DriveCommand, DriveState, TorqueSetpoint};
 pub use scenario::{Method, Mode, Scenario, ScenarioError};

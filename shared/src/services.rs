@@ -314,3 +314,40 @@ mod tests {
         }
     }
 }
+
+/// Zenoh key expressions of the gateway (`stepdrive gateway`, docs/remote.md): what
+/// crosses hosts, under `stepdrive/<instance>/`.
+pub mod remote {
+    /// Queryable: an [`AxisRequest`](crate::axis::AxisRequest) in, its
+    /// [`AxisAck`](crate::axis::AxisAck) out.
+    pub const COMMAND: &str = "command";
+    /// The axis's [`AxisStatus`](crate::axis::AxisStatus), at the gateway's rate.
+    pub const STATUS: &str = "status";
+    /// [`AxisStreamPoint`](crate::axis::AxisStreamPoint)s of a stream a remote client
+    /// started.
+    pub const STREAM: &str = "stream";
+
+    /// The port a gateway listens on when none is named (Zenoh's own default).
+    pub const DEFAULT_PORT: u16 = 7447;
+
+    /// `stepdrive/<instance>/axis/<axis>/<leaf>`.
+    pub fn axis_key(instance: &str, axis: u32, leaf: &str) -> String {
+        format!("stepdrive/{instance}/axis/{axis}/{leaf}")
+    }
+
+    /// A remote client's liveliness token: `stepdrive/<instance>/client/<id>`, the id the
+    /// top 32 bits of its commands' sequence numbers.
+    pub fn client_token(instance: &str, client: u32) -> String {
+        format!("stepdrive/{instance}/client/{client}")
+    }
+
+    /// Every client token of an instance.
+    pub fn client_tokens(instance: &str) -> String {
+        format!("stepdrive/{instance}/client/*")
+    }
+
+    /// The client id in a token's key.
+    pub fn client_of_token(key: &str) -> Option<u32> {
+        key.rsplit('/').next()?.parse().ok()
+    }
+}

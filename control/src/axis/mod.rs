@@ -351,8 +351,13 @@ impl Axis {
             ));
         };
         self.apply(kind, r, m)?;
-        self.last_kind = r.kind;
-        self.last_seq = r.seq;
+        // A status request reads: it is no command, and must not stand in the status as
+        // the last one (a client waiting for its move, or a gateway judging whose motion
+        // runs, would see another client's read as a new command).
+        if kind != RequestKind::Status {
+            self.last_kind = r.kind;
+            self.last_seq = r.seq;
+        }
         Ok(())
     }
 
@@ -1145,6 +1150,10 @@ mod tests {
             1,
             "only the enable was taken"
         );
+        // A status request is answered but is no command: the enable stays the last.
+        axis.request(&request(RequestKind::Status, 77), &m)
+            .expect("a status request is taken");
+        assert_eq!(axis.status(&m, 0.0).last_seq, 1);
 
         // A stream whose time goes backwards: the point is refused and counted.
         axis.request(&request(RequestKind::StreamStart, 9), &m)

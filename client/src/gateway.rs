@@ -1,0 +1,387 @@
+//! `stepdrive gateway`: the stack's axis on Zenoh, for clients on other hosts
+//! (docs/remote.md). Not a loop of the stack: an ordinary process beside it that is a client
+//! of the stack's iceoryx2 services on one side and a Zenoh peer on the other.
+//!
+//! - commands: a queryable on `stepdrive/<instance>/axis/*/command`; each query's
+//!   [`AxisRequest`] goes to the local command service and its [`AxisAck`] comes back as
+//!   the reply, so a remote command is validated and answered exactly as a local one. A
+//!   client over its rate limit is refused (`TooMany`) here, without reaching the axis.
+//! - status: the axis's newest [`AxisStatus`] on `stepdrive/<instance>/axis/0/status` at
+//!   the gateway's rate (100 Hz by default).
+//! - streams: points on `stepdrive/<instance>/axis/*/stream` go to the local stream topic.
+//! - leases: every remote client holds a liveliness token; when one goes (its session
+//!   closed, or its link silent for [`LEASE`](crate::remote::LEASE)) and the axis is still
+//!   in a stream or jog that client started, the gateway quick-stops the axis.
+
+use crate::remote::{self, decode, encoding, Side};
+use std::collections::HashMap;
+use std::time::{Duration, Instant};
+use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
+use stepdrive_runtime::port::{PortError, Publish, Subscribe};
+use stepdrive_shared::axis::{
+    AxisAck, AxisMode, AxisRequest, AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
+};
+use stepdrive_shared::services::remote as keys;
+use stepdrive_shared::wire;
+use zenoh::sample::SampleKind;
+use zenoh::Wait;
+
+/// What the gateway does.
+#[derive(Debug, Clone)]
+pub struct GatewayOptions {
+    pub instance: String,
+    /// `tcp/HOST:PORT`.
+    pub endpoint: String,
+    pub side: Side,
+    /// Status messages per second on Zenoh.
+    pub status_hz: f64,
+    /// Commands per second one remote client may send (a burst of a tenth of a second of
+    /// them is let through at once).
+    pub max_commands_hz: f64,
+    /// How long to wait for the stack to come up.
+    pub attach_timeout: Duration,
+}
+
+/// The gateway's counts, when it stops.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct GatewaySummary {
+    pub commands: u64,
+    pub rate_limited: u64,
+    pub malformed: u64,
+    pub statuses: u64,
+    pub points: u64,
+    pub leases_lost: u64,
+    pub quick_stops: u64,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    #[error("no stack on instance `{instance}` (waited {waited:?}): start it with `stepdrive serve --instance {instance}`")]
+    NoStack {
+        instance: String,
+        waited: Duration,
+        #[source]
+        source: PortError,
+    },
+    #[error(transparent)]
+    Port(#[from] PortError),
+    #[error("zenoh at {endpoint}: {message}")]
+    Zenoh { endpoint: String, message: String },
+    #[error("the stack on instance `{instance}` published no status for {silent:?}: it stopped")]
+    StackGone { instance: String, silent: Duration },
+}
+
+/// A token bucket per remote client.
+struct Bucket {
+    tokens: f64,
+    at: Instant,
+}
+
+/// How long a forwarded command waits for the axis: under a remote client's own wait (2 s
+/// by default), so the client hears why rather than a timeout.
+const LOCAL_ANSWER: Duration = Duration::from_secs(1);
+
+/// The gateway's own client id (the top of its sequence numbers), an even number above any
+/// pid: never a remote client's (odd) nor a local one's.
+const GATEWAY_CLIENT: u32 = 0xfffe_0000;
+
+/// Runs the gateway until SIGINT/SIGTERM or the stack stops.
+pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
+    if !(o.status_hz.is_finite() && o.status_hz > 0.0) {
+        return Err(GatewayError::Zenoh {
+            endpoint: o.endpoint.clone(),
+            message: format!("a status rate of {} Hz", o.status_hz),
+        });
+    }
+    let no_stack = |source| GatewayError::NoStack {
+        instance: o.instance.clone(),
+        waited: o.attach_timeout,
+        source,
+    };
+    let bus = IpcBus::attach(&o.instance, "gateway", o.attach_timeout).map_err(no_stack)?;
+    let mut commands: CommandClient = bus.command_client().map_err(no_stack)?;
+    let mut status_in: IpcSubscriber<AxisStatus> = bus.subscriber_of::<AxisStatus>(16)?;
+    let mut points_out: IpcPublisher<AxisStreamPoint> = bus.publisher_of::<AxisStreamPoint>()?;
+
+    let zerr = |what: &str, e: &dyn std::fmt::Display| GatewayError::Zenoh {
+        endpoint: o.endpoint.clone(),
+        message: format!("{what}: {e}"),
+    };
+    let config = remote::config(&o.endpoint, o.side).map_err(|e| zerr("configuration", &e))?;
+    let session = zenoh::open(config)
+        .wait()
+        .map_err(|e| zerr("cannot open the session", &e))?;
+    let any_axis = |leaf| keys::axis_key(&o.instance, 0, leaf).replace("/axis/0/", "/axis/*/");
+    let queries = session
+        .declare_queryable(any_axis(keys::COMMAND))
+        .wait()
+        .map_err(|e| zerr("command queryable", &e))?;
+    let points_in = session
+        .declare_subscriber(any_axis(keys::STREAM))
+        .wait()
+        .map_err(|e| zerr("stream subscriber", &e))?;
+    let status_out = session
+        .declare_publisher(keys::axis_key(&o.instance, 0, keys::STATUS))
+        .encoding(encoding::<AxisStatus>())
+        .wait()
+        .map_err(|e| zerr("status publisher", &e))?;
+    let leases = session
+        .liveliness()
+        .declare_subscriber(keys::client_tokens(&o.instance))
+        .history(true)
+        .wait()
+        .map_err(|e| zerr("liveliness subscriber", &e))?;
+    tracing::info!(
+        "gateway for instance `{}` on {} ({}): commands, status at {} Hz, streams, leases of {:?}",
+        o.instance,
+        o.endpoint,
+        match o.side {
+            Side::Listen => "listening",
+            Side::Connect => "connected",
+        },
+        o.status_hz,
+        remote::LEASE
+    );
+
+    let mut sum = GatewaySummary::default();
+    let mut buckets: HashMap<u32, Bucket> = HashMap::new();
+    let burst = (o.max_commands_hz / 10.0).max(1.0);
+    let status_period = Duration::from_secs_f64(1.0 / o.status_hz);
+    let mut next_status = Instant::now();
+    let mut newest: Option<AxisStatus> = None;
+    let mut last_status_at = Instant::now();
+    let mut own_seq = u64::from(GATEWAY_CLIENT) << 32;
+    let silent_limit = Duration::from_secs(5);
+
+    while !stepdrive_runtime::poll::termination_requested() {
+        let mut idle = true;
+        while let Some(s) = status_in.newest()? {
+            newest = Some(s);
+            last_status_at = Instant::now();
+        }
+        // Before the first status the stack is still starting: it has the attach time.
+        let limit = if newest.is_some() {
+            silent_limit
+        } else {
+            silent_limit.max(o.attach_timeout)
+        };
+        if last_status_at.elapsed() > limit {
+            return Err(GatewayError::StackGone {
+                instance: o.instance.clone(),
+                silent: limit,
+            });
+        }
+        let now = Instant::now();
+        if now >= next_status {
+            if let Some(s) = newest {
+                status_out
+                    .put(wire::bytes(&s).to_vec())
+                    .wait()
+                    .map_err(|e| zerr("status", &e))?;
+                sum.statuses += 1;
+            }
+            // Paced from the schedule, not from now: the rate holds on average.
+            next_status += status_period;
+            if next_status < now {
+                next_status = now + status_period;
+            }
+        }
+
+        while let Ok(Some(query)) = queries.try_recv() {
+            idle = false;
+            let Some(payload) = query.payload() else {
+                sum.malformed += 1;
+                let _ = query
+                    .reply_err("no payload: an AxisRequest was expected")
+                    .wait();
+                continue;
+            };
+            let request: AxisRequest = match decode(payload) {
+                Ok(r) => r,
+                Err(e) => {
+                    sum.malformed += 1;
+                    let _ = query.reply_err(e.to_string()).wait();
+                    continue;
+                }
+            };
+            let limited = over_rate(
+                &mut buckets,
+                request.client,
+                (o.max_commands_hz, burst),
+                Instant::now(),
+            );
+            let ack = if limited {
+                sum.rate_limited += 1;
+                let mut ack = AxisAck {
+                    request,
+                    refusal: Refusal::TooMany as u32,
+                    state: newest.map_or(0, |s| s.state),
+                    ..Default::default()
+                };
+                ack.set_text(&format!(
+                    "over the gateway's limit of {} commands/s for one remote client",
+                    o.max_commands_hz
+                ));
+                ack
+            } else {
+                sum.commands += 1;
+                let mut r = request;
+                r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
+                match commands.request(&r, LOCAL_ANSWER) {
+                    Ok(ack) => ack,
+                    Err(e) => {
+                        // The stack starting or stalled: this command fails, the gateway
+                        // goes on (a stack that stopped shows as a silent status below).
+                        let _ = query.reply_err(e.to_string()).wait();
+                        continue;
+                    }
+                }
+            };
+            query
+                .reply(query.key_expr().clone(), wire::bytes(&ack).to_vec())
+                .encoding(encoding::<AxisAck>())
+                .wait()
+                .map_err(|e| zerr("command reply", &e))?;
+        }
+
+        while let Ok(Some(sample)) = points_in.try_recv() {
+            idle = false;
+            match decode::<AxisStreamPoint>(sample.payload()) {
+                Ok(mut p) => {
+                    // The stack's clock, for recorders: the client's is another host's.
+                    p.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
+                    points_out.publish(&p)?;
+                    sum.points += 1;
+                }
+                Err(e) => {
+                    sum.malformed += 1;
+                    tracing::warn!("a stream point from {}: {e}", sample.key_expr());
+                }
+            }
+        }
+
+        while let Ok(Some(sample)) = leases.try_recv() {
+            idle = false;
+            let Some(client) = keys::client_of_token(sample.key_expr().as_str()) else {
+                continue;
+            };
+            match sample.kind() {
+                SampleKind::Put => tracing::info!("remote client {client} connected"),
+                SampleKind::Delete => {
+                    sum.leases_lost += 1;
+                    buckets.remove(&client);
+                    let Some(s) = newest.filter(|s| started_motion(s, client)) else {
+                        tracing::info!("remote client {client} went away");
+                        continue;
+                    };
+                    own_seq += 1;
+                    let stop = AxisRequest {
+                        axis: s.axis,
+                        kind: RequestKind::QuickStop as u32,
+                        seq: own_seq,
+                        client: GATEWAY_CLIENT,
+                        publish_time_ns: stepdrive_runtime::clock::monotonic_ns(),
+                        ..Default::default()
+                    };
+                    let ack = commands.request(&stop, LOCAL_ANSWER)?;
+                    sum.quick_stops += 1;
+                    tracing::warn!(
+                        "remote client {client} went away (session closed or lease of {:?} \
+                         expired) while its {} ran: quick stop {}",
+                        remote::LEASE,
+                        AxisMode::from_u32(s.mode).map_or("motion", |m| m.name()),
+                        if ack.taken() { "taken" } else { ack.text() }
+                    );
+                }
+            }
+        }
+        if idle {
+            std::thread::sleep(Duration::from_micros(200));
+        }
+    }
+    drop(session);
+    Ok(sum)
+}
+
+/// Whether the axis is still in a stream or jog that `client`'s last command started: what
+/// a client that went away leaves running. (A move ends by itself.)
+fn started_motion(s: &AxisStatus, client: u32) -> bool {
+    let mode = AxisMode::from_u32(s.mode);
+    (s.last_seq >> 32) as u32 == client
+        && s.axis_state() == Some(AxisState::OperationEnabled)
+        && matches!(
+            mode,
+            Some(AxisMode::CyclicPosition | AxisMode::ProfileVelocity)
+        )
+}
+
+/// Takes a token from `client`'s bucket at `now` (refilled at `rate`/s up to `burst`);
+/// whether it was empty.
+fn over_rate(
+    buckets: &mut HashMap<u32, Bucket>,
+    client: u32,
+    (rate, burst): (f64, f64),
+    now: Instant,
+) -> bool {
+    let b = buckets.entry(client).or_insert(Bucket {
+        tokens: burst,
+        at: now,
+    });
+    b.tokens = (b.tokens + rate * now.duration_since(b.at).as_secs_f64()).min(burst);
+    b.at = now;
+    if b.tokens < 1.0 {
+        return true;
+    }
+    b.tokens -= 1.0;
+    false
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_client_over_its_rate_is_limited_after_its_burst() {
+        let mut buckets = HashMap::new();
+        let limits = (100.0, 10.0);
+        let t0 = Instant::now();
+        // 50 at once: the burst of 10 passes.
+        let limited = (0..50)
+            .filter(|_| over_rate(&mut buckets, 7, limits, t0))
+            .count();
+        assert_eq!(limited, 40);
+        // Another client has its own bucket.
+        assert!(!over_rate(&mut buckets, 8, limits, t0));
+        // 50 ms later at 100/s: 5 more, and never more than the burst after a long pause.
+        let t1 = t0 + Duration::from_millis(50);
+        let passed = (0..20)
+            .filter(|_| !over_rate(&mut buckets, 7, limits, t1))
+            .count();
+        assert_eq!(passed, 5);
+        let t2 = t1 + Duration::from_secs(60);
+        let passed = (0..20)
+            .filter(|_| !over_rate(&mut buckets, 7, limits, t2))
+            .count();
+        assert_eq!(passed, 10);
+    }
+
+    #[test]
+    fn only_a_stream_or_jog_the_client_started_is_left_running() {
+        let client = 0x8000_1235;
+        let mut s = AxisStatus {
+            state: AxisState::OperationEnabled as u32,
+            mode: AxisMode::CyclicPosition as u32,
+            last_seq: (u64::from(client) << 32) + 9,
+            ..Default::default()
+        };
+        assert!(started_motion(&s, client));
+        assert!(!started_motion(&s, client + 2));
+        s.mode = AxisMode::ProfileVelocity as u32;
+        assert!(started_motion(&s, client));
+        s.mode = AxisMode::ProfilePosition as u32;
+        assert!(!started_motion(&s, client));
+        s.mode = AxisMode::CyclicPosition as u32;
+        s.state = AxisState::QuickStopActive as u32;
+        assert!(!started_motion(&s, client));
+    }
+}

@@ -1,0 +1,292 @@
+//! The axis from another host: `serve --gateway` in one network namespace, `stepdrive axis
+//! --connect` in another, joined by a veth pair the test makes (nothing leaves the machine).
+//! Needs root and iproute2's `ip` (the CI machine has both).
+
+mod common;
+
+use common::*;
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+/// Two network namespaces joined by a veth pair, removed when dropped.
+struct Link {
+    stack: String,
+    remote: String,
+    remote_end: String,
+    /// The stack's address on the link.
+    stack_ip: String,
+}
+
+fn ip(args: &[&str]) {
+    let out = Command::new("ip")
+        .args(args)
+        .output()
+        .expect("iproute2's `ip` (the tests make network namespaces; run them as root)");
+    assert!(
+        out.status.success(),
+        "ip {}: {} (the tests make network namespaces: run them as root)",
+        args.join(" "),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+impl Link {
+    fn new() -> Self {
+        let id = std::process::id();
+        let (stack, remote) = (format!("sd{id}s"), format!("sd{id}r"));
+        let (stack_end, remote_end) = (format!("sdv{id}s"), format!("sdv{id}r"));
+        let net = format!("10.231.{}", id % 250);
+        ip(&["netns", "add", &stack]);
+        ip(&["netns", "add", &remote]);
+        ip(&[
+            "link",
+            "add",
+            &stack_end,
+            "type",
+            "veth",
+            "peer",
+            "name",
+            &remote_end,
+        ]);
+        ip(&["link", "set", &stack_end, "netns", &stack]);
+        ip(&["link", "set", &remote_end, "netns", &remote]);
+        for (ns, end, host) in [(&stack, &stack_end, 1), (&remote, &remote_end, 2)] {
+            ip(&[
+                "-n",
+                ns,
+                "addr",
+                "add",
+                &format!("{net}.{host}/24"),
+                "dev",
+                end,
+            ]);
+            ip(&["-n", ns, "link", "set", end, "up"]);
+            ip(&["-n", ns, "link", "set", "lo", "up"]);
+        }
+        Self {
+            stack,
+            remote,
+            remote_end,
+            stack_ip: format!("{net}.1"),
+        }
+    }
+
+    /// `stepdrive ARGS` in namespace `ns`.
+    fn command(ns: &str, args: &[&str]) -> Command {
+        let mut c = Command::new("ip");
+        c.args(["netns", "exec", ns, &exe()])
+            .args(args)
+            .env("RUST_LOG", "warn");
+        c
+    }
+
+    /// The link cut: the remote end down (the stack's end loses its carrier).
+    fn cut(&self) {
+        ip(&["-n", &self.remote, "link", "set", &self.remote_end, "down"]);
+    }
+}
+
+impl Drop for Link {
+    fn drop(&mut self) {
+        // Deleting a namespace deletes the veth end in it, and with it the pair.
+        for ns in [&self.stack, &self.remote] {
+            let _ = Command::new("ip").args(["netns", "del", ns]).status();
+        }
+    }
+}
+
+/// A stack that is stopped (Ctrl-C) when the test ends, passed or not: a stack left
+/// behind holds its CPUs and fails every later realtime test.
+struct Served(Child);
+
+impl Drop for Served {
+    fn drop(&mut self) {
+        if let Ok(None) = self.0.try_wait() {
+            signal(self.0.id(), libc::SIGINT);
+            let deadline = Instant::now() + Duration::from_secs(20);
+            while Instant::now() < deadline && matches!(self.0.try_wait(), Ok(None)) {
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+}
+
+fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// A value after `label` in `axis status`'s text (`ω            -0.4581 rad/s`).
+fn field(status: &str, label: &str) -> Option<f64> {
+    status
+        .lines()
+        .find(|l| l.starts_with(label))?
+        .split_whitespace()
+        .nth(1)?
+        .parse()
+        .ok()
+}
+
+/// Remote `axis status`, `enable`, `move --wait`, a refused command, command latency and a
+/// stream, through the gateway across the veth; then a remote jog whose link is cut: the
+/// gateway's lease on the client expires and it quick-stops the axis, which stands still in
+/// Quick stop active within the lease plus the deceleration, with no fault.
+#[test]
+fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_stops_it() {
+    let _turn = one_stack_at_a_time();
+    let link = Link::new();
+    let inst = instance("remote");
+    let endpoint = format!("tcp/{}:7447", link.stack_ip);
+    let serve = Link::command(
+        &link.stack,
+        &[
+            "serve",
+            "--instance",
+            &inst,
+            "--priority",
+            "0",
+            "--cpus",
+            "none",
+            "--gateway",
+            &endpoint,
+        ],
+    )
+    .stdout(Stdio::piped())
+    .stderr(Stdio::piped())
+    .spawn()
+    .expect("spawn serve");
+    let mut serve = Served(serve);
+    let remote = |args: &[&str]| {
+        let mut all = vec!["axis", "--instance", &inst, "--connect", &endpoint];
+        all.extend(args);
+        Link::command(&link.remote, &all)
+            .output()
+            .expect("run stepdrive axis")
+    };
+    let local_status = || {
+        let out = Link::command(&link.stack, &["axis", "--instance", &inst, "status"])
+            .output()
+            .expect("run stepdrive axis");
+        text(&out)
+    };
+
+    if !wait_until(Duration::from_secs(30), || {
+        remote(&["status"]).status.success()
+    }) {
+        let last = text(&remote(&["status"]));
+        signal(serve.0.id(), libc::SIGINT);
+        let _ = wait_with_timeout(&mut serve.0, Duration::from_secs(30));
+        panic!(
+            "no answer through the gateway: {last}\nserve said: {}",
+            stderr_of(&mut serve.0)
+        );
+    }
+    let st = remote(&["status"]);
+    assert!(text(&st).contains("Switch on disabled"), "{}", text(&st));
+    // The same validation as on the stack's host: refused with the reason.
+    let refused = remote(&["move", "--to", "1"]);
+    assert_eq!(refused.status.code(), Some(1), "{}", text(&refused));
+    assert!(text(&refused).contains("needs Operation enabled"));
+
+    let on = remote(&["enable"]);
+    assert!(on.status.success(), "{}", text(&on));
+    let nan = remote(&["move", "--to", "nan"]);
+    assert_eq!(nan.status.code(), Some(1), "{}", text(&nan));
+    assert!(text(&nan).contains("target NaN"), "{}", text(&nan));
+    let mv = remote(&[
+        "move",
+        "--to",
+        "1",
+        "--relative",
+        "--wait",
+        "--timeout",
+        "10",
+    ]);
+    assert!(mv.status.success(), "{}", text(&mv));
+    assert!(text(&mv).contains("reached"), "{}", text(&mv));
+    let lat = remote(&["latency", "--count", "100"]);
+    assert!(lat.status.success(), "{}", text(&lat));
+    assert!(text(&lat).contains("round trip"), "{}", text(&lat));
+    println!("{}", text(&lat).trim());
+
+    // A 100 Hz stream of 2 s from a file, paced by the status the gateway relays.
+    let dir = TempDir::new("remote");
+    let theta0 = field(&local_status(), "θ ").expect("θ in the status");
+    let rows: String = (0..=200)
+        .map(|k| {
+            let t = k as f64 * 0.01;
+            format!("{t},{}\n", theta0 + 0.5 * (std::f64::consts::TAU * t).sin())
+        })
+        .collect();
+    let csv = dir.path("sine.csv");
+    std::fs::write(&csv, rows).expect("write the stream");
+    let streamed = remote(&["stream", csv.to_str().expect("UTF-8"), "--priority", "0"]);
+    assert!(streamed.status.success(), "{}", text(&streamed));
+    assert!(
+        text(&streamed).contains("201 points streamed"),
+        "{}",
+        text(&streamed)
+    );
+    let st = local_status();
+    assert!(st.contains("Operation enabled"), "{st}");
+
+    // A remote jog holds its lease while its command runs; the link cut, the lease expires.
+    let mut jog = Link::command(
+        &link.remote,
+        &[
+            "axis",
+            "--instance",
+            &inst,
+            "--connect",
+            &endpoint,
+            "jog",
+            "--velocity",
+            "1",
+        ],
+    )
+    .stdout(Stdio::piped())
+    .stderr(Stdio::piped())
+    .spawn()
+    .expect("spawn the jog");
+    assert!(
+        wait_until(Duration::from_secs(10), || field(&local_status(), "ω")
+            .is_some_and(|w| (w - 1.0).abs() < 0.05)),
+        "the jog did not reach 1 rad/s: {}",
+        local_status()
+    );
+    let cut = Instant::now();
+    link.cut();
+    let mut stopped = None;
+    let bound = Duration::from_secs(3) + Duration::from_secs(2);
+    while cut.elapsed() < bound + Duration::from_secs(5) {
+        let st = local_status();
+        assert!(!st.contains("state        Fault"), "{st}");
+        let still = field(&st, "ω").is_some_and(|w| w.abs() < 1e-3);
+        if st.contains("Quick stop active") && still {
+            stopped = Some(cut.elapsed());
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    signal(jog.id(), libc::SIGKILL);
+    let _ = jog.wait();
+    let stopped = stopped.unwrap_or_else(|| panic!("no quick stop: {}", local_status()));
+    // The lease (3 s) plus 1 rad/s at the quick-stop rate, and the status polls' slack.
+    assert!(stopped < bound, "standstill {stopped:?} after the cut");
+    println!("link cut → standstill in Quick stop active after {stopped:?}");
+
+    signal(serve.0.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve.0, Duration::from_secs(30));
+    let err = stderr_of(&mut serve.0);
+    assert_eq!(status.code(), Some(0), "{err}");
+    assert!(
+        err.contains("went away") && err.contains("quick stop taken"),
+        "the gateway did not say why it stopped the axis: {err}"
+    );
+    assert!(processes_with(&inst).is_empty());
+}

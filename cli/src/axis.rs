@@ -57,6 +57,13 @@ enum Verb {
     /// Print the axis's state (CiA 402), mode, position, speed, torque, following error,
     /// setpoint, target and faults.
     Status,
+    /// Print a line of the axis's status (time, state, θ, ω, following error) every
+    /// --every seconds until Ctrl-C.
+    Watch {
+        /// Seconds between lines.
+        #[arg(long, default_value_t = 0.1, value_parser = watch_period)]
+        every: f64,
+    },
     /// Enable: shutdown, switch on, enable operation (the setpoint starts where the rotor
     /// stands, at rest).
     Enable,
@@ -211,6 +218,20 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             let s = axis.status().map_err(failed)?;
             println!("{}", describe(&s));
         }
+        Verb::Watch { every } => {
+            while !stepdrive_runtime::poll::termination_requested() {
+                let s = axis.status().map_err(failed)?;
+                println!(
+                    "t {:.4} s  {}  θ {:.6} rad  ω {:.4} rad/s  θ_d − θ {:.2e} rad",
+                    s.t_s,
+                    AxisState::from_u32(s.state).map_or("?", |x| x.name()),
+                    s.theta_rad,
+                    s.omega_rad_s,
+                    s.following_error_rad
+                );
+                std::thread::sleep(Duration::from_secs_f64(every));
+            }
+        }
         Verb::Enable => {
             axis.enable().map_err(failed)?;
             println!("enabled: Operation enabled");
@@ -361,6 +382,14 @@ fn stream_rows(
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// `watch --every`: 1 ms … 1 h.
+fn watch_period(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && (1e-3..=3600.0).contains(&v) => Ok(v),
+        _ => Err(format!("must be 0.001 … 3600 seconds (got {s})")),
+    }
 }
 
 /// A flood's rate, commands/s.

@@ -106,8 +106,8 @@ pub struct GatewayArgs {
     #[arg(long, value_name = "S", default_value = "30", value_parser = crate::options::parse_seconds)]
     wait: Duration,
     /// SCHED_FIFO priority of the gateway and Zenoh's threads, 0 for ordinary: below the
-    /// stack's loops, above everything at ordinary priority (on two cores a gateway at
-    /// ordinary priority answered commands in 11 ms at the median and 0.4 s at p99).
+    /// stack's loops, above everything at ordinary priority (on two cores the loops leave
+    /// an ordinary process waiting: docs/remote.md has the round trips either way).
     #[arg(long, value_name = "P", default_value_t = stepdrive_client::STREAM_PRIORITY,
           value_parser = clap::value_parser!(u8).range(0..=99))]
     priority: u8,
@@ -526,7 +526,9 @@ pub fn gateway(a: GatewayArgs) -> Result<()> {
 struct GatewayChild(std::process::Child);
 
 impl GatewayChild {
-    fn start(endpoint: &str, instance: &str) -> Result<Self> {
+    /// `priority`: the gateway's SCHED_FIFO priority; 0 when the stack's loops run at
+    /// ordinary priority, so that the gateway never goes before them.
+    fn start(endpoint: &str, instance: &str, priority: u8) -> Result<Self> {
         if !endpoint.starts_with("tcp/") {
             anyhow::bail!("--gateway {endpoint}: give tcp/HOST:PORT");
         }
@@ -535,17 +537,31 @@ impl GatewayChild {
         std::net::TcpListener::bind(addr)
             .with_context(|| format!("--gateway {endpoint}: cannot listen there"))?;
         let exe = std::env::current_exe().context("the stepdrive executable")?;
-        let child = std::process::Command::new(exe)
+        let priority = priority.to_string();
+        let mut child = std::process::Command::new(exe)
             .args(["gateway", "--instance", instance, "--listen", endpoint])
+            .args(["--priority", &priority])
             .stdin(std::process::Stdio::null())
             .spawn()
             .context("starting the gateway")?;
+        // What fails at once (a priority refused, a bad option) fails `serve` at once.
+        std::thread::sleep(std::time::Duration::from_millis(300));
+        if let Some(status) = child.try_wait().context("the gateway")? {
+            anyhow::bail!("--gateway: the gateway exited at once ({status}); its error is above");
+        }
         Ok(Self(child))
     }
 }
 
 impl Drop for GatewayChild {
     fn drop(&mut self) {
+        if let Ok(Some(status)) = self.0.try_wait() {
+            tracing::error!(
+                "the gateway had stopped before the stack ({status}): remote clients lost \
+                 their link then (its error is above)"
+            );
+            return;
+        }
         // SAFETY: signalling our own child, by its pid.
         unsafe { libc::kill(self.0.id() as libc::pid_t, libc::SIGTERM) };
         let _ = self.0.wait();
@@ -569,7 +585,13 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     let _gateway = a
         .gateway
         .as_deref()
-        .map(|endpoint| GatewayChild::start(endpoint, &a.stack.instance))
+        .map(|endpoint| {
+            let priority = match a.stack.priority {
+                Some(0) => 0,
+                _ => stepdrive_client::STREAM_PRIORITY,
+            };
+            GatewayChild::start(endpoint, &a.stack.instance, priority)
+        })
         .transpose()?;
     let mode = match a.mode {
         ServeMode::Realtime => Mode::Realtime,

@@ -49,7 +49,7 @@ pub fn config(endpoint: &str, side: Side) -> Result<zenoh::Config, String> {
         c.insert_json5(key, &value)
             .map_err(|e| format!("zenoh setting {key} = {value}: {e}"))
     };
-    let quoted = serde_quote(endpoint);
+    let quoted = json5_string(endpoint);
     match side {
         Side::Listen => {
             set("mode", "\"peer\"".into())?;
@@ -68,7 +68,7 @@ pub fn config(endpoint: &str, side: Side) -> Result<zenoh::Config, String> {
 }
 
 /// `s` as a JSON5 string literal.
-fn serde_quote(s: &str) -> String {
+fn json5_string(s: &str) -> String {
     let mut out = String::with_capacity(s.len() + 2);
     out.push('"');
     for ch in s.chars() {

@@ -28,7 +28,7 @@ pub(crate) const PLAN_EVERY: u64 = 10;
 /// Whether the command answering `seq` is followed by a plan: every [`PLAN_EVERY`]-th, and
 /// the first after a gap (`last`: the sample answered before), the newest state being news.
 pub(crate) fn plans_after(seq: u64, last: Option<u64>) -> bool {
-    last.is_none_or(|l| seq != l + 1) || seq % PLAN_EVERY == 0
+    last.is_none_or(|l| seq != l + 1) || seq.is_multiple_of(PLAN_EVERY)
 }
 
 /// What the current loop reads and writes.

@@ -119,7 +119,7 @@ impl PositionLoopNode {
     /// paced by its input, every N-th.
     fn ticks_on(&self, state: &DriveState) -> bool {
         match self.pace {
-            Pace::Input => state.seq % self.ratio == 0,
+            Pace::Input => state.seq.is_multiple_of(self.ratio),
             Pace::Clock { .. } => self.last_used != Some(state.seq),
         }
     }

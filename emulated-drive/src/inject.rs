@@ -153,7 +153,7 @@ impl Injector {
                 silent = true;
             }
         }
-        let every = |n: u64| n > 0 && k % n == 0;
+        let every = |n: u64| n > 0 && k.is_multiple_of(n);
         let (drop_fraction, corrupt_fraction) = (p.drop_fraction, p.corrupt_fraction);
         let dropped = every(p.drop_every) || self.dice.roll(drop_fraction);
         if silent || dropped {

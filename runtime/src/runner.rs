@@ -353,7 +353,7 @@ impl<N: Node> Runner<N> {
         match flow {
             Flow::Last => self.phase = Phase::Done,
             Flow::Continue => {
-                if self.stats.cycles % self.stats_every == 0 {
+                if self.stats.cycles.is_multiple_of(self.stats_every) {
                     self.publish_stats(clock, false)?;
                 }
             }
@@ -500,7 +500,7 @@ impl<N: Node> Runner<N> {
             }
             polls = polls.wrapping_add(1);
             if spinning {
-                if polls % 256 == 0 {
+                if polls.is_multiple_of(256) {
                     self.check_waiting(monotonic_ns())?;
                 }
                 if let Some(until) = spin_until {

@@ -113,7 +113,7 @@ impl View {
         self.samples += 1;
         self.fault = st.fault;
         self.ended = (st.flags & state_flags::LAST != 0).then_some("ENDED (its last sample)");
-        if self.paused || st.seq % self.every != 0 {
+        if self.paused || !st.seq.is_multiple_of(self.every) {
             return;
         }
         let t = st.sample_time_s;

@@ -257,6 +257,12 @@ after_current = true
     assert!(out.status.success(), "{stdout}");
     assert!(stdout.contains("re-targeted 0.3000"), "{stdout}");
     let doc = read_json(&json);
+    // A program has no cruise window: its cruise figures are not reached, not 0.
+    let run = run_of(&doc, "proposed");
+    assert!(run["cruise_max_abs_voltage_v"].is_null(), "{run}");
+    assert!(run["cruise_mean_id_a"].is_null(), "{run}");
+    let cruise_v = stdout.lines().find(|l| l.starts_with("cruise max |v|"));
+    assert!(cruise_v.is_some_and(|l| l.ends_with("n/a")), "{stdout}");
     let moves = run_of(&doc, "proposed")["moves"]
         .as_array()
         .expect("moves")

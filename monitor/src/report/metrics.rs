@@ -761,7 +761,12 @@ impl Metrics {
             mean_copper_loss_w: mean(self.sum_copper, self.intervals),
             mean_input_power_w: mean(self.sum_input, self.intervals),
             max_abs_voltage_v: self.max_abs_voltage,
-            cruise_max_abs_voltage_v: self.cruise_max_abs_voltage,
+            // A run that never reached the cruise window has no cruise voltage (not 0 V).
+            cruise_max_abs_voltage_v: if self.cruise_n == 0 {
+                f64::NAN
+            } else {
+                self.cruise_max_abs_voltage
+            },
             eq7_bound_rad: self.eq7,
             sim_time_s: self.last_time,
             wall_time_s,

@@ -61,6 +61,16 @@ fn sci(v: f64) -> String {
     }
 }
 
+/// `v` to `digits` decimals, or `n/a` for a figure the run never reached (a run with a
+/// program has no cruise window).
+fn fixed(v: f64, digits: usize) -> String {
+    if v.is_nan() {
+        "n/a".to_string()
+    } else {
+        format!("{v:.digits$}")
+    }
+}
+
 pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
     // A table of n/a and NaN says nothing: say that nothing ran (the headline says why).
     if !runs.is_empty() && runs.iter().all(|r| r.samples == 0 && !r.complete) {
@@ -80,24 +90,16 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         ("cruise max |e| [rad]", |r| sci(r.cruise_max_abs_error_rad)),
         ("max |e|, whole run [rad]", |r| sci(r.max_abs_error_rad)),
         ("final error [rad]", |r| sci(r.final_error_rad)),
-        ("cruise mean i_d [A]", |r| {
-            format!("{:.4}", r.cruise_mean_id_a)
-        }),
-        ("cruise mean i_q [A]", |r| {
-            format!("{:.4}", r.cruise_mean_iq_a)
-        }),
+        ("cruise mean i_d [A]", |r| fixed(r.cruise_mean_id_a, 4)),
+        ("cruise mean i_q [A]", |r| fixed(r.cruise_mean_iq_a, 4)),
         ("cruise mean torque [N·m]", |r| {
-            format!("{:.4}", r.cruise_mean_torque_nm)
+            fixed(r.cruise_mean_torque_nm, 4)
         }),
-        ("mean copper loss [W]", |r| {
-            format!("{:.4}", r.mean_copper_loss_w)
-        }),
-        ("mean input power [W]", |r| {
-            format!("{:.4}", r.mean_input_power_w)
-        }),
-        ("max |v| [V]", |r| format!("{:.2}", r.max_abs_voltage_v)),
+        ("mean copper loss [W]", |r| fixed(r.mean_copper_loss_w, 4)),
+        ("mean input power [W]", |r| fixed(r.mean_input_power_w, 4)),
+        ("max |v| [V]", |r| fixed(r.max_abs_voltage_v, 2)),
         ("cruise max |v| [V]", |r| {
-            format!("{:.2}", r.cruise_max_abs_voltage_v)
+            fixed(r.cruise_max_abs_voltage_v, 2)
         }),
         ("eq. (7) bound [rad]", |r| sci(r.eq7_bound_rad)),
         ("sim time [s]", |r| format!("{:.3}", r.sim_time_s)),

@@ -78,7 +78,7 @@ fn a_served_axis_is_commanded_from_other_processes() {
     assert!(text(&st).contains("Quick stop active"), "{}", text(&st));
 
     signal(serve.id(), libc::SIGINT);
-    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    let status = wait_or_explain(&mut serve, Duration::from_secs(30), &inst);
     let err = stderr_of(&mut serve);
     assert_eq!(status.code(), Some(0), "{err}");
     assert!(processes_with(&inst).is_empty());

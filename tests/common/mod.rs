@@ -131,6 +131,49 @@ pub fn wait_with_timeout(child: &mut Child, timeout: Duration) -> std::process::
     }
 }
 
+/// [`wait_with_timeout`] for a stack's launcher: if it does not exit in time, the panic
+/// says what was still running (each process of `inst`, its state and where it waits) and
+/// what the launcher had written, so that a hang is diagnosable from a CI log.
+pub fn wait_or_explain(
+    child: &mut Child,
+    timeout: Duration,
+    inst: &str,
+) -> std::process::ExitStatus {
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            return status;
+        }
+        if Instant::now() > deadline {
+            break;
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let mut left = String::new();
+    for pid in processes_with(inst) {
+        let read =
+            |f: &str| std::fs::read_to_string(format!("/proc/{pid}/{f}")).unwrap_or_default();
+        let cmdline = read("cmdline").replace('\0', " ");
+        let state = read("stat")
+            .split(") ")
+            .nth(1)
+            .unwrap_or("")
+            .chars()
+            .next()
+            .unwrap_or('?');
+        left.push_str(&format!(
+            "  pid {pid} [{state}] waits in {:?}: {cmdline}\n",
+            read("wchan")
+        ));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    panic!(
+        "the launcher did not exit within {timeout:?}; still running:\n{left}its stderr:\n{}",
+        stderr_of(child)
+    );
+}
+
 pub fn wait_until(timeout: Duration, mut cond: impl FnMut() -> bool) -> bool {
     let deadline = Instant::now() + timeout;
     while Instant::now() < deadline {

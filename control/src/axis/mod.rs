@@ -91,6 +91,9 @@ pub struct Axis {
     stream_origin: Option<(f64, f64)>,
     /// The state a stream is followed from (at the trajectory's time).
     followed: Reference,
+    /// The jerk of the period that led to `followed`, rad/s³: what (12)'s torque moves on
+    /// at between ticks. The generator's own jerk is stale while a stream is followed.
+    followed_jerk: f64,
     refused_points: u64,
     last_refusal: Refusal,
     fault: u32,
@@ -131,6 +134,7 @@ impl Axis {
             stream_lead: p.stream_lead_s,
             stream_origin: None,
             followed: at,
+            followed_jerk: 0.0,
             refused_points: 0,
             last_refusal: Refusal::None,
             fault: 0,
@@ -524,9 +528,13 @@ impl Axis {
                 self.queued = None;
                 // The stream's own limits: the axis's, the envelope around whatever it asks.
                 self.otg.set_limits(axis_limits(&self.p));
+                // Until the stream plays (its lead), a move or a jog it interrupts brakes to
+                // a hold, and the stream is followed from wherever that has got to.
+                self.otg.hold();
                 self.stream_id = Some(r.seq);
                 self.stream_lead = lead;
                 self.followed = self.otg.state();
+                self.followed_jerk = self.otg.jerk();
                 self.mode = AxisMode::CyclicPosition;
             }
             RequestKind::StreamEnd => {
@@ -672,11 +680,17 @@ impl Axis {
     /// past its watchdog is quick-stopped.
     fn stream_to(&mut self, m: &Measured) -> Result<Reference, OtgError> {
         let Some((origin, first)) = self.stream_origin else {
-            return self.otg_to(m.t);
+            // No point yet: the trajectory the stream found runs on (a move or a jog it
+            // interrupted brakes to a hold), and the stream is followed from where it is.
+            let r = self.otg_to(m.t)?;
+            self.followed = self.otg.state();
+            self.followed_jerk = self.otg.jerk();
+            return Ok(r);
         };
         let n = ((m.t - self.otg_t) / self.period).round();
         let limits = axis_limits(&self.p);
         let mut s = self.followed;
+        let mut jerk = self.followed_jerk;
         for _ in 0..(n.max(0.0) as u64).min(1000) {
             // Each period from where the stream is at its start to where it is at its end.
             let played = self.played(self.otg_t, origin, first);
@@ -684,19 +698,23 @@ impl Axis {
                 self.stream_target(played),
                 self.stream_target(played + self.period),
             ) else {
-                // Not started yet: stand where the stream found the axis.
+                // Not played yet (its lead): as before the first point.
+                s = self.otg.step()?;
+                jerk = self.otg.jerk();
                 self.otg_t += self.period;
                 continue;
             };
-            let (after, _) =
+            let (after, j) =
                 track::follow(s, now, next, limits, track::DEFAULT_BANDWIDTH, self.period);
             if (after.theta - next.theta).abs() > 1e-9 {
                 self.warning |= axis_warnings::STREAM_LIMITED;
             }
             s = after;
+            jerk = j;
             self.otg_t += self.period;
         }
         self.followed = s;
+        self.followed_jerk = jerk;
         let last = self.stream.last_t().unwrap_or(first);
         let played = self.played(m.t, origin, first);
         if played - last > self.p.stream_timeout_s {
@@ -789,6 +807,7 @@ impl Axis {
             jerk: match self.mode {
                 AxisMode::ScenarioProfile => 0.0,
                 _ if !self.state.outputs_on() => 0.0,
+                AxisMode::CyclicPosition => self.followed_jerk,
                 _ => self.otg.jerk(),
             },
         }
@@ -1224,6 +1243,76 @@ mod tests {
         assert!(sp.outputs_on);
         assert_eq!(sp.reference.theta, 0.37);
         assert_eq!((sp.reference.omega, sp.reference.alpha), (0.0, 0.0));
+    }
+
+    /// A stream that interrupts a jog mid-ramp: during its lead the jog brakes, the setpoint
+    /// moving on as its speed says (no jump when the stream takes over), and once it plays
+    /// the setpoint's jerk is the followed path's own, the one (12)'s torque moves on at
+    /// between ticks (a jerk left from the jog made the realtime rotor sit 1.57e-3 rad off a
+    /// 100 Hz stream: 4 N·m/s of torque rate at 50 000 rad/s³).
+    #[test]
+    fn a_stream_that_interrupts_a_jog_takes_over_smoothly_with_its_own_jerk() {
+        let (mut axis, p) = enabled_axis();
+        let mut r = Reference::default();
+        let jog = AxisRequest {
+            velocity_rad_s: 13.0,
+            ..request(RequestKind::Jog, 2)
+        };
+        axis.request(&jog, &on(0.0, &r)).expect("jog");
+        let mut k = 0u64;
+        let mut sp = axis.tick(&on(0.0, &r));
+        // Mid-ramp: the jog's acceleration still rising.
+        while sp.jerk == 0.0 || k < 5 {
+            k += 1;
+            sp = axis.tick(&on(k as f64 * T, &sp.reference));
+            assert!(k < 100, "the jog never ramped");
+        }
+        r = sp.reference;
+        let t0 = k as f64 * T;
+        axis.request(&request(RequestKind::StreamStart, 3), &on(t0, &r))
+            .expect("stream");
+        let hold_at = r.theta + 0.05;
+        let mut sent = 0u64;
+        let mut prev = r;
+        for _ in 0..2000 {
+            k += 1;
+            let t = k as f64 * T;
+            while t0 + sent as f64 * 1e-3 <= t {
+                let point = AxisStreamPoint {
+                    stream: 3,
+                    seq: sent,
+                    t_s: sent as f64 * 1e-3,
+                    theta_rad: hold_at,
+                    ..Default::default()
+                };
+                axis.stream_point(&point, &on(t, &r)).expect("in order");
+                sent += 1;
+            }
+            let sp = axis.tick(&on(t, &r));
+            r = sp.reference;
+            // One period on from the last state, within what the jerk limit can change.
+            let theta = prev.theta + prev.omega * T + 0.5 * prev.alpha * T * T;
+            assert!(
+                (r.theta - theta).abs() <= p.j_max_rad_s3 * T * T * T / 6.0 + 1e-12,
+                "t {t}: θ_d {} where {theta} was due",
+                r.theta
+            );
+            if t - t0 > p.stream_lead_s + 2.0 * T {
+                let jerk = (r.alpha - prev.alpha) / T;
+                assert!(
+                    (sp.jerk - jerk).abs() <= 1e-6 * p.j_max_rad_s3,
+                    "t {t}: the setpoint's jerk {} on a path whose is {jerk}",
+                    sp.jerk
+                );
+            }
+            prev = r;
+        }
+        assert_eq!(axis.state(), AxisState::OperationEnabled);
+        assert!(
+            (r.theta - hold_at).abs() < 1e-6,
+            "θ_d {} ≠ {hold_at}",
+            r.theta
+        );
     }
 
     /// A quick stop from full jog speed brakes at its own rate (jerk-limited) and holds

@@ -19,13 +19,6 @@ fn a_served_axis_is_commanded_from_other_processes() {
         all.extend(args);
         stepdrive(&all)
     };
-    let text = |o: &std::process::Output| {
-        format!(
-            "{}{}",
-            String::from_utf8_lossy(&o.stdout),
-            String::from_utf8_lossy(&o.stderr)
-        )
-    };
     assert!(
         wait_until(Duration::from_secs(30), || axis(&["status"])
             .status
@@ -60,17 +53,8 @@ fn a_served_axis_is_commanded_from_other_processes() {
     }
 
     // A move to 1 rad from where the rotor stands, waited for.
-    let mv = axis(&[
-        "move",
-        "--to",
-        "1",
-        "--relative",
-        "--wait",
-        "--timeout",
-        "10",
-    ]);
-    assert!(mv.status.success(), "{}", text(&mv));
-    assert!(text(&mv).contains("reached"), "{}", text(&mv));
+    let mv = axis(&MOVE_1_RAD_WAITED);
+    assert_reached(&mv);
 
     let qs = axis(&["quick-stop"]);
     assert!(qs.status.success(), "{}", text(&qs));

@@ -5,7 +5,7 @@
 mod common;
 
 use common::*;
-use std::process::{Child, Command, Output, Stdio};
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// Two network namespaces joined by a veth pair, removed when dropped.
@@ -113,14 +113,6 @@ impl Drop for Served {
     }
 }
 
-fn text(o: &Output) -> String {
-    format!(
-        "{}{}",
-        String::from_utf8_lossy(&o.stdout),
-        String::from_utf8_lossy(&o.stderr)
-    )
-}
-
 /// A value after `label` in `axis status`'s text (`ω            -0.4581 rad/s`).
 fn field(status: &str, label: &str) -> Option<f64> {
     status
@@ -142,24 +134,13 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
     let link = Link::new();
     let inst = instance("remote");
     let endpoint = format!("tcp/{}:7447", link.stack_ip);
-    let serve = Link::command(
-        &link.stack,
-        &[
-            "serve",
-            "--instance",
-            &inst,
-            "--priority",
-            "0",
-            "--cpus",
-            "none",
-            "--gateway",
-            &endpoint,
-        ],
-    )
-    .stdout(Stdio::piped())
-    .stderr(Stdio::piped())
-    .spawn()
-    .expect("spawn serve");
+    let mut serve_args = vec!["serve", "--instance", &inst, "--gateway", &endpoint];
+    serve_args.extend(ORDINARY_STACK);
+    let serve = Link::command(&link.stack, &serve_args)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("spawn serve");
     let mut serve = Served(serve);
     let remote = |args: &[&str]| {
         let mut all = vec!["axis", "--instance", &inst, "--connect", &endpoint];
@@ -198,17 +179,8 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
     let nan = remote(&["move", "--to", "nan"]);
     assert_eq!(nan.status.code(), Some(1), "{}", text(&nan));
     assert!(text(&nan).contains("target NaN"), "{}", text(&nan));
-    let mv = remote(&[
-        "move",
-        "--to",
-        "1",
-        "--relative",
-        "--wait",
-        "--timeout",
-        "10",
-    ]);
-    assert!(mv.status.success(), "{}", text(&mv));
-    assert!(text(&mv).contains("reached"), "{}", text(&mv));
+    let mv = remote(&MOVE_1_RAD_WAITED);
+    assert_reached(&mv);
     let lat = remote(&["latency", "--count", "100"]);
     assert!(lat.status.success(), "{}", text(&lat));
     assert!(text(&lat).contains("round trip"), "{}", text(&lat));

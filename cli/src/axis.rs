@@ -342,13 +342,7 @@ fn hold_remote_jog(axis: &mut Axis, limits: Limits) -> Result<()> {
     println!("through the gateway: the jog lasts while this command runs; Ctrl-C stops it");
     while !stepdrive_runtime::poll::termination_requested() {
         let s = axis.status().map_err(failed)?;
-        if s.axis_state() == Some(AxisState::Fault) {
-            return Err(failed(ClientError::Fault {
-                faults: format!("fault bits {:#x}", s.fault),
-                following_error: s.following_error_rad,
-                status: Box::new(s),
-            }));
-        }
+        stepdrive_client::faulted(&s).map_err(failed)?;
         std::thread::sleep(Duration::from_millis(50));
     }
     axis.stop(limits).map_err(failed)?;
@@ -386,18 +380,12 @@ fn stream_rows(
 
 /// `watch --every`: 1 ms … 1 h.
 fn watch_period(s: &str) -> Result<f64, String> {
-    match s.parse::<f64>() {
-        Ok(v) if v.is_finite() && (1e-3..=3600.0).contains(&v) => Ok(v),
-        _ => Err(format!("must be 0.001 … 3600 seconds (got {s})")),
-    }
+    crate::options::number_within(s, 1e-3, 3600.0, false, "seconds")
 }
 
 /// A flood's rate, commands/s.
 fn flood_rate(s: &str) -> Result<f64, String> {
-    match s.parse::<f64>() {
-        Ok(v) if v.is_finite() && (1.0..=1e6).contains(&v) => Ok(v),
-        _ => Err(format!("must be 1 … 1e6 commands per second (got {s})")),
-    }
+    crate::options::number_within(s, 1.0, 1e6, false, "commands per second")
 }
 
 /// See [`Verb::Latency`].

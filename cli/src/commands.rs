@@ -115,12 +115,7 @@ pub struct GatewayArgs {
 
 /// A rate in Hz: finite, positive, at most 10 kHz.
 fn positive_rate(s: &str) -> Result<f64, String> {
-    match s.parse::<f64>() {
-        Ok(v) if v.is_finite() && v > 0.0 && v <= 10_000.0 => Ok(v),
-        _ => Err(format!(
-            "must be a rate in Hz, above 0 and at most 10000 (got {s})"
-        )),
-    }
+    crate::options::number_within(s, 0.0, 10_000.0, true, "Hz")
 }
 
 /// The modes a stack can be served in.

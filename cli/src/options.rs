@@ -13,6 +13,24 @@ use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::services::DEFAULT_INSTANCE;
 use stepdrive_shared::Scenario;
 
+/// A number within `lo ..= hi` (`unit` names what it counts in the error), for
+/// clap's `value_parser`. `lo` exclusive when `open_below` (a rate above 0).
+pub fn number_within(
+    s: &str,
+    lo: f64,
+    hi: f64,
+    open_below: bool,
+    unit: &str,
+) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v <= hi && (v > lo || (!open_below && v == lo)) => Ok(v),
+        _ => Err(format!(
+            "must be {}{lo} … {hi} {unit} (got {s})",
+            if open_below { "above " } else { "" }
+        )),
+    }
+}
+
 /// A run length or timeout: positive, finite, below 1e6 s.
 pub fn seconds(v: f64) -> Result<Duration, String> {
     if v.is_finite() && v > 0.0 && v < 1e6 {
@@ -407,5 +425,24 @@ impl LiveArgs {
             self.foxglove_rate
         );
         Ok(Some(view))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::number_within;
+
+    #[test]
+    fn a_number_outside_its_range_or_not_a_number_is_refused_naming_the_range() {
+        let rate = |s| number_within(s, 0.0, 10_000.0, true, "Hz");
+        assert_eq!(rate("100"), Ok(100.0));
+        assert_eq!(rate("10000"), Ok(10_000.0));
+        for bad in ["0", "-1", "10000.5", "nan", "inf", "fast"] {
+            let e = rate(bad).expect_err(bad);
+            assert!(e.contains("above 0 … 10000 Hz") && e.contains(bad), "{e}");
+        }
+        let period = |s| number_within(s, 1e-3, 3600.0, false, "seconds");
+        assert_eq!(period("0.001"), Ok(1e-3));
+        assert!(period("0.0009").is_err());
     }
 }

@@ -111,7 +111,7 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
     let session = zenoh::open(config)
         .wait()
         .map_err(|e| zerr("cannot open the session", &e))?;
-    let any_axis = |leaf| keys::axis_key(&o.instance, 0, leaf).replace("/axis/0/", "/axis/*/");
+    let any_axis = |leaf| keys::any_axis_key(&o.instance, leaf);
     let queries = session
         .declare_queryable(any_axis(keys::COMMAND))
         .wait()
@@ -383,5 +383,21 @@ mod tests {
         s.mode = AxisMode::CyclicPosition as u32;
         s.state = AxisState::QuickStopActive as u32;
         assert!(!started_motion(&s, client));
+    }
+
+    /// What the gateway declares matches the key every client names, for any axis and
+    /// leaf, and no other instance's.
+    #[test]
+    fn the_gateways_keys_match_the_clients_of_its_instance_only() {
+        use zenoh::key_expr::KeyExpr;
+        let key = |k: String| KeyExpr::new(k).expect("a valid key expression");
+        for leaf in [keys::COMMAND, keys::STREAM, keys::STATUS] {
+            let served = key(keys::any_axis_key("cell-1", leaf));
+            for axis in [0, 1, 7] {
+                assert!(served.intersects(&key(keys::axis_key("cell-1", axis, leaf))));
+                assert!(!served.intersects(&key(keys::axis_key("cell-2", axis, leaf))));
+            }
+            assert!(!served.intersects(&key(keys::client_token("cell-1", 3))));
+        }
     }
 }

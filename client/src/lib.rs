@@ -237,8 +237,9 @@ fn fault_names(bits: u32) -> String {
     }
 }
 
-/// An axis in Fault is an error, naming the faults.
-fn faulted(s: &AxisStatus) -> Result<(), ClientError> {
+/// An axis in Fault is an error ([`ClientError::Fault`]), naming the faults; any other
+/// status is `Ok`.
+pub fn faulted(s: &AxisStatus) -> Result<(), ClientError> {
     if s.axis_state() == Some(AxisState::Fault) {
         return Err(ClientError::Fault {
             faults: fault_names(s.fault),

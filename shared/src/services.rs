@@ -335,6 +335,12 @@ pub mod remote {
         format!("stepdrive/{instance}/axis/{axis}/{leaf}")
     }
 
+    /// `stepdrive/<instance>/axis/*/<leaf>`: the leaf of every axis (what a gateway
+    /// serves).
+    pub fn any_axis_key(instance: &str, leaf: &str) -> String {
+        format!("stepdrive/{instance}/axis/*/{leaf}")
+    }
+
     /// A remote client's liveliness token: `stepdrive/<instance>/client/<id>`, the id the
     /// top 32 bits of its commands' sequence numbers.
     pub fn client_token(instance: &str, client: u32) -> String {

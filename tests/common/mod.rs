@@ -267,6 +267,9 @@ pub fn signal(pid: u32, sig: libc::c_int) {
 /// the CI machine's two cores.
 pub const ORDINARY_SCHEDULING: [&str; 4] = ["--priority", "0", "--cpu", "none"];
 
+/// The same for a launcher of a whole stack (`run`, `serve`): its loops' options.
+pub const ORDINARY_STACK: [&str; 4] = ["--priority", "0", "--cpus", "none"];
+
 /// A realtime stack of `duration` seconds on the short scenario, with ordinary scheduling
 /// and no pinning: tests run in parallel on two cores.
 pub fn realtime_test_args<'a>(
@@ -274,18 +277,16 @@ pub fn realtime_test_args<'a>(
     inst: &'a str,
     duration: &'a str,
 ) -> Vec<&'a str> {
-    vec![
+    let mut args = vec![
         "--scenario",
         scenario.to_str().unwrap(),
         "--duration",
         duration,
         "--instance",
         inst,
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
-    ]
+    ];
+    args.extend(ORDINARY_STACK);
+    args
 }
 
 /// Runs `stepdrive` with `args` (a run with `--json`), freezes its current-loop process
@@ -349,15 +350,8 @@ pub fn free_tcp_port() -> u16 {
 /// `stepdrive serve` on `inst` in the background, ordinary scheduling and no pinning (tests
 /// share two cores), with `extra` options.
 pub fn spawn_serve(inst: &str, extra: &[&str]) -> Child {
-    let mut args = vec![
-        "serve",
-        "--instance",
-        inst,
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
-    ];
+    let mut args = vec!["serve", "--instance", inst];
+    args.extend(ORDINARY_STACK);
     args.extend_from_slice(extra);
     spawn_run(&args)
 }
@@ -400,7 +394,7 @@ pub fn hardware_args_with<'a>(
     json: &'a Path,
     methods: &'a str,
 ) -> Vec<&'a str> {
-    vec![
+    let mut args = vec![
         "run",
         "--mode",
         "hardware",
@@ -410,13 +404,11 @@ pub fn hardware_args_with<'a>(
         scenario.to_str().unwrap(),
         "--instance",
         inst,
-        "--priority",
-        "0",
-        "--cpus",
-        "none",
         "--json",
         json.to_str().unwrap(),
-    ]
+    ];
+    args.extend(ORDINARY_STACK);
+    args
 }
 
 pub fn hardware_run(scenario: &Path, inst: &str, json: &Path, extra: &[&str]) -> Output {
@@ -486,4 +478,30 @@ pub fn assert_reproduces_the_simulation(
         ipc, sim,
         "multi-process run differs from the in-process reference"
     );
+}
+
+/// A command's stdout and stderr, for assertions and their messages.
+pub fn text(o: &Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// `axis move` by 1 rad from where the rotor stands, waited for (10 s at most).
+pub const MOVE_1_RAD_WAITED: [&str; 7] = [
+    "move",
+    "--to",
+    "1",
+    "--relative",
+    "--wait",
+    "--timeout",
+    "10",
+];
+
+/// A waited `axis move` that exited 0 saying its target was reached.
+pub fn assert_reached(mv: &Output) {
+    assert!(mv.status.success(), "{}", text(mv));
+    assert!(text(mv).contains("reached"), "{}", text(mv));
 }

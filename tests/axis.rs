@@ -201,6 +201,38 @@ file = "{}"
     }
     assert!(judged > 3500, "{judged} statuses judged");
     assert!(worst < 2e-5, "peak |θ − θ_stream| {worst:e} rad");
+
+    // The state channel's θ_d and error are the axis's setpoint (the stream), not the
+    // scenario's profile, which this run never ran.
+    let text = std::fs::read_to_string(csv_dir.join("proposed_state.csv")).expect("state");
+    let mut lines = text.lines();
+    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
+    let col = |name: &str| {
+        header
+            .iter()
+            .position(|h| h.starts_with(name))
+            .unwrap_or_else(|| panic!("no column {name} in {header:?}"))
+    };
+    let (t_col, theta_d_col, error_col) = (col("t ["), col("theta_d ["), col("error ["));
+    let (mut judged, mut worst_d, mut worst_e) = (0, 0.0f64, 0.0f64);
+    for line in lines {
+        let f: Vec<&str> = line.split(',').collect();
+        let t: f64 = f[t_col].parse().expect("t");
+        if (0.3..=2.0).contains(&t) {
+            let stream = 2.0 * (std::f64::consts::TAU * (t - 0.1)).sin();
+            let theta_d: f64 = f[theta_d_col].parse().expect("theta_d");
+            let error: f64 = f[error_col].parse().expect("error");
+            worst_d = worst_d.max((theta_d - stream).abs());
+            worst_e = worst_e.max(error.abs());
+            judged += 1;
+        }
+    }
+    assert!(judged > 30_000, "{judged} state samples judged");
+    assert!(
+        worst_d < 2e-5,
+        "recorded θ_d off the stream by {worst_d:e} rad"
+    );
+    assert!(worst_e < 2e-5, "recorded |θ_d − θ| up to {worst_e:e} rad");
 }
 
 /// A program's moves table: a move replaced mid-way ("change immediately") is reported as

@@ -64,7 +64,7 @@ impl PositionLoop {
             .starting_at(s.load.torque_nm)
         });
         let period = 1.0 / s.rates.position_loop_hz;
-        let axis = if s.program.is_empty() && !s.run.until_stopped {
+        let axis = if s.runs_profile() {
             Axis::running_profile(&s.axis, period, Trapezoid::new(&s.trajectory))
         } else {
             Axis::new(&s.axis, period)

@@ -666,6 +666,13 @@ impl Scenario {
         t.accel_s + t.cruise_s + t.decel_s + t.hold_s
     }
 
+    /// The axis runs the scenario's profile from the first tick (the paper's experiment):
+    /// no `[[program]]`, and not a stack served until stopped (whose axis waits for
+    /// commands).
+    pub fn runs_profile(&self) -> bool {
+        self.program.is_empty() && !self.run.until_stopped
+    }
+
     /// Length of the run, s: `run.duration_s`, or one pass of the trajectory, or with a
     /// program its last step and [`PROGRAM_TAIL_S`] after it.
     pub fn duration_s(&self) -> f64 {

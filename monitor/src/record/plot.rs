@@ -394,8 +394,12 @@ fn tick_label(v: f64, format: TickFormat) -> String {
 
 /// Every pass's cruise window within [0, end], s. The metrics take the window in every pass
 /// of a repeating move (report/metrics.rs: the time within the pass), so each is marked;
-/// the last one is cut at the end of the run.
+/// the last one is cut at the end of the run. A run that did not run the profile (a
+/// program, a served stack) has none: its cruise figures are n/a.
 fn cruise_windows(s: &Scenario, end: f64) -> Vec<(f64, f64)> {
+    if !s.runs_profile() {
+        return Vec::new();
+    }
     let (from, to) = (s.metrics.cruise_start_s, s.metrics.cruise_end_s);
     let period = Trapezoid::new(&s.trajectory).period();
     let mut out = Vec::new();
@@ -1722,6 +1726,10 @@ mod tests {
         }
         // A run that ends before the window: none.
         assert!(cruise_windows(&s, 0.5).is_empty());
+        // A served stack's axis never runs the profile: none.
+        let mut served = s.clone();
+        served.run.until_stopped = true;
+        assert!(cruise_windows(&served, 6.0).is_empty());
         // A profile of no length does not loop.
         s.trajectory = stepdrive_shared::scenario::TrajectoryParams {
             cruise_velocity_rad_s: 1.0,

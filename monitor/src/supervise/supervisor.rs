@@ -18,6 +18,10 @@ use stepdrive_shared::stack::{Role, Slot};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
+/// States taken between two drains of the controls: half a position-loop tick at the
+/// default rates, so a recorded state's setpoint is at most a tick or two behind it.
+const CONTROLS_EVERY: u32 = 5;
+
 /// What the supervisor reads of a stack.
 pub struct Feeds {
     pub states: Box<dyn Subscribe<DriveState>>,
@@ -227,15 +231,25 @@ impl<'a, 'r> Supervisor<'a, 'r> {
         }
     }
 
-    /// Takes what arrived: statistics, states (by the observer's rules), and the controls
-    /// when recording. True if a state came.
+    /// Takes what arrived: statistics, the controls when recording, and states (by the
+    /// observer's rules). True if a state came. The controls first, and again every
+    /// [`CONTROLS_EVERY`] states while states keep coming: a state's recorded θ_d is the
+    /// setpoint in force at its sample, which must have been taken by then.
     fn drain(&mut self) -> Result<Result<bool, Stop>, stepdrive_runtime::port::PortError> {
         while let Some(r) = self.feeds.stats.receive()? {
             self.finals.take(&r);
             self.observer.stats(&r);
         }
         let mut got = false;
-        while let Some(st) = self.feeds.states.receive()? {
+        let mut states = 0u32;
+        loop {
+            if states % CONTROLS_EVERY == 0 {
+                self.drain_controls()?;
+            }
+            let Some(st) = self.feeds.states.receive()? else {
+                break;
+            };
+            states += 1;
             got = true;
             if let Err(stop) = self.observer.state(&st) {
                 return Ok(Err(stop));
@@ -244,7 +258,6 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 break;
             }
         }
-        self.drain_controls()?;
         Ok(Ok(got))
     }
 

@@ -243,7 +243,7 @@ impl<'a, 'r> Supervisor<'a, 'r> {
         let mut got = false;
         let mut states = 0u32;
         loop {
-            if states % CONTROLS_EVERY == 0 {
+            if states.is_multiple_of(CONTROLS_EVERY) {
                 self.drain_controls()?;
             }
             let Some(st) = self.feeds.states.receive()? else {

@@ -11,6 +11,7 @@
 //! Pure: the position loop's node feeds it the measured state and the commands each tick,
 //! and gives (12) the setpoint it returns. No IPC, no clock, no allocation in a tick.
 
+pub mod coordinated;
 pub mod otg;
 pub mod stream;
 pub mod track;

@@ -210,18 +210,14 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                 (o.max_commands_hz, burst),
                 Instant::now(),
             );
-            let ack = if limited {
-                sum.rate_limited += 1;
-                let mut ack = AxisAck {
-                    request,
-                    refusal: Refusal::TooMany as u32,
-                    state: newest.map_or(0, |s| s.state),
-                    ..Default::default()
-                };
-                ack.set_text(&format!(
-                    "over the gateway's limit of {} commands/s for one remote client",
-                    o.max_commands_hz
-                ));
+            let keyed = keys::axis_of_key(query.key_expr().as_str());
+            let state = newest.map_or(0, |s| s.state);
+            let refused = refused_here(&request, keyed, limited, o.max_commands_hz, state);
+            let ack = if let Some(ack) = refused {
+                match ack.refusal == Refusal::TooMany as u32 {
+                    true => sum.rate_limited += 1,
+                    false => sum.malformed += 1,
+                }
                 ack
             } else {
                 sum.commands += 1;
@@ -247,6 +243,14 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
         while let Ok(Some(sample)) = points_in.try_recv() {
             idle = false;
             match decode::<AxisStreamPoint>(sample.payload()) {
+                Ok(p) if keys::axis_of_key(sample.key_expr().as_str()) != Some(p.axis) => {
+                    sum.malformed += 1;
+                    tracing::warn!(
+                        "a stream point for axis {} on {}: dropped",
+                        p.axis,
+                        sample.key_expr()
+                    );
+                }
                 Ok(mut p) => {
                     // The stack's clock, for recorders: the client's is another host's.
                     p.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
@@ -336,6 +340,45 @@ fn over_rate(
     false
 }
 
+/// The gateway's own refusal of a request that came on the key naming axis `keyed`, if
+/// any: a request for another axis than its key names (it must never reach another one),
+/// or one over the client's rate (`limited`). `state` is the axis's, for the answer.
+fn refused_here(
+    request: &AxisRequest,
+    keyed: Option<u32>,
+    limited: bool,
+    max_commands_hz: f64,
+    state: u32,
+) -> Option<AxisAck> {
+    let (refusal, text) = if keyed != Some(request.axis) {
+        (
+            Refusal::UnknownAxis,
+            format!(
+                "the key names axis {} but the request axis {}",
+                keyed.map_or("?".to_string(), |a| a.to_string()),
+                request.axis
+            ),
+        )
+    } else if limited {
+        (
+            Refusal::TooMany,
+            format!(
+                "over the gateway's limit of {max_commands_hz} commands/s for one remote client"
+            ),
+        )
+    } else {
+        return None;
+    };
+    let mut ack = AxisAck {
+        request: *request,
+        refusal: refusal as u32,
+        state,
+        ..Default::default()
+    };
+    ack.set_text(&text);
+    Some(ack)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -385,6 +428,28 @@ mod tests {
         assert!(!started_motion(&s, client));
     }
 
+    /// A request whose key names another axis is refused there, whatever its rate; one
+    /// over the rate is refused `too many`; others go on to the stack.
+    #[test]
+    fn a_request_for_another_axis_than_its_key_names_is_refused() {
+        let request = AxisRequest {
+            axis: 0,
+            ..Default::default()
+        };
+        let ack = refused_here(&request, Some(3), false, 500.0, 7).expect("refused");
+        assert_eq!(ack.refusal, Refusal::UnknownAxis as u32);
+        assert_eq!(ack.state, 7);
+        assert!(ack
+            .text()
+            .contains("key names axis 3 but the request axis 0"));
+        let ack = refused_here(&request, None, true, 500.0, 7).expect("refused");
+        assert_eq!(ack.refusal, Refusal::UnknownAxis as u32);
+        let ack = refused_here(&request, Some(0), true, 500.0, 7).expect("refused");
+        assert_eq!(ack.refusal, Refusal::TooMany as u32);
+        assert!(ack.text().contains("500 commands/s"));
+        assert!(refused_here(&request, Some(0), false, 500.0, 7).is_none());
+    }
+
     /// What the gateway declares matches the key every client names, for any axis and
     /// leaf, and no other instance's.
     #[test]
@@ -395,9 +460,13 @@ mod tests {
             let served = key(keys::any_axis_key("cell-1", leaf));
             for axis in [0, 1, 7] {
                 assert!(served.intersects(&key(keys::axis_key("cell-1", axis, leaf))));
+                let named = keys::axis_key("cell-1", axis, leaf);
+                assert_eq!(keys::axis_of_key(&named), Some(axis));
                 assert!(!served.intersects(&key(keys::axis_key("cell-2", axis, leaf))));
             }
             assert!(!served.intersects(&key(keys::client_token("cell-1", 3))));
+            assert_eq!(keys::axis_of_key(&keys::client_token("cell-1", 3)), None);
+            assert_eq!(keys::axis_of_key("stepdrive/cell-1/axis/x/command"), None);
         }
     }
 }

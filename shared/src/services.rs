@@ -341,6 +341,14 @@ pub mod remote {
         format!("stepdrive/{instance}/axis/*/{leaf}")
     }
 
+    /// The axis a key of [`axis_key`]'s form names.
+    pub fn axis_of_key(key: &str) -> Option<u32> {
+        let mut parts = key.rsplit('/');
+        let _leaf = parts.next()?;
+        let axis = parts.next()?.parse().ok()?;
+        (parts.next()? == "axis").then_some(axis)
+    }
+
     /// A remote client's liveliness token: `stepdrive/<instance>/client/<id>`, the id the
     /// top 32 bits of its commands' sequence numbers.
     pub fn client_token(instance: &str, client: u32) -> String {

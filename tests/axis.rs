@@ -174,19 +174,14 @@ file = "{}"
         "{}",
         String::from_utf8_lossy(&export.stderr)
     );
-    let text = std::fs::read_to_string(csv_dir.join("proposed_axis_status.csv")).expect("status");
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
-    let col = |name: &str| {
-        header
-            .iter()
-            .position(|h| h.starts_with(name))
-            .unwrap_or_else(|| panic!("no column {name} in {header:?}"))
-    };
-    let (t_col, theta_col, played_col) = (col("t ["), col("theta ["), col("stream_time"));
+    let status = Csv::read(&csv_dir.join("proposed_axis_status.csv"));
+    let (t_col, theta_col, played_col) = (
+        status.col("t ["),
+        status.col("theta ["),
+        status.col("stream_time"),
+    );
     let (mut judged, mut worst) = (0, 0.0f64);
-    for line in lines {
-        let f: Vec<&str> = line.split(',').collect();
+    for f in status.rows() {
         let Ok(played) = f[played_col].parse::<f64>() else {
             continue;
         };
@@ -204,19 +199,14 @@ file = "{}"
 
     // The state channel's θ_d and error are the axis's setpoint (the stream), not the
     // scenario's profile, which this run never ran.
-    let text = std::fs::read_to_string(csv_dir.join("proposed_state.csv")).expect("state");
-    let mut lines = text.lines();
-    let header: Vec<&str> = lines.next().expect("header").split(',').collect();
-    let col = |name: &str| {
-        header
-            .iter()
-            .position(|h| h.starts_with(name))
-            .unwrap_or_else(|| panic!("no column {name} in {header:?}"))
-    };
-    let (t_col, theta_d_col, error_col) = (col("t ["), col("theta_d ["), col("error ["));
+    let state = Csv::read(&csv_dir.join("proposed_state.csv"));
+    let (t_col, theta_d_col, error_col) = (
+        state.col("t ["),
+        state.col("theta_d ["),
+        state.col("error ["),
+    );
     let (mut judged, mut worst_d, mut worst_e) = (0, 0.0f64, 0.0f64);
-    for line in lines {
-        let f: Vec<&str> = line.split(',').collect();
+    for f in state.rows() {
         let t: f64 = f[t_col].parse().expect("t");
         if (0.3..=2.0).contains(&t) {
             let stream = 2.0 * (std::f64::consts::TAU * (t - 0.1)).sin();

@@ -12,6 +12,20 @@ pub struct Reference {
     pub alpha: f64,
 }
 
+impl Reference {
+    /// The state `dt` later at this acceleration.
+    pub fn after(self, dt: f64) -> Reference {
+        if dt == 0.0 {
+            return self;
+        }
+        Reference {
+            theta: self.theta + self.omega * dt + 0.5 * self.alpha * dt * dt,
+            omega: self.omega + self.alpha * dt,
+            alpha: self.alpha,
+        }
+    }
+}
+
 /// Evaluates the profile in closed form (no integration, so every process and every run
 /// agrees on θ_d bit for bit).
 #[derive(Debug, Clone, Copy)]

@@ -505,3 +505,37 @@ pub fn assert_reached(mv: &Output) {
     assert!(mv.status.success(), "{}", text(mv));
     assert!(text(mv).contains("reached"), "{}", text(mv));
 }
+
+/// An exported CSV file (`stepdrive export --csv`): its header and its rows' fields.
+pub struct Csv {
+    header: Vec<String>,
+    text: String,
+}
+
+impl Csv {
+    pub fn read(path: &Path) -> Self {
+        let text =
+            std::fs::read_to_string(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+        let header = text
+            .lines()
+            .next()
+            .unwrap_or_else(|| panic!("{}: no header", path.display()))
+            .split(',')
+            .map(str::to_string)
+            .collect();
+        Self { header, text }
+    }
+
+    /// The column whose header starts with `name` (`"t ["` for `t [s]`).
+    pub fn col(&self, name: &str) -> usize {
+        self.header
+            .iter()
+            .position(|h| h.starts_with(name))
+            .unwrap_or_else(|| panic!("no column {name} in {:?}", self.header))
+    }
+
+    /// Each row after the header, split into its fields.
+    pub fn rows(&self) -> impl Iterator<Item = Vec<&str>> {
+        self.text.lines().skip(1).map(|l| l.split(',').collect())
+    }
+}

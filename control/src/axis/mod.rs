@@ -635,7 +635,7 @@ impl Axis {
             }
             self.otg_t += n * self.period;
         }
-        Ok(extrapolate(s, t - self.otg_t))
+        Ok(s.after(t - self.otg_t))
     }
 
     /// The stream's target at played time `played`: its interpolated state (within the
@@ -721,11 +721,11 @@ impl Axis {
         if played - last > self.p.stream_timeout_s {
             self.warning |= axis_warnings::STREAM_LOST;
             // The quick stop starts from where the stream left the setpoint.
-            self.reference = extrapolate(s, m.t - self.otg_t);
+            self.reference = s.after(m.t - self.otg_t);
             self.quick_stop(m);
             return self.otg_to(m.t);
         }
-        Ok(extrapolate(s, m.t - self.otg_t))
+        Ok(s.after(m.t - self.otg_t))
     }
 
     /// One tick at the measured state `m`: the device's faults, the source's setpoint, the
@@ -922,18 +922,6 @@ impl Axis {
     }
 }
 
-/// The state `dt` after `s` at its acceleration.
-fn extrapolate(s: Reference, dt: f64) -> Reference {
-    if dt == 0.0 {
-        return s;
-    }
-    Reference {
-        theta: s.theta + s.omega * dt + 0.5 * s.alpha * dt * dt,
-        omega: s.omega + s.alpha * dt,
-        alpha: s.alpha,
-    }
-}
-
 /// A move's limits when it gives none.
 pub fn move_limits(p: &AxisParams) -> Limits {
     Limits {
@@ -1042,6 +1030,18 @@ mod tests {
             &on(0.0, &Reference::default()),
         )
         .expect("enable");
+        (axis, p)
+    }
+
+    /// An enabled axis told at t = 0, at rest, to jog at 13 rad/s.
+    fn jogging_axis() -> (Axis, AxisParams) {
+        let (mut axis, p) = enabled_axis();
+        let jog = AxisRequest {
+            velocity_rad_s: 13.0,
+            ..request(RequestKind::Jog, 2)
+        };
+        axis.request(&jog, &on(0.0, &Reference::default()))
+            .expect("jog");
         (axis, p)
     }
 
@@ -1253,22 +1253,16 @@ mod tests {
     /// 100 Hz stream: 4 N·m/s of torque rate at 50 000 rad/s³).
     #[test]
     fn a_stream_that_interrupts_a_jog_takes_over_smoothly_with_its_own_jerk() {
-        let (mut axis, p) = enabled_axis();
-        let mut r = Reference::default();
-        let jog = AxisRequest {
-            velocity_rad_s: 13.0,
-            ..request(RequestKind::Jog, 2)
-        };
-        axis.request(&jog, &on(0.0, &r)).expect("jog");
+        let (mut axis, p) = jogging_axis();
         let mut k = 0u64;
-        let mut sp = axis.tick(&on(0.0, &r));
+        let mut sp = axis.tick(&on(0.0, &Reference::default()));
         // Mid-ramp: the jog's acceleration still rising.
         while sp.jerk == 0.0 || k < 5 {
             k += 1;
             sp = axis.tick(&on(k as f64 * T, &sp.reference));
             assert!(k < 100, "the jog never ramped");
         }
-        r = sp.reference;
+        let mut r = sp.reference;
         let t0 = k as f64 * T;
         axis.request(&request(RequestKind::StreamStart, 3), &on(t0, &r))
             .expect("stream");
@@ -1320,13 +1314,8 @@ mod tests {
     /// in Quick stop active within ω/a_qs plus the jerk's ramp.
     #[test]
     fn a_quick_stop_brakes_at_its_own_rate_and_holds() {
-        let (mut axis, p) = enabled_axis();
+        let (mut axis, p) = jogging_axis();
         let mut r = Reference::default();
-        let jog = AxisRequest {
-            velocity_rad_s: 13.0,
-            ..request(RequestKind::Jog, 2)
-        };
-        axis.request(&jog, &on(0.0, &r)).expect("jog");
         let mut k = 0u64;
         while r.omega < 13.0 - 1e-9 {
             r = axis.tick(&on(k as f64 * T, &r)).reference;

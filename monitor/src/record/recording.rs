@@ -673,12 +673,7 @@ impl Recording {
             }
         }
         let (t0, r) = at(lo.saturating_sub(1));
-        let dt = t - t0;
-        Reference {
-            theta: r.theta + r.omega * dt + 0.5 * r.alpha * dt * dt,
-            omega: r.omega + r.alpha * dt,
-            alpha: r.alpha,
-        }
+        r.after(t - t0)
     }
 
     /// A setpoint of the current method's run, at its sample's time.

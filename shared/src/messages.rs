@@ -266,6 +266,15 @@ impl TorqueSetpoint {
         let dt = t_s - self.sample_time_s;
         self.theta_d_rad + self.omega_d_rad_s * dt + 0.5 * self.alpha_d_rad_s2 * dt * dt
     }
+
+    /// θ_d, ω_d, α_d at the sample this setpoint was computed from.
+    pub fn reference(&self) -> crate::trajectory::Reference {
+        crate::trajectory::Reference {
+            theta: self.theta_d_rad,
+            omega: self.omega_d_rad_s,
+            alpha: self.alpha_d_rad_s2,
+        }
+    }
 }
 
 /// The longest scenario TOML a stack can announce, bytes.

@@ -15,6 +15,7 @@
 //! method).
 
 use super::live::{Every, LiveView};
+use crate::report::setpoints::SetpointHistory;
 use mcap::records::{MessageHeader, Metadata};
 use serde::Serialize;
 use std::collections::BTreeMap;
@@ -25,7 +26,6 @@ use stepdrive_emulated_drive::truth::TruthRow;
 use stepdrive_shared::axis::{AxisAck, AxisState, AxisStatus, Refusal, RequestKind};
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::{DriveCommand, DrivePlan, DriveState, TorqueSetpoint};
-use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::trajectory::{Reference, Trapezoid};
 use stepdrive_shared::{Method, Scenario};
@@ -389,11 +389,7 @@ pub struct Recording {
     /// θ_d at a sample's time: the scenario's profile when the axis runs it, else the
     /// last setpoint carried on along its ω_d and α_d.
     trajectory: Option<Trapezoid>,
-    /// The last setpoints (sample time, reference), the newest at `setpoints_seen − 1`
-    /// (modulo its length): in lockstep the states' queue may lag them by as much as it
-    /// holds, [`MONITOR_BUFFER`] samples, so it keeps that much of the position loop's.
-    setpoints: Vec<(f64, Reference)>,
-    setpoints_seen: usize,
+    setpoints: SetpointHistory,
     n_r: f64,
     k_m: f64,
     /// (compute delay + 1) periods: how far ahead of its sample a command's references are.
@@ -494,11 +490,7 @@ impl Recording {
             schemas,
             channels: Vec::new(),
             trajectory: s.runs_profile().then(|| Trapezoid::new(&s.trajectory)),
-            setpoints: vec![
-                (f64::NAN, Reference::default());
-                MONITOR_BUFFER / s.rate_ratio().max(1) as usize + 64
-            ],
-            setpoints_seen: 0,
+            setpoints: SetpointHistory::for_scenario(s),
             n_r: f64::from(s.motor.rotor_teeth),
             k_m: s.plant_motor().torque_constant_nm_per_a,
             ref_lead_s: f64::from(s.rates.compute_delay_periods + 1) * s.sample_period_s(),
@@ -519,7 +511,7 @@ impl Recording {
 
     /// The channels of `method`'s run; what follows is recorded on them.
     pub fn begin(&mut self, method: Method) -> Result<(), RecordError> {
-        self.setpoints_seen = 0;
+        self.setpoints.clear();
         let state = self.channel(0, method, "state", Every::Period)?;
         let stats = self.channel(1, method, "stats", Every::Message)?;
         let fault = self.channel(2, method, "fault", Every::Message)?;
@@ -650,44 +642,16 @@ impl Recording {
         if let Some(profile) = &self.trajectory {
             return profile.at(t);
         }
-        let len = self.setpoints.len();
-        let kept = self.setpoints_seen.min(len);
-        if kept == 0 {
-            return Reference {
-                theta,
-                omega: 0.0,
-                alpha: 0.0,
-            };
-        }
-        // Oldest first; their times increase. The last at or before t, else the oldest.
-        let oldest = self.setpoints_seen - kept;
-        let at = |i: usize| self.setpoints[(oldest + i) % len];
-        // Binary search for the first later than t: [lo, hi) holds it.
-        let (mut lo, mut hi) = (0, kept);
-        while lo < hi {
-            let mid = lo + (hi - lo) / 2;
-            if at(mid).0 <= t {
-                lo = mid + 1;
-            } else {
-                hi = mid;
-            }
-        }
-        let (t0, r) = at(lo.saturating_sub(1));
-        r.after(t - t0)
+        self.setpoints.at(t).unwrap_or(Reference {
+            theta,
+            omega: 0.0,
+            alpha: 0.0,
+        })
     }
 
     /// A setpoint of the current method's run, at its sample's time.
     pub fn setpoint(&mut self, sp: &TorqueSetpoint) -> Result<(), RecordError> {
-        let len = self.setpoints.len();
-        self.setpoints[self.setpoints_seen % len] = (
-            sp.sample_time_s,
-            Reference {
-                theta: sp.theta_d_rad,
-                omega: sp.omega_d_rad_s,
-                alpha: sp.alpha_d_rad_s2,
-            },
-        );
-        self.setpoints_seen += 1;
+        self.setpoints.push(sp);
         let Some(ch) = self.channels.last() else {
             return Ok(());
         };

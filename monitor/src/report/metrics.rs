@@ -5,6 +5,7 @@ use crate::report::outcome::{
     fault_names, step_out_threshold_rad, FaultEvent, Outcome, LATCHED, MAX_UNSEEN_S,
     MIN_SEEN_FRACTION,
 };
+use crate::report::setpoints::SetpointHistory;
 use serde::Serialize;
 use stepdrive_shared::axis::{axis_faults, request_flags, AxisAck, AxisStatus, RequestKind};
 use stepdrive_shared::frames::dq_currents;
@@ -232,7 +233,7 @@ pub struct Metrics {
     longest_gap_from: u64,
     first_missed: Option<u64>,
     /// A program's run: θ_d from the position loop's setpoints, the states waiting for the
-    /// segment that covers them, and each move's figures.
+    /// setpoint that covers them, and each move's figures.
     program: Option<ProgramReference>,
     /// The first state whose command came from a current loop stopping the motor on its
     /// own (the position loop went silent), and the axis's first fault.
@@ -254,16 +255,16 @@ pub struct AxisFaultEvent {
     pub following_error_rad: f64,
 }
 
-/// States wait here until the setpoint after theirs arrives: a state is graded against the
-/// segment of the newest setpoint computed from a sample at or before it.
+/// States wait here until a setpoint from a later sample arrives: a state is graded against
+/// the newest setpoint computed from a sample at or before it, carried on to its time.
 #[derive(Debug, Clone)]
 struct ProgramReference {
-    segment: Option<TorqueSetpoint>,
+    setpoints: SetpointHistory,
     pending: std::collections::VecDeque<DriveState>,
     moves: Vec<MoveWatch>,
 }
 
-/// States kept waiting for their segment at most (then graded against the newest known).
+/// States kept waiting for their setpoint at most (then graded against the newest known).
 const PENDING_STATES: usize = 16_384;
 
 /// One move of a program: from the tick that took it to the next move or the run's end.
@@ -387,7 +388,7 @@ impl Metrics {
             longest_gap_from: 0,
             first_missed: None,
             program: (!s.program.is_empty()).then(|| ProgramReference {
-                segment: None,
+                setpoints: SetpointHistory::for_scenario(s),
                 pending: std::collections::VecDeque::with_capacity(PENDING_STATES),
                 moves: Vec::with_capacity(s.program.len()),
             }),
@@ -423,7 +424,7 @@ impl Metrics {
     }
 
     /// One state sample: graded at once against the scenario's profile, or, in a program's
-    /// run, once the segment that covers it is known ([`Self::setpoint`]).
+    /// run, once the setpoint that covers it is known ([`Self::setpoint`]).
     pub fn push(&mut self, s: &DriveState) {
         let Some(p) = self.program.as_mut() else {
             let reference = self.trajectory.at(s.sample_time_s);
@@ -432,26 +433,34 @@ impl Metrics {
         };
         if p.pending.len() == PENDING_STATES {
             if let Some(old) = p.pending.pop_front() {
-                let r = segment_at(p.segment.as_ref(), old.sample_time_s);
+                let r = p.setpoints.at(old.sample_time_s).unwrap_or_default();
                 self.account(&old, r);
             }
         }
-        if let Some(p) = self.program.as_mut() {
-            p.pending.push_back(*s);
+        let newest = match self.program.as_mut() {
+            Some(p) => {
+                p.pending.push_back(*s);
+                p.setpoints.newest_time()
+            }
+            None => None,
+        };
+        // A state that arrives after setpoints from later samples is graded now.
+        if let Some(t) = newest {
+            self.grade_pending(Some(t));
         }
     }
 
     /// A program's run: the position loop's setpoint, the reference from its sample on.
-    /// The states before it are graded against the segment before it.
+    /// The states before it are graded (they cannot be covered by a later one).
     pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
-        self.grade_pending(Some(sp.from_state_seq));
         if let Some(p) = self.program.as_mut() {
-            p.segment = Some(*sp);
+            p.setpoints.push(sp);
         }
+        self.grade_pending(Some(sp.sample_time_s));
     }
 
-    /// Grades the waiting states before sample `until` (all: `None`).
-    fn grade_pending(&mut self, until: Option<u64>) {
+    /// Grades the waiting states sampled before `until` s (all: `None`), in order.
+    fn grade_pending(&mut self, until: Option<f64>) {
         loop {
             let Some(p) = self.program.as_mut() else {
                 return;
@@ -459,14 +468,14 @@ impl Metrics {
             let due = p
                 .pending
                 .front()
-                .is_some_and(|st| until.is_none_or(|u| st.seq < u));
+                .is_some_and(|st| until.is_none_or(|u| st.sample_time_s < u));
             if !due {
                 return;
             }
             let Some(st) = p.pending.pop_front() else {
                 return;
             };
-            let r = segment_at(p.segment.as_ref(), st.sample_time_s);
+            let r = p.setpoints.at(st.sample_time_s).unwrap_or_default();
             self.account(&st, r);
         }
     }
@@ -793,18 +802,6 @@ impl Metrics {
             stepped_out_at_s: self.stepped_out_at,
             fault_cleared_at_s: self.cleared_at,
         }
-    }
-}
-
-/// The reference of `segment` at `t` (before any: rest at 0).
-fn segment_at(segment: Option<&TorqueSetpoint>, t: f64) -> Reference {
-    match segment {
-        Some(sp) => Reference {
-            theta: sp.theta_d_at(t),
-            omega: sp.omega_d_rad_s + sp.alpha_d_rad_s2 * (t - sp.sample_time_s),
-            alpha: sp.alpha_d_rad_s2,
-        },
-        None => Reference::default(),
     }
 }
 

@@ -27,6 +27,20 @@ fn a_served_axis_is_commanded_from_other_processes() {
     );
     let st = axis(&["status"]);
     assert!(text(&st).contains("Switch on disabled"), "{}", text(&st));
+    // Disabled under the default 0.01 N·m load, the rotor stands on its holding brake
+    // (without one it ran away at −0.46 rad/s).
+    let theta = |o: &std::process::Output| -> f64 {
+        let out = text(o);
+        out.lines()
+            .find_map(|l| l.strip_prefix("θ "))
+            .and_then(|l| l.split_whitespace().next())
+            .and_then(|v| v.parse().ok())
+            .unwrap_or_else(|| panic!("no θ in {out}"))
+    };
+    std::thread::sleep(Duration::from_millis(500));
+    let later = axis(&["status"]);
+    assert_eq!(theta(&st), 0.0, "{}", text(&st));
+    assert_eq!(theta(&later), 0.0, "{}", text(&later));
 
     // Refused, with the reason, nothing applied.
     let refused = axis(&["move", "--to", "1"]);

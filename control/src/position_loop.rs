@@ -140,6 +140,10 @@ impl PositionLoop {
                 setpoint_flags::ACCELERATION_AHEAD
             } else {
                 0
+            } | if sp.brake_released {
+                setpoint_flags::BRAKE_RELEASED
+            } else {
+                0
             },
             epoch: sp.epoch,
             _reserved: 0,

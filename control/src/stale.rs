@@ -110,7 +110,8 @@ impl StaleGuard {
             load_estimate_nm: stop.load_nm,
             torque_rate_nm_s: 0.0,
             axis: 0,
-            flags: setpoint_flags::OUTPUTS_ON,
+            // The current loop holds the rotor with torque; the brake stays off it.
+            flags: setpoint_flags::OUTPUTS_ON | setpoint_flags::BRAKE_RELEASED,
             epoch: stop.epoch,
             _reserved: 0,
         }

@@ -274,6 +274,9 @@ impl Node for CurrentLoopNode {
         if stale {
             command.flags |= command_flags::SETPOINT_STALE;
         }
+        if on && sp.flags & setpoint_flags::BRAKE_RELEASED != 0 {
+            command.flags |= command_flags::BRAKE_RELEASED;
+        }
         // Outputs switched: the plant's freshest plan must say so at once.
         let switched = on != self.outputs_on;
         self.outputs_on = on;

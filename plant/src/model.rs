@@ -92,15 +92,84 @@ impl Motor {
             return self.integrate(x, v, load.constant_nm, period, substeps);
         }
         let h = period / f64::from(substeps);
-        let f = |t: f64, y: &MotorState| self.derivative(y, v, load.torque(t, y[THETA], y[OMEGA]));
+        let mut y = *x;
+        for n in 0..substeps {
+            y = self.rk4_loaded_step(&y, v, load, 0.0, t0 + h * f64::from(n), h);
+        }
+        y
+    }
+
+    /// One RK4 step from `t` with the load evaluated at each stage, plus a constant `extra`
+    /// torque opposing +θ.
+    fn rk4_loaded_step(
+        &self,
+        y: &MotorState,
+        v: [f64; 2],
+        load: &Disturbance,
+        extra: f64,
+        t: f64,
+        h: f64,
+    ) -> MotorState {
+        let f = |t: f64, y: &MotorState| {
+            self.derivative(y, v, load.torque(t, y[THETA], y[OMEGA]) + extra)
+        };
+        let k1 = f(t, y);
+        let k2 = f(t + h / 2.0, &(y + k1 * (h / 2.0)));
+        let k3 = f(t + h / 2.0, &(y + k2 * (h / 2.0)));
+        let k4 = f(t + h, &(y + k3 * h));
+        y + (k1 + k2 * 2.0 + k3 * 2.0 + k4) * (h / 6.0)
+    }
+
+    /// The torque on the rotor but the brake's, N·m: the windings' less friction and load.
+    fn torque_on_rotor(&self, y: &MotorState, load: &Disturbance, t: f64) -> f64 {
+        let (s, c) = (self.n_r * y[THETA]).sin_cos();
+        self.k_m * (-y[I_A] * s + y[I_B] * c)
+            - self.b * y[OMEGA]
+            - load.torque(t, y[THETA], y[OMEGA])
+    }
+
+    /// As [`Self::integrate_loaded`] with a holding brake applied that holds up to
+    /// `holding_nm` (Karnopp's stick-slip): a rotor at rest whose torque it can hold stays
+    /// (only the windings' currents move on); otherwise the brake's torque opposes the
+    /// motion (from rest, the torque that broke it loose), and a rotor that comes to rest
+    /// within a step stays there.
+    #[allow(clippy::too_many_arguments)]
+    pub fn integrate_braked(
+        &self,
+        x: &MotorState,
+        v: [f64; 2],
+        load: &Disturbance,
+        t0: f64,
+        period: f64,
+        substeps: u32,
+        holding_nm: f64,
+    ) -> MotorState {
+        let h = period / f64::from(substeps);
+        // J → ∞: ω' = 0 whatever the torque, and with ω = 0 the windings decouple.
+        let locked = Motor {
+            j: f64::INFINITY,
+            ..*self
+        };
         let mut y = *x;
         for n in 0..substeps {
             let t = t0 + h * f64::from(n);
-            let k1 = f(t, &y);
-            let k2 = f(t + h / 2.0, &(y + k1 * (h / 2.0)));
-            let k3 = f(t + h / 2.0, &(y + k2 * (h / 2.0)));
-            let k4 = f(t + h, &(y + k3 * h));
-            y += (k1 + k2 * 2.0 + k3 * 2.0 + k4) * (h / 6.0);
+            let torque = self.torque_on_rotor(&y, load, t);
+            if y[OMEGA] == 0.0 && torque.abs() <= holding_nm {
+                let theta = y[THETA];
+                y = locked.rk4_step(&y, v, 0.0, h);
+                y[THETA] = theta;
+                y[OMEGA] = 0.0;
+                continue;
+            }
+            // The brake's torque, opposing +θ as the load does, against the motion.
+            let direction = match y[OMEGA] == 0.0 {
+                true => torque.signum(),
+                false => y[OMEGA].signum(),
+            };
+            y = self.rk4_loaded_step(&y, v, load, direction * holding_nm, t, h);
+            if y[OMEGA] * direction <= 0.0 {
+                y[OMEGA] = 0.0;
+            }
         }
         y
     }
@@ -279,5 +348,83 @@ mod tests {
         let losses =
             m.r * (x[I_A].powi(2) + x[I_B].powi(2)) + m.b * x[OMEGA].powi(2) + tau_l * x[OMEGA];
         assert!((p_in - stored_rate - losses).abs() < 1e-12);
+    }
+
+    /// A holding brake against a load it can hold: the rotor stays exactly where it stood
+    /// while the windings' currents rise as for a locked rotor.
+    #[test]
+    fn an_applied_brake_holds_a_load_below_its_holding_torque() {
+        let m = table1();
+        let load = Disturbance::constant(0.01);
+        let dt = 50e-6;
+        // Where phase a's current makes no torque (sin N_r θ = 0): the load alone pulls.
+        let theta = 3.0 * std::f64::consts::PI / m.n_r;
+        let mut x = MotorState::new(theta, 0.0, 0.0, 0.0);
+        let v = 2.0;
+        for k in 1..=200 {
+            x = m.integrate_braked(&x, [v, 0.0], &load, 0.0, dt, 4, 0.5);
+            let t = f64::from(k) * dt;
+            assert_eq!((x[THETA], x[OMEGA]), (theta, 0.0));
+            let expected = v / m.r * (1.0 - (-t * m.r / m.l).exp());
+            assert!((x[I_A] - expected).abs() < 1e-10, "{t}: {}", x[I_A]);
+        }
+    }
+
+    /// A turning rotor, no load, no viscous friction, no coupling to the windings (whose
+    /// back-EMF, shorted through 0 V, would brake it too): the brake decelerates it
+    /// at τ_h/J to a standstill after ω₀J/τ_h, ω₀²J/(2τ_h) further on, and it stays there.
+    #[test]
+    fn an_applied_brake_stops_a_turning_rotor_at_its_holding_torque() {
+        let m = Motor {
+            b: 0.0,
+            k_m: 0.0,
+            ..table1()
+        };
+        let (omega0, holding, dt) = (5.0, 0.2, 50e-6);
+        let load = Disturbance::constant(0.0);
+        let mut x = MotorState::new(0.0, omega0, 0.0, 0.0);
+        let stop_s = omega0 * m.j / holding;
+        let mut stopped_at = None;
+        for k in 1..=((2.0 * stop_s / dt) as u32) {
+            x = m.integrate_braked(&x, [0.0; 2], &load, 0.0, dt, 4, holding);
+            if x[OMEGA] == 0.0 && stopped_at.is_none() {
+                stopped_at = Some(f64::from(k) * dt);
+            }
+        }
+        let at = stopped_at.expect("it stops");
+        assert!(
+            (at - stop_s).abs() <= dt,
+            "stopped at {at} s, expected {stop_s} s"
+        );
+        let travel = omega0 * omega0 * m.j / (2.0 * holding);
+        assert!(
+            (x[THETA] - travel).abs() < omega0 * dt,
+            "{} against {travel}",
+            x[THETA]
+        );
+        assert_eq!(x[OMEGA], 0.0);
+    }
+
+    /// A load beyond the holding torque drags the rotor along at (τ_L − τ_h)/J (no viscous
+    /// friction, no coupling to the windings).
+    #[test]
+    fn a_load_beyond_the_holding_torque_slips_the_brake() {
+        let m = Motor {
+            b: 0.0,
+            k_m: 0.0,
+            ..table1()
+        };
+        let (tau_l, holding, dt) = (0.3, 0.2, 50e-6);
+        let load = Disturbance::constant(tau_l);
+        let mut x = MotorState::zeros();
+        for _ in 0..100 {
+            x = m.integrate_braked(&x, [0.0; 2], &load, 0.0, dt, 4, holding);
+        }
+        let expected = -(tau_l - holding) / m.j * 100.0 * dt;
+        assert!(
+            (x[OMEGA] - expected).abs() < 1e-9 * expected.abs(),
+            "{}",
+            x[OMEGA]
+        );
     }
 }

@@ -114,8 +114,14 @@ pub struct PlantNode {
 impl PlantNode {
     pub fn new(scenario: &Scenario, settings: PlantSettings) -> Self {
         let delay = u64::from(scenario.rates.compute_delay_periods);
+        let mut sim = PlantSim::new(scenario);
+        // A commanded stack starts disabled, its rotor on the brake; the paper's experiment
+        // starts enabled, with none.
+        if !scenario.runs_profile() {
+            sim.fit_brake(scenario.plant.brake.holding_torque_nm);
+        }
         Self {
-            sim: PlantSim::new(scenario),
+            sim,
             samples: scenario.sample_count(),
             delay,
             period_ns: scenario.sample_period_ns(),

@@ -31,6 +31,10 @@ pub struct PlantSim {
     /// setpoints); sticky until a command without it.
     stale: bool,
     fault: u32,
+    /// The holding brake's torque, N·m, when one is fitted ([`Self::fit_brake`]), and
+    /// whether the last command released it. Applied while a fault holds the outputs off.
+    brake_nm: Option<f64>,
+    brake_released: bool,
 }
 
 impl PlantSim {
@@ -51,7 +55,16 @@ impl PlantSim {
             flags: 0,
             stale: false,
             fault: 0,
+            brake_nm: None,
+            brake_released: false,
         }
+    }
+
+    /// Fits the motor's holding brake, applied until a command releases it (the simulated
+    /// plant of a commanded stack; a drive's motor is the drive's business).
+    pub fn fit_brake(&mut self, holding_nm: f64) {
+        self.brake_nm = (holding_nm > 0.0).then_some(holding_nm);
+        self.brake_released = false;
     }
 
     /// Index of the current sample.
@@ -176,6 +189,7 @@ impl PlantSim {
         match command {
             Some(c) => {
                 self.stale = c.flags & command_flags::SETPOINT_STALE != 0;
+                self.brake_released = c.flags & command_flags::BRAKE_RELEASED != 0;
                 self.apply([c.v_a_v, c.v_b_v], c.seq)
             }
             None => self.apply([0.0; 2], NONE_SEQ),
@@ -203,9 +217,24 @@ impl PlantSim {
             seq = NONE_SEQ;
         }
         let t = (self.k - self.load_origin) as f64 / self.sample_hz;
-        self.x = self
-            .motor
-            .integrate_loaded(&self.x, v, &self.load, t, self.period, self.substeps);
+        let braking = self
+            .brake_nm
+            .filter(|_| !self.brake_released || self.fault != 0);
+        self.x = match braking {
+            Some(holding) => self.motor.integrate_braked(
+                &self.x,
+                v,
+                &self.load,
+                t,
+                self.period,
+                self.substeps,
+                holding,
+            ),
+            None => {
+                self.motor
+                    .integrate_loaded(&self.x, v, &self.load, t, self.period, self.substeps)
+            }
+        };
         self.applied = v;
         self.applied_seq = seq;
         self.k += 1;

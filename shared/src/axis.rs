@@ -48,6 +48,10 @@ pub struct AxisParams {
     /// The current loop brings the motor to a stop on its own when the newest setpoint is
     /// older than this many position-loop periods (a silent position loop).
     pub setpoint_age_ticks: u32,
+    /// The holding brake's release time, s (CiA 402's brake release delay): after an enable
+    /// the axis holds its setpoint where the rotor stood this long, the current holding the
+    /// rotor before the brake lets go, and then follows its commands. 0: released at once.
+    pub brake_release_s: f64,
 }
 
 impl Default for AxisParams {
@@ -69,6 +73,7 @@ impl Default for AxisParams {
             stream_lead_s: 0.05,
             stream_timeout_s: 0.05,
             setpoint_age_ticks: 20,
+            brake_release_s: 0.02,
         }
     }
 }
@@ -171,6 +176,7 @@ impl AxisParams {
             "rad",
         )?;
         within("axis.stream_lead_s", self.stream_lead_s, 0.0, 10.0, "s")?;
+        within("axis.brake_release_s", self.brake_release_s, 0.0, 1.0, "s")?;
         within(
             "axis.stream_timeout_s",
             self.stream_timeout_s,

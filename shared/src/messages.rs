@@ -31,6 +31,9 @@ pub mod command_flags {
     /// The newest setpoint was older than `[axis] setpoint_age_ticks` position-loop periods:
     /// the current loop decelerates the motor to a standstill and holds it on its own.
     pub const SETPOINT_STALE: u32 = 1 << 0;
+    /// The motor's holding brake may be released (without it, applied): the axis has its
+    /// outputs on and its brake's release time has passed.
+    pub const BRAKE_RELEASED: u32 = 1 << 1;
 }
 
 /// Bits of [`TorqueSetpoint::flags`].
@@ -40,6 +43,8 @@ pub mod setpoint_flags {
     /// The acceleration is continuous (a jerk-limited trajectory): the current loop may
     /// predict the rotor's speed ahead with it.
     pub const ACCELERATION_AHEAD: u32 = 1 << 1;
+    /// The holding brake may be released (as [`super::command_flags::BRAKE_RELEASED`]).
+    pub const BRAKE_RELEASED: u32 = 1 << 2;
 }
 
 /// Bits of [`DriveState::fault`]. A fault is latched by the process that drives the motor.

@@ -110,6 +110,28 @@ impl Default for Detent {
     }
 }
 
+/// `[plant.brake]`: the motor's holding brake, spring-applied, released by the drive
+/// (`[axis] brake_release_s` after it enables, applied again whenever its outputs go off).
+/// Applied, it holds the rotor against up to `holding_torque_nm` and brakes a turning rotor
+/// with that torque until it stands. A brake keeps a loaded rotor where it stood while the
+/// axis is disabled, and at an enable until the current holds it. The simulated plant fits
+/// it to commanded stacks (a program, `serve`); a run of the scenario's profile (the
+/// paper's experiment) starts enabled, as it always did.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Brake {
+    /// The most torque it holds, N·m (0 = no brake).
+    pub holding_torque_nm: f64,
+}
+
+impl Default for Brake {
+    fn default() -> Self {
+        Self {
+            holding_torque_nm: 0.5,
+        }
+    }
+}
+
 /// `[plant]`: how the simulated motor differs from the controller's model.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -117,6 +139,7 @@ pub struct PlantParams {
     pub motor: MotorOverride,
     pub load: PlantLoad,
     pub detent: Detent,
+    pub brake: Brake,
 }
 
 impl PlantParams {
@@ -192,6 +215,13 @@ impl PlantParams {
                 "rad/s (the smooth sign needs a positive width)",
             )?;
         }
+        within(
+            "plant.brake.holding_torque_nm",
+            self.brake.holding_torque_nm,
+            0.0,
+            1e3,
+            "N·m",
+        )?;
         let d = &self.detent;
         within("plant.detent.amplitude_nm", d.amplitude_nm, 0.0, 1e3, "N·m")?;
         if !(1..=64).contains(&d.harmonic) {

@@ -53,6 +53,8 @@ pub struct Setpoint {
     pub smooth: bool,
     /// The trajectory's jerk, rad/s³ (0 for the scenario's profile).
     pub jerk: f64,
+    /// The holding brake may be released (outputs on, its release time past).
+    pub brake_released: bool,
 }
 
 /// A command not taken: why, in words with the numbers.
@@ -108,6 +110,9 @@ pub struct Axis {
     epoch: u32,
     /// Axis position = measured θ + offset (set-position).
     offset: f64,
+    /// When the outputs came on (the last enable from a powered-off state), s: the brake
+    /// is released `brake_release_s` after.
+    enabled_at: f64,
     /// The last setpoint, in axis coordinates, and the tick's time.
     reference: Reference,
     torque_ff: f64,
@@ -147,6 +152,7 @@ impl Axis {
             last_seq: 0,
             epoch: 0,
             offset: 0.0,
+            enabled_at: f64::NEG_INFINITY,
             reference: at,
             torque_ff: 0.0,
             t: 0.0,
@@ -214,6 +220,13 @@ impl Axis {
         self.following_since = None;
         self.torque_ff = 0.0;
         self.epoch = self.epoch.wrapping_add(1);
+        self.enabled_at = m.t;
+    }
+
+    /// The holding brake may be released: the outputs are on and its release time has
+    /// passed since they came on.
+    fn brake_released(&self, t: f64) -> bool {
+        self.state.outputs_on() && t - self.enabled_at >= self.p.brake_release_s
     }
 
     /// Takes the trajectory from wherever the setpoint is now (a change of source while
@@ -767,6 +780,12 @@ impl Axis {
                 self.otg_t = m.t;
                 at
             }
+            _ if !self.brake_released(m.t) => {
+                // The brake still holds the rotor: the setpoint stays where the enable put
+                // it, and what was commanded meanwhile starts when the brake has let go.
+                self.otg_t = m.t;
+                self.reference
+            }
             AxisMode::CyclicPosition => match self.stream_to(m) {
                 Ok(r) => r,
                 Err(e) => self.trajectory_failed(e),
@@ -811,6 +830,7 @@ impl Axis {
                 AxisMode::CyclicPosition => self.followed_jerk,
                 _ => self.otg.jerk(),
             },
+            brake_released: self.brake_released(m.t),
         }
     }
 
@@ -1020,6 +1040,60 @@ mod tests {
         }
         // 3.9e-7 measured; a cubic Hermite's acceleration jumps put it at 7.5e-5.
         assert!(worst < 5e-6, "{worst:e}");
+    }
+
+    /// The holding brake: applied while the axis is disabled; after an enable the setpoint
+    /// stays where the rotor stood, outputs on, for the brake's release time; a move asked
+    /// meanwhile starts once it has let go; a disable applies it again at once.
+    #[test]
+    fn an_enable_holds_the_setpoint_until_the_brake_has_released() {
+        let p = AxisParams::default();
+        let mut axis = Axis::new(&p, T);
+        let at = |t: f64| Measured {
+            t,
+            theta: 0.4,
+            ..Default::default()
+        };
+        let sp = axis.tick(&at(0.0));
+        assert!(!sp.outputs_on && !sp.brake_released);
+        axis.request(&request(RequestKind::Enable, 1), &at(0.0))
+            .expect("enable");
+        let to = AxisRequest {
+            target_rad: 1.4,
+            ..request(RequestKind::Move, 2)
+        };
+        axis.request(&to, &at(0.0))
+            .expect("a move while the brake opens");
+        let held = Reference {
+            theta: 0.4,
+            omega: 0.0,
+            alpha: 0.0,
+        };
+        let mut k = 0u32;
+        let released_at = loop {
+            let t = f64::from(k) * T;
+            let sp = axis.tick(&at(t));
+            assert!(sp.outputs_on);
+            if sp.brake_released {
+                break t;
+            }
+            assert_eq!(sp.reference, held, "t {t}");
+            k += 1;
+            assert!(k < 1000, "the brake never released");
+        };
+        assert!(
+            (p.brake_release_s..p.brake_release_s + T).contains(&released_at),
+            "released at {released_at} s"
+        );
+        let sp = axis.tick(&at(released_at + 10.0 * T));
+        assert!(sp.reference.theta > 0.4 && sp.reference.omega > 0.0);
+        axis.request(
+            &request(RequestKind::DisableVoltage, 3),
+            &at(released_at + 11.0 * T),
+        )
+        .expect("disable");
+        let sp = axis.tick(&at(released_at + 11.0 * T));
+        assert!(!sp.outputs_on && !sp.brake_released);
     }
 
     fn enabled_axis() -> (Axis, AxisParams) {

@@ -24,6 +24,22 @@ impl Reference {
             alpha: self.alpha,
         }
     }
+
+    /// The state `dt` later along a constant `jerk` (rad/s³): how a jerk-limited trajectory
+    /// stepped on its own grid is told at a time between its steps.
+    pub fn after_jerk(self, dt: f64, jerk: f64) -> Reference {
+        if dt == 0.0 {
+            return self;
+        }
+        Reference {
+            theta: self.theta
+                + self.omega * dt
+                + 0.5 * self.alpha * dt * dt
+                + jerk * dt * dt * dt / 6.0,
+            omega: self.omega + self.alpha * dt + 0.5 * jerk * dt * dt,
+            alpha: self.alpha + jerk * dt,
+        }
+    }
 }
 
 /// Evaluates the profile in closed form (no integration, so every process and every run

@@ -780,7 +780,7 @@ pub fn scenario(a: CheckArgs) -> Result<()> {
                 s.rates.position_loop_hz
             );
         }
-        None => print!("{}", Scenario::default().to_toml_string()?),
+        None => print!("{}", Scenario::default().to_full_toml_string()?),
     }
     Ok(())
 }

@@ -379,6 +379,25 @@ impl Scenario {
         toml::to_string(self).map_err(|e| ScenarioError::Serialise(e.to_string()))
     }
 
+    /// As [`Self::to_toml_string`], with the `[plant]`, `[control]` and `[axis]` tables
+    /// written even at their defaults (which the compact form leaves out): every setting a
+    /// user can change, with its value (`stepdrive scenario`).
+    pub fn to_full_toml_string(&self) -> Result<String, ScenarioError> {
+        #[derive(Serialize)]
+        struct AtDefaults<'a> {
+            plant: Option<&'a PlantParams>,
+            control: Option<&'a ControlParams>,
+            axis: Option<&'a AxisParams>,
+        }
+        let rest = AtDefaults {
+            plant: self.plant.is_default().then_some(&self.plant),
+            control: self.control.is_default().then_some(&self.control),
+            axis: self.axis.is_default().then_some(&self.axis),
+        };
+        let rest = toml::to_string(&rest).map_err(|e| ScenarioError::Serialise(e.to_string()))?;
+        Ok(format!("{}\n{rest}", self.to_toml_string()?))
+    }
+
     /// Checks every field against what a real stepper stack can mean: finite, and within a
     /// plausible range (wide enough for any stepper, narrow enough to catch a typo or an
     /// exponent gone wrong), and against each other.
@@ -841,6 +860,12 @@ mod tests {
         s.validate().expect("defaults valid");
         let text = s.to_toml_string().expect("serialise");
         assert_eq!(Scenario::from_toml_str(&text).expect("parse"), s);
+        let full = s.to_full_toml_string().expect("serialise");
+        assert!(
+            full.contains("[axis]") && full.contains("[plant.brake]"),
+            "{full}"
+        );
+        assert_eq!(Scenario::from_toml_str(&full).expect("parse"), s);
         assert_eq!(s.sample_count(), 50_001);
         assert_eq!(s.rate_ratio(), 10);
     }

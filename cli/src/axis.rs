@@ -143,6 +143,12 @@ enum Verb {
     Latency {
         #[arg(long, default_value_t = 1000, value_parser = clap::value_parser!(u32).range(1..=1_000_000))]
         count: u32,
+        /// SCHED_FIFO priority of this client, 0 for ordinary (as a stream's): the command's
+        /// timestamp is taken before it is sent, and a client at ordinary priority beside
+        /// the stack's SCHED_FIFO loops is held off between the two.
+        #[arg(long, value_name = "P", default_value_t = stepdrive_client::STREAM_PRIORITY,
+              value_parser = clap::value_parser!(u8).range(0..=99))]
+        priority: u8,
     },
     /// Declare the present position (at a standstill).
     SetPosition {
@@ -292,7 +298,10 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             axis.stop(limits.limits()).map_err(failed)?;
             println!("stopping");
         }
-        Verb::Latency { count } => command_latency(&mut axis, count)?,
+        Verb::Latency { count, priority } => {
+            stepdrive_client::realtime_priority(priority).map_err(failed)?;
+            command_latency(&mut axis, count)?
+        }
         Verb::Flood {
             rate,
             seconds,

@@ -180,6 +180,7 @@ fn describe(s: &AxisStatus) -> String {
         (status_bits::WARNING, "warning"),
         (status_bits::INTERNAL_LIMIT, "internal limit"),
         (status_bits::FOLLOWING_ERROR, "following error"),
+        (status_bits::BRAKE_APPLIED, "brake applied"),
     ] {
         if word & bit != 0 {
             flags.push(name);

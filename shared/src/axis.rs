@@ -353,7 +353,8 @@ impl AxisState {
 }
 
 /// Status word bits beyond the state (0x6041): warning, target reached, set-point
-/// acknowledge, following error, internal limit active.
+/// acknowledge, following error, internal limit active, and in manufacturer-specific bit 14
+/// the holding brake.
 pub mod status_bits {
     pub const WARNING: u16 = 1 << 7;
     pub const TARGET_REACHED: u16 = 1 << 10;
@@ -361,6 +362,9 @@ pub mod status_bits {
     /// Profile position: the last set-point was taken.
     pub const SETPOINT_ACK: u16 = 1 << 12;
     pub const FOLLOWING_ERROR: u16 = 1 << 13;
+    /// Manufacturer-specific: the axis applies the holding brake (outputs off, or its
+    /// release time since the enable not yet past).
+    pub const BRAKE_APPLIED: u16 = 1 << 14;
 }
 
 /// What an [`AxisRequest`] asks.

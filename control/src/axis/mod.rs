@@ -908,6 +908,9 @@ impl Axis {
         if self.warning & (axis_warnings::TORQUE_LIMITED | axis_warnings::SOFT_LIMIT) != 0 {
             word |= status_bits::INTERNAL_LIMIT;
         }
+        if !self.brake_released(m.t) {
+            word |= status_bits::BRAKE_APPLIED;
+        }
         AxisStatus {
             axis: 0,
             state: self.state as u32,
@@ -1078,6 +1081,12 @@ mod tests {
             let t = f64::from(k) * T;
             let sp = axis.tick(&at(t));
             assert!(sp.outputs_on);
+            let word = axis.status(&at(t), 0.0).statusword as u16;
+            assert_eq!(
+                word & status_bits::BRAKE_APPLIED == 0,
+                sp.brake_released,
+                "t {t}"
+            );
             if sp.brake_released {
                 break t;
             }

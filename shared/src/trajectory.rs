@@ -15,14 +15,7 @@ pub struct Reference {
 impl Reference {
     /// The state `dt` later at this acceleration.
     pub fn after(self, dt: f64) -> Reference {
-        if dt == 0.0 {
-            return self;
-        }
-        Reference {
-            theta: self.theta + self.omega * dt + 0.5 * self.alpha * dt * dt,
-            omega: self.omega + self.alpha * dt,
-            alpha: self.alpha,
-        }
+        self.after_jerk(dt, 0.0)
     }
 
     /// The state `dt` later along a constant `jerk` (rad/s³): how a jerk-limited trajectory

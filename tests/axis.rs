@@ -54,6 +54,21 @@ fn a_served_axis_is_commanded_from_other_processes() {
     assert_eq!(unknown.status.code(), Some(1), "{}", text(&unknown));
     assert!(text(&unknown).contains("axis 3"), "{}", text(&unknown));
 
+    // A reader attached to the served stack grades it against its axis's setpoints (not
+    // the scenario's trapezoid, which a served axis never runs) and ends in order with it.
+    let dir = TempDir::new("served-monitor");
+    let json = dir.path("monitor.json");
+    let mut monitor = spawn_logged(&[
+        "monitor",
+        "--instance",
+        inst.as_str(),
+        // The stack's loops run at ordinary priority here: so does the reader.
+        "--priority",
+        "0",
+        "--json",
+        json.to_str().expect("a UTF-8 path"),
+    ]);
+
     let on = axis(&["enable"]);
     assert!(on.status.success(), "{}", text(&on));
     for (args, why) in [
@@ -80,6 +95,27 @@ fn a_served_axis_is_commanded_from_other_processes() {
     let err = stderr_of(&mut serve);
     assert_eq!(status.code(), Some(0), "{err}");
     assert!(processes_with(&inst).is_empty());
+
+    // The reader learnt of the stop from the loops' final statistics: no "process died".
+    let read = wait_with_timeout(&mut monitor, Duration::from_secs(30));
+    let report = stderr_of(&mut monitor);
+    let doc = read_json(&json);
+    let run = run_of(&doc, "proposed");
+    assert_ne!(run["outcome"], "process_died", "{report}");
+    assert!(
+        matches!(read.code(), Some(0) | Some(6)),
+        "{read:?}: {report}"
+    );
+    // Graded against the trapezoid (6.28 rad away at its end) it was several rad.
+    assert!(num(run, "max_abs_error_rad") < 1e-3, "{report}");
+    let moves = run["moves"].as_array().expect("a served run's moves");
+    assert_eq!(moves.len(), 1, "{report}");
+    assert!(num(&moves[0], "peak_abs_error_rad") < 1e-3, "{report}");
+    // Its window starts where it attached: nothing before it counts as missed.
+    assert!(
+        num(run, "missed_samples") < 0.1 * num(run, "samples"),
+        "{report}"
+    );
 }
 
 /// A load the motor cannot hold (2 N·m against a stall torque of 0.81 N·m, for 0.1 s) in a

@@ -204,29 +204,39 @@ pub struct MonitorArgs {
     /// Silence of the plant after which the run is declared stuck, seconds.
     #[arg(long, value_name = "S", default_value = "5", value_parser = parse_seconds)]
     peer_timeout_s: std::time::Duration,
-    /// Read at SCHED_FIFO priority P (1-99; root): beside a realtime stack whose loops spin
-    /// at SCHED_FIFO, a reader at ordinary priority gets too little CPU to keep up (its
-    /// misses end the report UNOBSERVED). Below the loops' priorities, so it never delays
-    /// them.
-    #[arg(long, value_name = "P", value_parser = clap::value_parser!(u8).range(1..=99))]
+    /// Read at SCHED_FIFO priority P (1-99; root), 0 for ordinary priority. By default 1
+    /// beside a realtime or hardware stack (as `run`'s own monitor; warned and ordinary
+    /// where the system refuses it) and ordinary beside a lockstep one. Beside loops that
+    /// spin at SCHED_FIFO a reader at ordinary priority gets too little CPU to keep up (its
+    /// misses end the report UNOBSERVED), and the kernel's fair server runs it ahead of
+    /// them. Below the loops' priorities, so it never delays them.
+    #[arg(long, value_name = "P", value_parser = clap::value_parser!(u8).range(0..=99))]
     priority: Option<u8>,
 }
 
+/// An attached reader's SCHED_FIFO priority beside a realtime stack: the deployment's own
+/// monitor's.
+const READER_PRIORITY: u8 = 1;
+
 impl MonitorArgs {
-    /// The reader's scheduling, refused loudly: a reader asked to keep up that cannot is
-    /// no reader.
-    fn apply_priority(&self) -> Result<()> {
-        if let Some(p) = self.priority {
-            stepdrive_runtime::rt::RtOptions {
-                priority: Some(p),
-                cpu: None,
-                lock_memory: false,
-                timer_slack_ns: None,
-                require: true,
-            }
-            .apply()
-            .map_err(|e| anyhow::anyhow!("--priority {p}: {}", e.describe()))?;
+    /// The reader's scheduling beside a stack in `mode`: a priority asked for and refused
+    /// fails loudly (a reader asked to keep up that cannot is no reader); the default is
+    /// only warned about.
+    fn apply_priority(&self, mode: Mode) -> Result<()> {
+        let (p, require) = match (self.priority, mode) {
+            (Some(0), _) | (None, Mode::Lockstep) => return Ok(()),
+            (Some(p), _) => (p, true),
+            (None, Mode::Realtime | Mode::Hardware) => (READER_PRIORITY, false),
+        };
+        stepdrive_runtime::rt::RtOptions {
+            priority: Some(p),
+            cpu: None,
+            lock_memory: false,
+            timer_slack_ns: None,
+            require,
         }
+        .apply()
+        .map_err(|e| anyhow::anyhow!("--priority {p}: {}", e.describe()))?;
         Ok(())
     }
 }
@@ -726,10 +736,10 @@ pub fn reset(a: ResetArgs) -> Result<()> {
 }
 
 pub fn monitor(a: MonitorArgs) -> Result<()> {
-    a.apply_priority()?;
     let given = a.scenario.given()?;
     let json = JsonOut::create(a.json.as_ref())?;
     let attached = attach_reader(&a.instance, Role::Monitor.id(), given.as_ref())?;
+    a.apply_priority(attached.bus.mode())?;
     let s = attached.scenario.clone();
     let report = watch(attached, &a.instance, a.method, a.peer_timeout_s, None)?;
     conclude(&s, &[report], json)
@@ -750,10 +760,10 @@ pub struct RecordArgs {
 /// records until its last sample, Ctrl-C, or its silence; the file is finished on each.
 pub fn record(a: RecordArgs) -> Result<()> {
     let w = a.watch;
-    w.apply_priority()?;
     let given = w.scenario.given()?;
     let json = JsonOut::create(w.json.as_ref())?;
     let attached = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref())?;
+    w.apply_priority(attached.bus.mode())?;
     let s = attached.scenario.clone();
     let mut recording = Recording::create(&a.file, &s, chunks(a.uncompressed))?;
     let report = watch(

@@ -374,8 +374,8 @@ impl<N: Node> Runner<N> {
         Ok(())
     }
 
-    /// Every exit path: the node stops (outputs safe); after a complete run the final
-    /// statistics go out.
+    /// Every exit path: the node stops (outputs safe); after a run that ended in order (its
+    /// last cycle, or a termination signal) the final statistics go out.
     pub fn finish(&mut self, clock: &dyn Clock, completed: bool) -> Result<(), RunError> {
         let mut cx = Cx::new(clock, &mut self.stats);
         self.node.stop(&mut self.ports, &mut cx);
@@ -422,7 +422,10 @@ impl<N: Node> Runner<N> {
     pub fn run(mut self) -> Result<Finished<N>, RunError> {
         let clock = Monotonic;
         let outcome = self.drive(&clock);
-        let finished = self.finish(&clock, outcome.is_ok());
+        // SIGINT/SIGTERM is how a served stack ends in order: its readers learn of it from
+        // the final statistics (a loop that died sends none).
+        let in_order = matches!(outcome, Ok(()) | Err(RunError::Terminated));
+        let finished = self.finish(&clock, in_order);
         outcome.and(finished)?;
         Ok(Finished {
             node: self.node,

@@ -223,6 +223,9 @@ pub struct Metrics {
     sample_hz: f64,
     /// Samples in the run: a gap never counts past its end, whatever index a state carries.
     run_samples: u64,
+    /// A served stack runs on before and after a reader attaches: the reader's window
+    /// starts at the first sample it sees, not at sample 0.
+    endless: bool,
     /// The index of the last sample pushed, and what the gaps before it held.
     last_seq: Option<u64>,
     missed: u64,
@@ -232,8 +235,8 @@ pub struct Metrics {
     /// Where the longest gap began, and the first sample missed.
     longest_gap_from: u64,
     first_missed: Option<u64>,
-    /// A program's run: θ_d from the position loop's setpoints, the states waiting for the
-    /// setpoint that covers them, and each move's figures.
+    /// A commanded run (a program, a served stack): θ_d from the position loop's setpoints,
+    /// the states waiting for the setpoint that covers them, and each move's figures.
     program: Option<ProgramReference>,
     /// The first state whose command came from a current loop stopping the motor on its
     /// own (the position loop went silent), and the axis's first fault.
@@ -346,8 +349,9 @@ impl Metrics {
         let plant = s.plant_motor();
         Self {
             trajectory: Trapezoid::new(&s.trajectory),
-            // A program has no cruise: its moves are its own.
-            cruise: match s.program.is_empty() {
+            // A commanded axis (a program, a served stack) has no cruise: its moves are its
+            // own.
+            cruise: match s.runs_profile() {
                 true => (s.metrics.cruise_start_s, s.metrics.cruise_end_s),
                 false => (f64::INFINITY, f64::NEG_INFINITY),
             },
@@ -380,6 +384,7 @@ impl Metrics {
             period: s.sample_period_s(),
             sample_hz: s.rates.current_loop_hz,
             run_samples: s.sample_count(),
+            endless: s.run.until_stopped,
             last_seq: None,
             missed: 0,
             cruise_missed: 0,
@@ -387,7 +392,7 @@ impl Metrics {
             longest_gap: 0,
             longest_gap_from: 0,
             first_missed: None,
-            program: (!s.program.is_empty()).then(|| ProgramReference {
+            program: (!s.runs_profile()).then(|| ProgramReference {
                 setpoints: SetpointHistory::for_scenario(s),
                 pending: std::collections::VecDeque::with_capacity(PENDING_STATES),
                 moves: Vec::with_capacity(s.program.len()),
@@ -547,7 +552,11 @@ impl Metrics {
     }
 
     fn account(&mut self, s: &DriveState, reference: Reference) {
-        let expected = self.last_seq.map_or(0, |q| q + 1);
+        let expected = match self.last_seq {
+            Some(q) => q + 1,
+            None if self.endless => s.seq,
+            None => 0,
+        };
         if s.seq > expected {
             self.missed_between(expected, s.seq);
             // The interval ending here did not start at the last sample seen.

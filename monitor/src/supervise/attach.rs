@@ -220,7 +220,7 @@ pub fn watch(
         &mut bus,
         mode,
         recording.is_some(),
-        !scenario.program.is_empty(),
+        !scenario.runs_profile(),
     )?;
     let feeds = Feeds {
         states,

@@ -143,7 +143,7 @@ fn launch(
     // first. The device still waits for the current loop's subscription before its first
     // sample, so the position loop (which starts once any setpoint subscriber is there) has
     // nothing to answer before.
-    let controls = Controls::open(&mut bus, mode, recording, !s.program.is_empty())?;
+    let controls = Controls::open(&mut bus, mode, recording, !s.runs_profile())?;
 
     let mut children = Vec::with_capacity(stack.nodes.len() + 1);
     // Only an emulated drive knows where the rotor really is; it writes that beside the

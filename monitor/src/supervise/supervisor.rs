@@ -43,8 +43,8 @@ pub struct Controls {
 
 impl Controls {
     /// What to take of a stack in `mode`: everything when `recording` (the plans on the
-    /// wall clock only: a lockstep plant never misses a command); for a program's figures
-    /// (`program`), the setpoints (its θ_d), the answers (its moves) and the status (the
+    /// wall clock only: a lockstep plant never misses a command); for a commanded run's
+    /// figures (`program`: a program or a served stack), the setpoints (its θ_d), the answers (its moves) and the status (the
     /// axis's faults). `None`: nothing beside the states.
     pub fn open(
         bus: &mut impl stepdrive_runtime::port::PortFactory,
@@ -97,6 +97,11 @@ impl Finals {
             self.finals[i] = Some(*r);
         }
         self.latest[i] = Some(*r);
+    }
+
+    /// Every loop has sent its final statistics: the stack ended in order.
+    fn all_final(&self) -> bool {
+        self.finals.iter().all(Option::is_some)
     }
 
     /// The device's deadline misses so far.
@@ -324,6 +329,13 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 Err(stop) => break Ending::Stopped(stop),
             };
             if until == Until::LastSample && self.observer.last_seen() {
+                break Ending::Last;
+            }
+            // A reader of a served stack: the stack ends when its owner stops it, and every
+            // loop says so with its final statistics (a loop that died sends none, and its
+            // silence ends the reading as a death below).
+            // The states drained above came before those statistics.
+            if endless && self.children.is_empty() && self.finals.all_final() {
                 break Ending::Last;
             }
             if got {

@@ -440,9 +440,10 @@ fn command_latency(axis: &mut Axis, count: u32) -> Result<()> {
         "command published → first setpoint carrying it"
     };
     println!(
-        "{what}, {} commands: p50 {:.1} µs, p99 {:.1} µs, max {:.1} µs",
+        "{what}, {} commands: p50 {:.1} µs, p90 {:.1} µs, p99 {:.1} µs, max {:.1} µs",
         us.len(),
         at(0.5),
+        at(0.9),
         at(0.99),
         at(1.0)
     );

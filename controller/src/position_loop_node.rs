@@ -2,7 +2,8 @@
 //! command service's, a stream's points, or the scenario's program at their times), runs
 //! the axis and torque modulation (12) on the newest state, publishes the setpoint, then
 //! answers the commands (so that an answer's time is the first setpoint that carries the
-//! command out) and publishes the axis's status. Its ports take the states by the stack's
+//! command out) and publishes the axis's status. On the wall clock a client's command also
+//! rings its doorbell, and the tick comes at once. Its ports take the states by the stack's
 //! policy (in lockstep every one in order); its ticks come from its input (every N-th
 //! state) or from its own clock at the position rate, on the plant's deadline grid.
 
@@ -331,6 +332,36 @@ impl Node for PositionLoopNode {
             fresh: true,
             skipped: taken.skipped,
         })
+    }
+
+    /// A client's command, between ticks: a tick at once on the newest state, so that the
+    /// command is carried out now and not up to a period later. On the state the last tick
+    /// used, if no newer one has come (one comes every current-loop period): the setpoint of
+    /// that sample again, decided with the command (waiting for the next tick instead left
+    /// one command in ten a whole period late).
+    fn rung(&mut self, ports: &mut PositionLoopPorts, cx: &mut Cx) -> Result<(), RunError> {
+        if !ports
+            .commands
+            .as_ref()
+            .is_some_and(|server| server.pending())
+        {
+            return Ok(());
+        }
+        if let Some(taken) = ports.states.take()? {
+            cx.stats
+                .hop
+                .record(cx.now().saturating_sub(taken.message.publish_time_ns));
+            cx.stats.lost += taken.skipped;
+            self.latest = Some(taken.message);
+            // The next poll tells the runner the plant was heard.
+            self.fresh = true;
+        }
+        let Some(state) = self.latest else {
+            return Ok(());
+        };
+        self.tick(ports, cx, &state)?;
+        self.last_used = Some(state.seq);
+        Ok(())
     }
 
     fn step(&mut self, ports: &mut PositionLoopPorts, cx: &mut Cx) -> Result<Flow, RunError> {

@@ -455,6 +455,11 @@ impl Serve<AxisRequest, AxisAck> for IpcCommandServer {
         Ok(self.held.len())
     }
 
+    fn pending(&self) -> bool {
+        // A connection it could not update is told at the next take.
+        self.server.has_requests().unwrap_or(true)
+    }
+
     fn answer(&mut self, answers: &[AxisAck]) -> Result<(), PortError> {
         for (active, ack) in self.held.drain(..).zip(answers) {
             // A client that is gone gets no answer; that is its business.
@@ -471,6 +476,9 @@ impl Serve<AxisRequest, AxisAck> for IpcCommandServer {
 pub struct CommandClient {
     client: iceoryx2::port::client::Client<Ipc, AxisRequest, (), AxisAck, ()>,
     service: String,
+    /// The position loop's doorbell, rung after each request (`None`: a stack that takes
+    /// commands at its ticks only).
+    wake: Option<Ringer>,
     _factory: CommandFactory,
 }
 
@@ -498,6 +506,9 @@ impl CommandClient {
             .client
             .send_copy(*request)
             .map_err(|e| transfer("send", boxed(e)))?;
+        if let Some(bell) = &self.wake {
+            bell.ring(None);
+        }
         let deadline = Instant::now() + timeout;
         loop {
             match pending.receive() {
@@ -594,7 +605,12 @@ impl CommandClient {
                 r.seq = next_seq();
                 r.publish_time_ns = crate::clock::monotonic_ns();
                 match self.client.send_copy(r) {
-                    Ok(p) => pending.push(p),
+                    Ok(p) => {
+                        pending.push(p);
+                        if let Some(bell) = &self.wake {
+                            bell.ring(None);
+                        }
+                    }
                     Err(iceoryx2::port::client::RequestSendError::ExceedsMaxActiveRequests) => {
                         counts.refused_by_service += 1
                     }
@@ -652,9 +668,21 @@ impl IpcBus {
                 what: "axis commands",
                 source: boxed(e),
             })?;
+        // A stack on the wall clock carries a command out as soon as its position loop is
+        // woken for it (a lockstep stack's program is its only source of commands).
+        let wake = match self.stamp.mode {
+            Mode::Lockstep => None,
+            Mode::Realtime | Mode::Hardware => Doorbells::open_existing(&self.names.instance)
+                .unwrap_or_else(|e| {
+                    tracing::debug!("commands wait for the position loop's tick: {e}");
+                    None
+                })
+                .map(|d| d.ringer_of(stepdrive_shared::stack::Role::PositionLoop)),
+        };
         Ok(CommandClient {
             client,
             service,
+            wake,
             _factory: factory,
         })
     }

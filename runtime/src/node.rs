@@ -191,6 +191,14 @@ pub trait Node {
         Ok(false)
     }
 
+    /// Clock-paced, given a doorbell: woken between its ticks by a ring (a client's
+    /// command), it may act at once instead of at its next deadline. The runner allows a
+    /// few rings per period ([`crate::runner::RINGS_PER_PERIOD`]); the rest wait for the
+    /// tick.
+    fn rung(&mut self, _ports: &mut Self::Ports, _cx: &mut Cx) -> Result<(), RunError> {
+        Ok(())
+    }
+
     /// True while it waits for a peer that left to be replaced (a restarted process): the
     /// runner then allows the start-up timeout instead of the peer timeout.
     fn awaiting_rejoin(&self) -> bool {

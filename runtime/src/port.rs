@@ -88,6 +88,10 @@ pub trait Subscribe<M> {
 pub trait Serve<Req, Resp> {
     /// Takes up to `out.len()` queued requests into `out`; returns how many.
     fn take(&mut self, out: &mut [Req]) -> Result<usize, PortError>;
+    /// Whether a request is waiting (without taking it).
+    fn pending(&self) -> bool {
+        true
+    }
     /// Answers the requests of the last [`Self::take`], in order.
     fn answer(&mut self, answers: &[Resp]) -> Result<(), PortError>;
 }

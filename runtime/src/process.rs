@@ -36,7 +36,8 @@ const STATS_LINGER: Duration = Duration::from_millis(200);
 pub struct Process<'a> {
     spec: &'a ProcessSpec<'a>,
     stats: Option<Box<dyn crate::port::Publish<stepdrive_shared::stats::StatsReport>>>,
-    /// Lockstep: the doorbell its node sleeps on.
+    /// Lockstep: the doorbell its node sleeps on; on the wall clock, the position loop's,
+    /// rung by clients' commands.
     bell: Option<Waiter>,
     /// The device announces the stack's scenario to anyone attaching, for as long as it
     /// runs.
@@ -65,7 +66,17 @@ impl<'a> Process<'a> {
             Self {
                 spec,
                 stats,
-                bell: bus.doorbells().map(|d| d.waiter(spec.role)),
+                bell: match spec.mode {
+                    Mode::Lockstep => bus.doorbells().map(|d| d.waiter(spec.role)),
+                    // On the wall clock a client's command wakes the position loop between
+                    // its ticks.
+                    _ if spec.role == Role::PositionLoop => Some(
+                        crate::doorbell::Doorbells::open(spec.instance)
+                            .map_err(crate::port::PortError::from)?
+                            .waiter(spec.role),
+                    ),
+                    _ => None,
+                },
                 _scenario: scenario,
             },
             bus,

@@ -15,7 +15,7 @@ use crate::cycle::CycleRecorder;
 use crate::doorbell::Waiter;
 use crate::error::RunError;
 use crate::node::{Awaits, Cx, Flow, Late, Node, Pace, Poll, Role, Start};
-use crate::pacer::{sleep_until, Pacer, Tick, WaitStrategy};
+use crate::pacer::{sleep_until, wait_until, Pacer, Tick, WaitStrategy};
 use crate::poll::{termination_requested, Backoff};
 use crate::port::Publish;
 use crate::steal::{Slept, StealMeter, HOST_HOLD_MIN_NS};
@@ -77,6 +77,11 @@ enum Phase {
 const BLOCK_NS: u64 = 1_000_000;
 /// `sleep` strategy: the nap between polls of an input-paced node with nothing to block on.
 const NAP_NS: u64 = 10_000;
+/// A clock-paced node acts on at most this many rings of its doorbell between two ticks: a
+/// client flooding commands then costs the position loop one more tick a period at most
+/// (with 2, a 100 kHz flood of moves had it taking 5-6 k a second).
+pub const RINGS_PER_PERIOD: usize = 1;
+
 /// Lockstep: empty polls before a node sleeps on its doorbell. A peer's answer on the other
 /// core comes within ~1–3 µs, ~30–60 polls; a futex wake-up costs 3–8 µs on top.
 const DOORBELL_SPIN_POLLS: u32 = 200;
@@ -107,7 +112,8 @@ pub struct Runner<N: Node> {
     /// `Late::Pause`: time paused through stalls, ns.
     paused_ns: u64,
     steal: Option<StealMeter>,
-    /// Lockstep: the doorbell this node sleeps on between inputs.
+    /// Lockstep: the doorbell this node sleeps on between inputs; clock-paced, the one that
+    /// wakes it between ticks ([`Node::rung`]).
     bell: Option<Waiter>,
 }
 
@@ -448,10 +454,19 @@ impl<N: Node> Runner<N> {
             let flow = match self.pace {
                 Pace::Input => self.await_input_cycle(clock)?,
                 Pace::Clock { .. } => {
+                    let slept = self.take_rings(clock)?;
                     let Some(pacer) = &mut self.pacer else {
                         unreachable!("a started clock-paced node has a pacer")
                     };
-                    let tick = pacer.wait();
+                    let tick = match slept {
+                        // The rest of a hybrid wait is its spin. A sleep that has nothing
+                        // left to wait for must not be asked to: a `clock_nanosleep` to a
+                        // time just past still waited for a timer interrupt, +25 µs here.
+                        Some(_) => {
+                            pacer.tick_at(wait_until(pacer.next_deadline(), WaitStrategy::Spin))
+                        }
+                        None => pacer.wait(),
+                    };
                     self.clock_cycle(clock, tick)?
                 }
             };
@@ -459,6 +474,41 @@ impl<N: Node> Runner<N> {
                 return Ok(());
             }
         }
+    }
+
+    /// A clock-paced node with a doorbell: sleeps on the doorbell until its next deadline
+    /// (less its wait strategy's spin margin) instead of on the clock, and lets the node
+    /// act on each ring, at most [`RINGS_PER_PERIOD`] times (a client flooding commands
+    /// costs the loop that much and no more). `Some(woken)` once it slept to that time
+    /// (the rest of a hybrid wait is its spin); `None` when the pacer's own wait is to do
+    /// it all (no doorbell, the rings used up, a spinning wait): without a ring the loop
+    /// wakes once a period, as before.
+    fn take_rings(&mut self, clock: &Monotonic) -> Result<Option<u64>, RunError> {
+        let (Some(bell), Some(pacer)) = (&self.bell, &self.pacer) else {
+            return Ok(None);
+        };
+        let until = match self.settings.wait {
+            WaitStrategy::Sleep | WaitStrategy::Event => pacer.next_deadline(),
+            WaitStrategy::Hybrid { margin_ns } => pacer.next_deadline().saturating_sub(margin_ns),
+            WaitStrategy::Spin => return Ok(None),
+        };
+        for _ in 0..RINGS_PER_PERIOD {
+            let armed = bell.arm(None);
+            let now = clock.now_ns();
+            if now >= until || termination_requested() {
+                bell.disarm();
+                return Ok(Some(now));
+            }
+            bell.sleep_until(armed, until);
+            let now = clock.now_ns();
+            if now >= until {
+                return Ok(Some(now));
+            }
+            let mut cx = Cx::new(clock, &mut self.stats);
+            cx.woke_ns = now;
+            self.node.rung(&mut self.ports, &mut cx)?;
+        }
+        Ok(None)
     }
 
     /// Waits for an input-paced node's input and runs its cycle. `hybrid` sleeps until its

@@ -313,3 +313,122 @@ fn a_silent_peer_stops_the_node_naming_it() {
     );
     assert!(*stopped.borrow());
 }
+
+/// A clock-paced node that counts its ticks and when it was rung.
+struct Ringed {
+    period_ns: u64,
+    ticks: u64,
+    done: u64,
+    rungs: Rc<RefCell<Vec<(u64, u64)>>>,
+}
+
+impl Node for Ringed {
+    type Ports = ();
+    fn role(&self) -> Role {
+        Role::PositionLoop
+    }
+    fn pace(&self) -> Pace {
+        Pace::Clock {
+            period_ns: self.period_ns,
+            late: Late::Skip,
+        }
+    }
+    fn rate_hz(&self) -> f64 {
+        1e9 / self.period_ns as f64
+    }
+    fn awaiting(&self) -> String {
+        "nothing".into()
+    }
+    fn start(&mut self, _: &mut (), cx: &mut Cx) -> Result<Start, RunError> {
+        Ok(Start::Ready {
+            epoch_ns: Some(cx.now() + self.period_ns),
+        })
+    }
+    fn poll(&mut self, _: &mut (), _: &mut Cx) -> Result<Poll, RunError> {
+        Ok(Poll::READY)
+    }
+    fn step(&mut self, _: &mut (), _: &mut Cx) -> Result<Flow, RunError> {
+        self.done += 1;
+        Ok(if self.done == self.ticks {
+            Flow::Last
+        } else {
+            Flow::Continue
+        })
+    }
+    fn rung(&mut self, _: &mut (), cx: &mut Cx) -> Result<(), RunError> {
+        self.rungs.borrow_mut().push((self.done, cx.now()));
+        Ok(())
+    }
+}
+
+/// A clock-paced node given a doorbell (the position loop, rung by a client's command)
+/// acts on a ring between its ticks at once, not at its next deadline; a burst of rings in
+/// one period costs it at most `RINGS_PER_PERIOD` calls; its ticks keep their deadlines.
+/// Periods of 10 ms keep the figures far from scheduling noise.
+#[test]
+fn a_ring_between_ticks_is_acted_on_at_once_and_a_burst_costs_at_most_the_allowance() {
+    use stepdrive_runtime::doorbell::{self, Doorbells};
+    use stepdrive_runtime::runner::RINGS_PER_PERIOD;
+    let name = format!("runner-rings-{}", std::process::id());
+    let bells = Doorbells::open(&name).expect("doorbells");
+    let waiter = bells.waiter(Role::PositionLoop);
+    let ringer = bells.ringer_of(Role::PositionLoop);
+    let period = 10_000_000;
+    let rungs = Rc::new(RefCell::new(Vec::new()));
+    let node = Ringed {
+        period_ns: period,
+        ticks: 20,
+        done: 0,
+        rungs: rungs.clone(),
+    };
+    let started = monotonic_ns();
+    let rings = std::thread::spawn(move || {
+        let at = |ms: u64| sleep_until(started + ms * 1_000_000);
+        at(55);
+        let one = monotonic_ns();
+        ringer.ring(None);
+        at(125);
+        let burst = monotonic_ns();
+        for _ in 0..5 {
+            ringer.ring(None);
+            std::thread::sleep(Duration::from_micros(300));
+        }
+        (one, burst)
+    });
+    let settings = Settings {
+        wait: WaitStrategy::Sleep,
+        ..settings()
+    };
+    let stats = Runner::new(node, (), settings, None)
+        .with_doorbell(Some(waiter))
+        .run()
+        .expect("runs")
+        .stats;
+    let (one, burst) = rings.join().expect("the ringer");
+    doorbell::remove(&name);
+    assert_eq!(stats.cycles, 20, "the rings took no tick's place");
+    let rungs = rungs.borrow();
+    // The single ring: acted on within 2 ms (its tick was up to 10 ms away).
+    let first = rungs
+        .iter()
+        .find(|&&(_, at)| at >= one && at < burst)
+        .unwrap_or_else(|| panic!("the ring at {one} was not acted on: {rungs:?}"));
+    assert!(
+        first.1 - one < 2_000_000,
+        "acted on {} µs after",
+        (first.1 - one) / 1000
+    );
+    // The burst, within 1.5 ms: as many calls as allowed in its period and no more.
+    let in_burst: Vec<_> = rungs.iter().filter(|&&(_, at)| at >= burst).collect();
+    assert!(!in_burst.is_empty(), "{rungs:?}");
+    let period_of_burst = in_burst[0].0;
+    let calls = in_burst
+        .iter()
+        .filter(|&&&(tick, _)| tick == period_of_burst)
+        .count();
+    assert!(
+        calls <= RINGS_PER_PERIOD,
+        "{calls} calls in one period: {rungs:?}"
+    );
+    assert!(rungs.len() <= 1 + 2 * RINGS_PER_PERIOD, "{rungs:?}");
+}

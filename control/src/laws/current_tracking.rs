@@ -191,15 +191,45 @@ impl SampledCurrentLaw {
     /// Δ_m = −j (K_m ω/L) C e^{jN_rθ_m}, C = (e^{jΩT} − a)/(β + jΩ).
     pub fn back_emf_sequence(&self, theta0: f64, omega: f64) -> Rotating {
         let big_omega = self.n_r * omega;
+        Rotating::new(
+            self.back_emf_amplitude(omega),
+            self.n_r * theta0,
+            big_omega * self.period,
+            0.0,
+        )
+    }
+
+    /// −j (K_m ω/L) C of [`Self::back_emf_sequence`].
+    fn back_emf_amplitude(&self, omega: f64) -> Complex {
+        let big_omega = self.n_r * omega;
         let c = (Complex::unit(big_omega * self.period) - Complex::new(self.a, 0.0))
             / Complex::new(self.beta, big_omega);
         let g = self.k_m * omega / self.l;
-        let amplitude = Complex::new(g * c.im, -g * c.re);
-        Rotating::new(amplitude, self.n_r * theta0, big_omega * self.period, 0.0)
+        Complex::new(g * c.im, -g * c.re)
+    }
+
+    /// [`Self::back_emf_sequence`] for a rotor accelerating at `alpha` from angle `theta0`
+    /// and speed `omega0`, as [`Self::decide_accelerating`] sees each period (its
+    /// mid-period speed held through it): the phase quadratic, the amplitude quadratic in
+    /// the period through its values at the first three (its curvature in ω is taken, its
+    /// third derivative neglected).
+    pub fn back_emf_sequence_accelerating(&self, theta0: f64, omega0: f64, alpha: f64) -> Rotating {
+        let t = self.period;
+        let mid = omega0 + 0.5 * alpha * t;
+        let a = [0.0, 1.0, 2.0].map(|m| self.back_emf_amplitude(mid + alpha * t * m));
+        Rotating::ramped(
+            a[0],
+            a[1] - a[0],
+            (a[2] - a[1]) - (a[1] - a[0]),
+            self.n_r * theta0,
+            self.n_r * mid * t,
+            self.n_r * alpha * t * t,
+        )
     }
 
     /// The law's own future: the voltages it would choose for the periods after the one it
-    /// just decided if its model held (constant speed, unchanged reference trajectory).
+    /// just decided if its model held (the speed, or the acceleration, it assumed; the
+    /// reference trajectory unchanged).
     /// `i` is the current predicted at the first planned sample, `reference` and `emf` are
     /// positioned there and step one period per entry. Each voltage is clamped to ±`bus_v`
     /// as the drive will clamp it, and the prediction uses the clamped value.

@@ -76,23 +76,49 @@ impl Sub for Complex {
     }
 }
 
-/// amplitude · e^{jφ_m} on samples m = 0, 1, 2, ... with a phase that is quadratic in m:
+/// A_m · e^{jφ_m} on samples m = 0, 1, 2, ... with a phase that is quadratic in m:
 /// φ_m = φ_0 + m·δ + m(m−1)/2·γ (constant speed for γ = 0, constant acceleration
-/// otherwise). Each step is two complex multiplications.
+/// otherwise) and an amplitude A_m that is constant, or quadratic in m too
+/// ([`Rotating::ramped`]).
+/// Each step is two complex multiplications (four with a ramp).
 #[derive(Debug, Clone, Copy)]
 pub struct Rotating {
     value: Complex,
     step: Complex,
     chirp: Complex,
+    /// e^{jφ_m}, and the amplitude's change to the next sample and that change's own
+    /// change per sample, kept only with a ramp.
+    unit: Complex,
+    ramp: Option<(Complex, Complex)>,
 }
 
 impl Rotating {
     /// `phase` φ_0, `step` δ = φ_1 − φ_0, `step_change` γ (the change of δ per sample).
     pub fn new(amplitude: Complex, phase: f64, step: f64, step_change: f64) -> Self {
+        let unit = Complex::unit(phase);
         Self {
-            value: amplitude * Complex::unit(phase),
+            value: amplitude * unit,
             step: Complex::unit(step),
             chirp: Complex::unit(step_change),
+            unit,
+            ramp: None,
+        }
+    }
+
+    /// As [`Rotating::new`], the amplitude A_m quadratic in m too: `amplitude_step`
+    /// A_1 − A_0 and `amplitude_step_change` (A_2 − A_1) − (A_1 − A_0) (a torque that ramps;
+    /// a back-EMF that changes with the speed).
+    pub fn ramped(
+        amplitude: Complex,
+        amplitude_step: Complex,
+        amplitude_step_change: Complex,
+        phase: f64,
+        step: f64,
+        step_change: f64,
+    ) -> Self {
+        Self {
+            ramp: Some((amplitude_step, amplitude_step_change)),
+            ..Self::new(amplitude, phase, step, step_change)
         }
     }
 
@@ -102,6 +128,11 @@ impl Rotating {
 
     pub fn advance(&mut self) {
         self.value = self.value * self.step;
+        if let Some((ramp, ramp_change)) = self.ramp.as_mut() {
+            self.unit = self.unit * self.step;
+            self.value = self.value + *ramp * self.unit;
+            *ramp = *ramp + *ramp_change;
+        }
         self.step = self.step * self.chirp;
     }
 }

@@ -462,10 +462,10 @@ impl<N: Node> Runner<N> {
                         // The rest of a hybrid wait is its spin. A sleep that has nothing
                         // left to wait for must not be asked to: a `clock_nanosleep` to a
                         // time just past still waited for a timer interrupt, +25 µs here.
-                        Some(_) => {
+                        true => {
                             pacer.tick_at(wait_until(pacer.next_deadline(), WaitStrategy::Spin))
                         }
-                        None => pacer.wait(),
+                        false => pacer.wait(),
                     };
                     self.clock_cycle(clock, tick)?
                 }
@@ -479,36 +479,36 @@ impl<N: Node> Runner<N> {
     /// A clock-paced node with a doorbell: sleeps on the doorbell until its next deadline
     /// (less its wait strategy's spin margin) instead of on the clock, and lets the node
     /// act on each ring, at most [`RINGS_PER_PERIOD`] times (a client flooding commands
-    /// costs the loop that much and no more). `Some(woken)` once it slept to that time
-    /// (the rest of a hybrid wait is its spin); `None` when the pacer's own wait is to do
-    /// it all (no doorbell, the rings used up, a spinning wait): without a ring the loop
-    /// wakes once a period, as before.
-    fn take_rings(&mut self, clock: &Monotonic) -> Result<Option<u64>, RunError> {
+    /// costs the loop that much and no more). True once it slept to that time (the rest of
+    /// a hybrid wait is its spin); false when the pacer's own wait is to do it all (no
+    /// doorbell, the rings used up, a spinning wait): without a ring the loop wakes once a
+    /// period, as before.
+    fn take_rings(&mut self, clock: &Monotonic) -> Result<bool, RunError> {
         let (Some(bell), Some(pacer)) = (&self.bell, &self.pacer) else {
-            return Ok(None);
+            return Ok(false);
         };
         let until = match self.settings.wait {
             WaitStrategy::Sleep | WaitStrategy::Event => pacer.next_deadline(),
             WaitStrategy::Hybrid { margin_ns } => pacer.next_deadline().saturating_sub(margin_ns),
-            WaitStrategy::Spin => return Ok(None),
+            WaitStrategy::Spin => return Ok(false),
         };
         for _ in 0..RINGS_PER_PERIOD {
             let armed = bell.arm(None);
             let now = clock.now_ns();
             if now >= until || termination_requested() {
                 bell.disarm();
-                return Ok(Some(now));
+                return Ok(true);
             }
             bell.sleep_until(armed, until);
             let now = clock.now_ns();
             if now >= until {
-                return Ok(Some(now));
+                return Ok(true);
             }
             let mut cx = Cx::new(clock, &mut self.stats);
             cx.woke_ns = now;
             self.node.rung(&mut self.ports, &mut cx)?;
         }
-        Ok(None)
+        Ok(false)
     }
 
     /// Waits for an input-paced node's input and runs its cycle. `hybrid` sleeps until its

@@ -44,8 +44,9 @@ pub struct Controls {
 impl Controls {
     /// What to take of a stack in `mode`: everything when `recording` (the plans on the
     /// wall clock only: a lockstep plant never misses a command); for a commanded run's
-    /// figures (`program`: a program or a served stack), the setpoints (its θ_d), the answers (its moves) and the status (the
-    /// axis's faults). `None`: nothing beside the states.
+    /// figures (`program`: a program or a served stack), the setpoints (its θ_d), the
+    /// answers (its moves) and the status (the axis's faults). `None`: nothing beside the
+    /// states.
     pub fn open(
         bus: &mut impl stepdrive_runtime::port::PortFactory,
         mode: Mode,
@@ -333,8 +334,8 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             }
             // A reader of a served stack: the stack ends when its owner stops it, and every
             // loop says so with its final statistics (a loop that died sends none, and its
-            // silence ends the reading as a death below).
-            // The states drained above came before those statistics.
+            // silence ends the reading as a death below). The states drained above came
+            // before those statistics.
             if endless && self.children.is_empty() && self.finals.all_final() {
                 break Ending::Last;
             }

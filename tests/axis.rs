@@ -55,11 +55,14 @@ fn a_served_axis_is_commanded_from_other_processes() {
     assert!(text(&unknown).contains("axis 3"), "{}", text(&unknown));
 
     // A reader attached to the served stack grades it against its axis's setpoints (not
-    // the scenario's trapezoid, which a served axis never runs) and ends in order with it.
+    // the scenario's trapezoid, which a served axis never runs) and ends in order with it;
+    // its recording plots.
     let dir = TempDir::new("served-monitor");
     let json = dir.path("monitor.json");
+    let mcap = dir.path("served.mcap");
     let mut monitor = spawn_logged(&[
-        "monitor",
+        "record",
+        mcap.to_str().expect("a UTF-8 path"),
         "--instance",
         inst.as_str(),
         // The stack's loops run at ordinary priority here: so does the reader.
@@ -116,6 +119,23 @@ fn a_served_axis_is_commanded_from_other_processes() {
         num(run, "missed_samples") < 0.1 * num(run, "samples"),
         "{report}"
     );
+    // A served run has no cruise window: the zoomed figures show where the move starts
+    // (the cruise's figure had no point in a recording that starts where it attached).
+    let plots = dir.path("plots");
+    let plot = stepdrive(&[
+        "plot",
+        mcap.to_str().expect("a UTF-8 path"),
+        "--out",
+        plots.to_str().expect("a UTF-8 path"),
+    ]);
+    assert!(plot.status.success(), "{}", text(&plot));
+    for figure in [
+        "currents_cruise.svg",
+        "voltages.svg",
+        "program_position.svg",
+    ] {
+        assert!(plots.join(figure).exists(), "{figure}: {}", text(&plot));
+    }
 }
 
 /// A load the motor cannot hold (2 N·m against a stall torque of 0.81 N·m, for 0.1 s) in a

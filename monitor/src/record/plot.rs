@@ -707,16 +707,30 @@ fn figures(rec: &Recorded, s: Option<&Scenario>) -> Vec<Figure> {
         .filter(|e| e.is_finite())
         .unwrap_or(0.0);
     let zoom_len = (2.0 * electrical).max(0.02).min((end - start).max(1e-3));
-    let cruise_start = s.map_or(0.0, |s| s.metrics.cruise_start_s);
+    // A commanded run (a program, a served stack) has no cruise: the waveform is shown
+    // where its first move starts (a served stack's recording starts where it attached).
+    let first_move = rec
+        .acks
+        .iter()
+        .flat_map(|(_, acks)| acks.iter())
+        .find(|a| {
+            a.kind == stepdrive_shared::axis::RequestKind::Move.name()
+                && a.refusal == stepdrive_shared::axis::Refusal::None.name()
+        })
+        .map(|a| a.t);
+    let (cruise_start, cruise_why) = match (s, first_move) {
+        (Some(s), _) if s.runs_profile() => (s.metrics.cruise_start_s, "in cruise"),
+        (_, Some(t)) => (t, "at the first move"),
+        (Some(s), None) => (s.metrics.cruise_start_s, "in cruise"),
+        (None, None) => (start, "at the start"),
+    };
+    let cruise_start = cruise_start.clamp(start, (end - zoom_len).max(start));
     let (zoom, zoom_why) = match faults.first() {
         Some(f) => {
             let from = (f.from - 0.25 * zoom_len).clamp(start, (end - zoom_len).max(start));
             ((from, from + zoom_len), "around the fault")
         }
-        None => {
-            let from = cruise_start.clamp(start, (end - zoom_len).max(start));
-            ((from, from + zoom_len), "in cruise")
-        }
+        None => ((cruise_start, cruise_start + zoom_len), cruise_why),
     };
     let in_zoom = |t: f64| t >= zoom.0 && t <= zoom.1;
     let zoomed = |mut series: Series| {

@@ -246,6 +246,12 @@ const TRUTH_FIELDS: [&str; 7] = ["t", "seq", "theta", "error", "omega", "i_a", "
 /// Fields recorded as text (the rest are numbers).
 const STRING_FIELDS: [&str; 6] = ["role", "kind", "refusal", "text", "state", "mode"];
 
+/// A number a client sent, read back: JSON has no NaN, so serde_json writes one as `null`
+/// (a refused `move --to nan` is recorded with its target), and this reads it back as NaN.
+fn nan_from_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    <Option<f64> as serde::Deserialize>::deserialize(d).map(|x| x.unwrap_or(f64::NAN))
+}
+
 /// An axis command's answer as recorded: the command, and whether it was taken.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct AckRecord {
@@ -254,7 +260,10 @@ pub struct AckRecord {
     pub kind: String,
     pub seq: u64,
     pub client: u32,
+    /// The command's as sent (NaN when it was, and refused for it).
+    #[serde(deserialize_with = "nan_from_null")]
     pub target: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub velocity: f64,
     pub flags: u32,
     /// `taken`, or why not.

@@ -72,23 +72,45 @@ pub enum RecordError {
     },
 }
 
+/// A number read back: JSON has no NaN, so serde_json writes one as `null` (a refused
+/// `move --to nan` is recorded with its target, a plan shorter than four entries with NaN
+/// for the rest, a drive may report a non-finite reading), and this reads it back as NaN.
+/// Every number of every record takes it: one such value made a whole recording unreadable.
+fn nan_from_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    <Option<f64> as serde::Deserialize>::deserialize(d).map(|x| x.unwrap_or(f64::NAN))
+}
+
 /// One state sample as recorded (SI units; angles in rad, currents in A, volts in V).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct StateRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub seq: u64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub theta: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub theta_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub error: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub omega: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub omega_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_a: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_b: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_q: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_a: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_b: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub bus: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub torque: f64,
     pub flags: u32,
     pub fault: u32,
@@ -117,6 +139,7 @@ pub const STATE_FIELDS: [(&str, &str); 17] = [
 
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct StatsRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub role: String,
     pub cycles: u64,
@@ -140,6 +163,7 @@ const STATS_FIELDS: [&str; 8] = [
 
 #[derive(Debug, Clone, Serialize, serde::Deserialize)]
 pub struct FaultRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub seq: u64,
     pub fault: u32,
@@ -150,12 +174,18 @@ const FAULT_FIELDS: [&str; 3] = ["t", "seq", "fault"];
 /// A position-loop setpoint as recorded: the torque (12) asked for and the load it used.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct SetpointRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub seq: u64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub theta_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub omega_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub alpha_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub torque: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub load_estimate: f64,
 }
 
@@ -173,14 +203,20 @@ const SETPOINT_FIELDS: [&str; 7] = [
 /// references (what the phase-current plot draws the currents against).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct CommandRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     /// The instant the references are for: the first sample the voltage reaches.
+    #[serde(deserialize_with = "nan_from_null")]
     pub t_ref: f64,
     pub seq: u64,
     pub answers_seq: u64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_a: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_b: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_a_ref: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_b_ref: f64,
 }
 
@@ -199,17 +235,26 @@ const COMMAND_FIELDS: [&str; 8] = [
 /// sample answers_seq + compute delay + 2 + j).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct PlanRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub command_seq: u64,
     pub answers_seq: u64,
     pub len: u32,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_a_0: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_b_0: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_a_1: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_b_1: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_a_2: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_b_2: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_a_3: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub v_b_3: f64,
 }
 
@@ -231,12 +276,18 @@ const PLAN_FIELDS: [&str; 12] = [
 /// The emulated drive's true rotor state, beside the measured one.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, serde::Deserialize)]
 pub struct TruthRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub seq: u64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub theta: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub error: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub omega: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_a: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub i_b: f64,
 }
 
@@ -246,15 +297,10 @@ const TRUTH_FIELDS: [&str; 7] = ["t", "seq", "theta", "error", "omega", "i_a", "
 /// Fields recorded as text (the rest are numbers).
 const STRING_FIELDS: [&str; 6] = ["role", "kind", "refusal", "text", "state", "mode"];
 
-/// A number a client sent, read back: JSON has no NaN, so serde_json writes one as `null`
-/// (a refused `move --to nan` is recorded with its target), and this reads it back as NaN.
-fn nan_from_null<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
-    <Option<f64> as serde::Deserialize>::deserialize(d).map(|x| x.unwrap_or(f64::NAN))
-}
-
 /// An axis command's answer as recorded: the command, and whether it was taken.
 #[derive(Debug, Clone, PartialEq, Serialize, serde::Deserialize)]
 pub struct AckRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub tick: u64,
     pub kind: String,
@@ -280,6 +326,7 @@ const ACK_FIELDS: [&str; 11] = [
 /// The axis's status as recorded, every tick.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, serde::Deserialize)]
 pub struct StatusRecord {
+    #[serde(deserialize_with = "nan_from_null")]
     pub t: f64,
     pub tick: u64,
     /// The CiA 402 state (numbered as `stepdrive_shared::axis::AxisState`) and the status
@@ -287,13 +334,21 @@ pub struct StatusRecord {
     pub state_code: u32,
     pub statusword: u32,
     pub mode_code: u32,
+    #[serde(deserialize_with = "nan_from_null")]
     pub theta: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub omega: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub torque: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub following_error: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub theta_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub omega_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub alpha_d: f64,
+    #[serde(deserialize_with = "nan_from_null")]
     pub target: f64,
     pub fault: u32,
     pub warning: u32,
@@ -1178,4 +1233,39 @@ fn write_csv<T>(
         writeln!(f, "{}", row(item)).map_err(io)?;
     }
     f.flush().map_err(io)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// JSON has no NaN: a record holding one is written with `null` there, and reads back
+    /// with NaN (a short plan's missing entries, a refused NaN target), not as an error that
+    /// makes the whole recording unreadable.
+    #[test]
+    fn a_nan_in_a_record_reads_back_as_nan() {
+        let plan = PlanRecord {
+            t: 0.5,
+            command_seq: 3,
+            answers_seq: 10,
+            len: 1,
+            v_a_0: 1.5,
+            v_b_0: -2.0,
+            v_a_1: f64::NAN,
+            v_b_1: f64::NAN,
+            v_a_2: f64::NAN,
+            v_b_2: f64::NAN,
+            v_a_3: f64::NAN,
+            v_b_3: f64::NAN,
+        };
+        let text = serde_json::to_string(&plan).expect("serialise");
+        assert!(text.contains("\"v_a_1\":null"), "{text}");
+        let back: PlanRecord = serde_json::from_str(&text).expect("reads back");
+        assert_eq!((back.v_a_0, back.v_b_0, back.len), (1.5, -2.0, 1));
+        assert!(back.v_a_1.is_nan() && back.v_b_3.is_nan());
+        let ack = r#"{"t":1.0,"tick":2,"kind":"move","seq":7,"client":1,"target":null,"velocity":0.0,"flags":0,"refusal":"not_finite","text":"target NaN","state":"Operation enabled"}"#;
+        let back: AckRecord = serde_json::from_str(ack).expect("reads back");
+        assert!(back.target.is_nan());
+        assert_eq!(back.velocity, 0.0);
+    }
 }

@@ -8,6 +8,7 @@
 //! ([`render`]), tested on ratatui's `TestBackend`.
 
 use crate::report::outcome::fault_names;
+use crate::report::setpoints::SetpointHistory;
 use anyhow::Result;
 use ratatui::layout::{Constraint, Layout};
 use ratatui::style::{Color, Modifier, Style};
@@ -19,7 +20,7 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 use stepdrive_runtime::port::PortFactory;
 use stepdrive_shared::frames::dq_currents;
-use stepdrive_shared::messages::{state_flags, DriveState};
+use stepdrive_shared::messages::{state_flags, DriveState, TorqueSetpoint};
 use stepdrive_shared::stack::{Role, Slot};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::trajectory::Trapezoid;
@@ -44,11 +45,18 @@ type Point = [f64; 7];
 /// A trace of a panel: its name, points (t, value) and colour.
 type Trace = (&'static str, Vec<(f64, f64)>, Color);
 
+/// Where θ_d comes from: the scenario's profile, or a commanded axis's setpoints (a
+/// program, a served stack), which the scope takes from the position loop.
+enum Desired {
+    Profile(Trapezoid),
+    Setpoints(SetpointHistory),
+}
+
 /// What the scope shows; fed by samples and reports, drawn by [`render`].
 pub struct View {
     pub instance: String,
     pub mode: String,
-    trajectory: Trapezoid,
+    desired: Desired,
     n_r: f64,
     points: VecDeque<Point>,
     span_index: usize,
@@ -72,7 +80,10 @@ impl View {
         let mut v = Self {
             instance: instance.to_string(),
             mode: mode.to_string(),
-            trajectory: Trapezoid::new(&s.trajectory),
+            desired: match s.runs_profile() {
+                true => Desired::Profile(Trapezoid::new(&s.trajectory)),
+                false => Desired::Setpoints(SetpointHistory::for_scenario(s)),
+            },
             n_r: f64::from(s.motor.rotor_teeth),
             points: VecDeque::with_capacity(2 * POINTS),
             span_index: 3,
@@ -117,7 +128,12 @@ impl View {
             return;
         }
         let t = st.sample_time_s;
-        let e = self.trajectory.at(t).theta - st.theta_rad;
+        // NaN before the first setpoint: not drawn.
+        let theta_d = match &self.desired {
+            Desired::Profile(trajectory) => trajectory.at(t).theta,
+            Desired::Setpoints(h) => h.at(t).map_or(f64::NAN, |r| r.theta),
+        };
+        let e = theta_d - st.theta_rad;
         let (i_d, i_q) = dq_currents(st.theta_rad, self.n_r, st.i_a_a, st.i_b_a);
         self.points
             .push_back([t, e, st.omega_rad_s, i_d, i_q, st.v_a_v, st.v_b_v]);
@@ -125,6 +141,18 @@ impl View {
         while self.points.front().is_some_and(|p| p[0] < from) || self.points.len() > 4 * POINTS {
             self.points.pop_front();
         }
+    }
+
+    /// The position loop's setpoint: a commanded axis's θ_d from its sample on.
+    pub fn push_setpoint(&mut self, sp: &TorqueSetpoint) {
+        if let Desired::Setpoints(h) = &mut self.desired {
+            h.push(sp);
+        }
+    }
+
+    /// Whether θ_d comes from the position loop's setpoints.
+    pub fn wants_setpoints(&self) -> bool {
+        matches!(self.desired, Desired::Setpoints(_))
     }
 
     pub fn push_stats(&mut self, r: &StatsReport) {
@@ -239,7 +267,13 @@ pub fn render(f: &mut Frame, v: &View) {
     f.render_widget(Paragraph::new(head), areas[0]);
     let t1 = v.points.back().map_or(v.span_s(), |p| p[0]);
     let t0 = t1 - v.span_s();
-    let col = |k: usize| -> Vec<(f64, f64)> { v.points.iter().map(|p| (p[0], p[k])).collect() };
+    let col = |k: usize| -> Vec<(f64, f64)> {
+        v.points
+            .iter()
+            .filter(|p| p[k].is_finite())
+            .map(|p| (p[0], p[k]))
+            .collect()
+    };
     for (slot, &panel) in shown.iter().enumerate() {
         let series: Vec<Trace> = match panel {
             0 => vec![("e", col(1), Color::Cyan)],
@@ -293,14 +327,52 @@ pub fn run_scope(instance: &str, given: Option<&Scenario>) -> Result<()> {
     let mut stats = bus.subscriber::<StatsReport>(4)?;
     let rate = s.rates.current_loop_hz;
     let mut view = View::new(s, instance, bus.mode().as_str());
+    let mut setpoints = match view.wants_setpoints() {
+        true => Some(bus.subscriber::<TorqueSetpoint>(stepdrive_shared::services::MONITOR_BUFFER)?),
+        false => None,
+    };
+    // A commanded axis's states wait for the setpoint that covers them (one from a later
+    // sample): graded at once, those newer than the last setpoint taken were drawn against
+    // the one before, and a move's start showed a spike of several mrad the rotor never had.
+    let mut waiting: VecDeque<DriveState> =
+        VecDeque::with_capacity(stepdrive_shared::services::MONITOR_BUFFER);
+    let mut newest_setpoint = f64::NEG_INFINITY;
     let mut terminal = ratatui::init();
     let outcome = (|| -> Result<()> {
         let mut next_frame = Instant::now();
         let mut heard = Instant::now();
         loop {
+            // The setpoints first: a state's θ_d is the setpoint in force at its sample.
+            if let Some(sub) = setpoints.as_mut() {
+                while let Some(sp) = sub.receive()? {
+                    newest_setpoint = newest_setpoint.max(sp.sample_time_s);
+                    view.push_setpoint(&sp);
+                }
+            }
             while let Some(st) = states.receive()? {
-                view.push_state(&st);
                 heard = Instant::now();
+                match setpoints.is_some() {
+                    true => {
+                        if waiting.len() == waiting.capacity() {
+                            if let Some(old) = waiting.pop_front() {
+                                view.push_state(&old);
+                            }
+                        }
+                        waiting.push_back(st);
+                    }
+                    false => view.push_state(&st),
+                }
+            }
+            // A silent position loop sends no setpoint: what waits is drawn once the stack
+            // is silent too.
+            let flush = heard.elapsed() > SILENT;
+            while let Some(st) = waiting.front() {
+                if !flush && st.sample_time_s >= newest_setpoint {
+                    break;
+                }
+                if let Some(st) = waiting.pop_front() {
+                    view.push_state(&st);
+                }
             }
             if view.ended.is_none() && view.samples > 0 && heard.elapsed() > SILENT {
                 view.ended = Some("SILENT (no sample for 2 s)");
@@ -437,6 +509,42 @@ mod tests {
         t.draw(|f| render(f, &v)).expect("draw");
         let screen = text(&t);
         assert!(screen.contains("STACK ENDED (its last sample)"), "{screen}");
+    }
+
+    /// A served stack (or a program) is drawn against its axis's setpoints: a rotor 1e-5
+    /// rad behind a setpoint at 3 rad shows e = 1e-5, where the scenario's trapezoid (which
+    /// it never runs) showed several rad; before the first setpoint nothing is drawn.
+    #[test]
+    fn a_commanded_axis_is_drawn_against_its_setpoints() {
+        let mut s = Scenario::default();
+        s.run.until_stopped = true;
+        let mut v = View::new(&s, "served", "realtime");
+        assert!(v.wants_setpoints());
+        let rate = s.rates.current_loop_hz;
+        let state = |k: u64| DriveState {
+            seq: k,
+            sample_time_s: k as f64 / rate,
+            theta_rad: 3.0 - 1e-5,
+            ..Default::default()
+        };
+        // Samples a multiple of the 1 s span's decimation (33) are drawn.
+        let first = 33 * 1212;
+        v.push_state(&state(first));
+        v.push_setpoint(&TorqueSetpoint {
+            sample_time_s: (first + 1) as f64 / rate,
+            theta_d_rad: 3.0,
+            ..Default::default()
+        });
+        for k in first + 1..first + 100 {
+            v.push_state(&state(k));
+        }
+        let e: Vec<f64> = v.points.iter().map(|p| p[1]).collect();
+        assert!(e[0].is_nan(), "before any setpoint: {}", e[0]);
+        assert!(
+            e[1..].iter().all(|e| (e - 1e-5).abs() < 1e-12),
+            "{:?}",
+            &e[..4]
+        );
     }
 
     #[test]

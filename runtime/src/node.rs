@@ -192,9 +192,8 @@ pub trait Node {
     }
 
     /// Clock-paced, given a doorbell: woken between its ticks by a ring (a client's
-    /// command), it may act at once instead of at its next deadline. The runner allows a
-    /// few rings per period ([`crate::runner::RINGS_PER_PERIOD`]); the rest wait for the
-    /// tick.
+    /// command), it may act at once instead of at its next deadline. The runner allows
+    /// [`crate::runner::RINGS_PER_PERIOD`] rings a period; the rest wait for the tick.
     fn rung(&mut self, _ports: &mut Self::Ports, _cx: &mut Cx) -> Result<(), RunError> {
         Ok(())
     }

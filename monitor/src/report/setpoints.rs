@@ -20,9 +20,11 @@ pub struct SetpointHistory {
 }
 
 impl SetpointHistory {
-    /// Room for the position loop's setpoints over the states' queue of `s`, and some.
+    /// Room for the position loop's setpoints over the states' queue of `s`, and some: two
+    /// a tick, as a command between ticks adds one ([`stepdrive_runtime`]'s
+    /// `RINGS_PER_PERIOD`).
     pub fn for_scenario(s: &Scenario) -> Self {
-        Self::with_capacity(MONITOR_BUFFER / s.rate_ratio().max(1) as usize + 64)
+        Self::with_capacity(2 * MONITOR_BUFFER / s.rate_ratio().max(1) as usize + 64)
     }
 
     pub fn with_capacity(capacity: usize) -> Self {

@@ -542,6 +542,19 @@ mod tests {
         _reserved: 0,
     };
 
+    /// The largest difference, V, between a plan's entries and the voltages applied in the
+    /// periods they are for.
+    fn plan_gap(plan: &[[f32; 2]], later: &[[f64; 2]]) -> f64 {
+        plan.iter()
+            .zip(later)
+            .map(|(p, a)| {
+                (f64::from(p[0]) - a[0])
+                    .abs()
+                    .max((f64::from(p[1]) - a[1]).abs())
+            })
+            .fold(0.0, f64::max)
+    }
+
     /// The plan is the law's own future: on the model it assumes (constant speed, same
     /// setpoint segment), the voltages the loop goes on to send equal the plan sent at k0,
     /// period by period, to f32 rounding; for each method, and for the baselines along an
@@ -564,16 +577,7 @@ mod tests {
             assert_eq!(t.plan.len(), 120);
             // Entry j is for period k0 + d + 1 + j.
             let later = &t.applied[k0 as usize + 2..];
-            let gap = t
-                .plan
-                .iter()
-                .zip(later)
-                .map(|(p, a)| {
-                    (f64::from(p[0]) - a[0])
-                        .abs()
-                        .max((f64::from(p[1]) - a[1]).abs())
-                })
-                .fold(0.0, f64::max);
+            let gap = plan_gap(&t.plan, later);
             assert!(
                 gap < 1e-5,
                 "{method}: plan and later commands differ by {gap} V"
@@ -608,16 +612,7 @@ mod tests {
             let t = run_with(method, &braking, 0..0, k0, k0 + 130, 1, alpha);
             assert_eq!(t.plan.len(), 120);
             let later = &t.applied[k0 as usize + 2..];
-            let gap = t
-                .plan
-                .iter()
-                .zip(later)
-                .map(|(p, a)| {
-                    (f64::from(p[0]) - a[0])
-                        .abs()
-                        .max((f64::from(p[1]) - a[1]).abs())
-                })
-                .fold(0.0, f64::max);
+            let gap = plan_gap(&t.plan, later);
             assert!(
                 gap < 1e-5,
                 "{method}: plan and later commands differ by {gap} V"

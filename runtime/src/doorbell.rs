@@ -277,10 +277,7 @@ impl Waiter {
     /// disarms.
     pub fn sleep_until(&self, armed: Armed, t_ns: u64) {
         let bell = self.page.bell(self.code);
-        let ts = libc::timespec {
-            tv_sec: (t_ns / 1_000_000_000) as libc::time_t,
-            tv_nsec: (t_ns % 1_000_000_000) as libc::c_long,
-        };
+        let ts = crate::pacer::timespec(t_ns);
         // SAFETY: a shared futex on a word of a MAP_SHARED page; FUTEX_WAIT_BITSET takes an
         // absolute CLOCK_MONOTONIC timeout. A spurious or interrupted return is fine: the
         // caller looks at the time and polls again.

@@ -69,12 +69,17 @@ impl<'de> Deserialize<'de> for WaitStrategy {
     }
 }
 
-/// Sleeps until the absolute CLOCK_MONOTONIC time `t_ns`.
-pub fn sleep_until(t_ns: u64) {
-    let ts = libc::timespec {
+/// `t_ns` as a `timespec` (an absolute CLOCK_MONOTONIC time for the kernel's sleeps).
+pub(crate) fn timespec(t_ns: u64) -> libc::timespec {
+    libc::timespec {
         tv_sec: (t_ns / 1_000_000_000) as libc::time_t,
         tv_nsec: (t_ns % 1_000_000_000) as libc::c_long,
-    };
+    }
+}
+
+/// Sleeps until the absolute CLOCK_MONOTONIC time `t_ns`.
+pub fn sleep_until(t_ns: u64) {
+    let ts = timespec(t_ns);
     // EINTR (a signal) just returns early; callers re-check the time and the stop flag.
     // SAFETY: valid timespec, null remainder is allowed with TIMER_ABSTIME.
     unsafe {

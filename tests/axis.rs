@@ -435,3 +435,41 @@ after_current = true
     assert!(num(&moves[2], "duration_s") > 0.1, "{}", moves[2]);
     assert!(num(&moves[2], "peak_abs_error_rad") < 1e-3, "{}", moves[2]);
 }
+
+/// A lockstep run takes commands only from its scenario's program: a client reads its
+/// status (its stack time advancing) and is told why a command cannot be sent, naming
+/// `serve`, instead of waiting for an answer that never comes.
+#[test]
+fn a_lockstep_stack_shows_its_status_and_refuses_commands_naming_serve() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("lockstep-client");
+    let scenario = dir.file("long.toml", LONG);
+    let inst = instance("lockstep-client");
+    let mut run = spawn_run(&[
+        "run",
+        "--method",
+        "proposed",
+        "--instance",
+        &inst,
+        "--scenario",
+        scenario.to_str().unwrap(),
+    ]);
+    wait_for_stack_time(&inst, &mut run, 0.05);
+    let first = stack_time(&inst).expect("a status");
+    let enable = stepdrive(&["axis", "--instance", &inst, "enable"]);
+    assert_eq!(enable.status.code(), Some(1), "{}", text(&enable));
+    assert!(
+        text(&enable).contains("runs in lockstep")
+            && text(&enable).contains(&format!("stepdrive serve --instance {inst}")),
+        "{}",
+        text(&enable)
+    );
+    assert!(
+        wait_until(Duration::from_secs(10), || stack_time(&inst)
+            .is_some_and(|t| t > first)),
+        "the stack's time did not advance past {first} s"
+    );
+    signal(run.id(), libc::SIGINT);
+    wait_with_timeout(&mut run, Duration::from_secs(30));
+    assert!(wait_until(Duration::from_secs(5), || processes_with(&inst).is_empty()));
+}

@@ -272,12 +272,12 @@ fn a_frozen_current_loop_is_covered_by_its_plan() {
     args.extend(realtime_test_args(&scenario, &inst, "3.0"));
     args.extend(["--watchdog-periods", "4000"]);
     args.extend(["--json", json.to_str().unwrap()]);
-    // Well into the 3 s run: the stack is up and the plant's clock has started.
+    // Well into the 3 s run, by the stack's own clock.
     let doc = run_with_frozen_current_loop(
         &args,
         &inst,
         &json,
-        Duration::from_millis(1200),
+        1.0,
         // Twice the 80 periods asserted below: on a loaded machine the plant is held up
         // too, and its time pauses with it (seen: a 5 ms freeze counted as 68 periods).
         Duration::from_millis(10),
@@ -391,13 +391,7 @@ fn the_drive_covers_a_frozen_current_loop_with_the_plan() {
     let inst = instance("hwfrozen");
     let mut args = hardware_args(&scenario, &inst, &json);
     args.extend(["--duration", "3.0", "--watchdog-periods", "1000"]);
-    let doc = run_with_frozen_current_loop(
-        &args,
-        &inst,
-        &json,
-        Duration::from_millis(1500),
-        Duration::from_millis(30),
-    );
+    let doc = run_with_frozen_current_loop(&args, &inst, &json, 1.0, Duration::from_millis(30));
     let run = run_of(&doc, "proposed");
     // At least half the freeze as one run: the bridge counts misses on the samples it
     // publishes, and in a noisy minute it supersedes some (seen: 43 of the 60).
@@ -424,13 +418,7 @@ fn a_host_stall_at_speed_within_the_watchdog_is_covered_by_the_plan() {
     let json = dir.path("hw.json");
     let inst = instance("hwstall");
     let args = hardware_args_with(&scenario, &inst, &json, "lyapunov");
-    let doc = run_with_frozen_current_loop(
-        &args,
-        &inst,
-        &json,
-        Duration::from_millis(1200),
-        Duration::from_millis(300),
-    );
+    let doc = run_with_frozen_current_loop(&args, &inst, &json, 0.8, Duration::from_millis(300));
     let run = run_of(&doc, "lyapunov");
     assert_freeze_covered_by_plan(run, 300);
     let expected = num(&doc, "microstepping_expected_cruise_error_rad");

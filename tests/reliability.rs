@@ -27,16 +27,8 @@ fn a_run_whose_plant_latched_a_fault_exits_3_with_a_headline() {
     args.extend(realtime_test_args(&scenario, &inst, "3.0"));
     args.extend(["--json", json.to_str().unwrap()]);
     let mut run = spawn_run(&args);
-    assert!(
-        wait_until(Duration::from_secs(30), || pid_of_role(
-            &inst,
-            "current-loop"
-        )
-        .is_some()),
-        "current loop did not come up"
-    );
+    wait_for_stack_time(&inst, &mut run, 1.0);
     let pid = pid_of_role(&inst, "current-loop").expect("current loop");
-    std::thread::sleep(Duration::from_millis(1500));
     signal(pid, libc::SIGSTOP);
     std::thread::sleep(Duration::from_millis(200));
     signal(pid, libc::SIGCONT);
@@ -218,15 +210,8 @@ fn a_dead_child_or_ctrl_c_keeps_the_results_gathered_so_far() {
             "--json",
             json.to_str().unwrap(),
         ]);
-        assert!(
-            wait_until(Duration::from_secs(30), || pid_of_role(
-                &inst,
-                "current-loop"
-            )
-            .is_some()),
-            "stack did not come up"
-        );
-        std::thread::sleep(Duration::from_millis(800));
+        // A tenth of a second of the stack's time: more than the 1000 samples asserted.
+        wait_for_stack_time(&inst, &mut run, 0.1);
         match victim {
             "launcher" => signal(run.id(), libc::SIGINT),
             role => signal(pid_of_role(&inst, role).expect("victim"), libc::SIGKILL),
@@ -297,7 +282,7 @@ fn a_restarted_current_loop_rejoins_and_a_reset_clears_the_fault() {
         ]);
         let mut position = spawn_logged(&[&["position-loop"][..], &common].concat());
         let mut current = spawn_logged(&[&["current-loop"][..], &common].concat());
-        std::thread::sleep(Duration::from_millis(1200));
+        wait_for_stack_time(&inst, &mut plant, 0.8);
         signal(current.id(), libc::SIGKILL);
         let _ = current.wait();
         // Past the watchdog: outputs off, fault latched.

@@ -82,16 +82,8 @@ fn a_silent_position_loop_is_stood_in_for_by_a_controlled_stop() {
     args.extend(realtime_test_args(&scenario, &inst, "3.7"));
     args.extend(["--json", json.to_str().unwrap()]);
     let mut run = spawn_run(&args);
-    assert!(
-        wait_until(Duration::from_secs(30), || pid_of_role(
-            &inst,
-            "position-loop"
-        )
-        .is_some()),
-        "the stack did not come up"
-    );
+    wait_for_stack_time(&inst, &mut run, 1.0);
     let pid = pid_of_role(&inst, "position-loop").expect("position loop");
-    std::thread::sleep(Duration::from_millis(1500));
     signal(pid, libc::SIGSTOP);
     std::thread::sleep(Duration::from_secs(1));
     signal(pid, libc::SIGCONT);

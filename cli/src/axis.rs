@@ -163,11 +163,15 @@ fn failed(e: ClientError) -> anyhow::Error {
         ClientError::Fault { .. } => Outcome::Fault.exit_code(),
         _ => 1,
     };
-    Exit {
-        code,
-        headline: e.to_string(),
+    // The whole chain: "answer on … failed" alone does not say the position loop is silent.
+    let mut headline = e.to_string();
+    let mut source = std::error::Error::source(&e);
+    while let Some(cause) = source {
+        headline.push_str(": ");
+        headline.push_str(&cause.to_string());
+        source = cause.source();
     }
-    .into()
+    Exit { code, headline }.into()
 }
 
 fn describe(s: &AxisStatus) -> String {
@@ -191,7 +195,7 @@ fn describe(s: &AxisStatus) -> String {
          θ            {:.6} rad\nω            {:.4} rad/s\ntorque       {:.4} N·m\n\
          θ_d − θ      {:.3e} rad\nsetpoint     θ_d {:.6} rad, ω_d {:.4} rad/s, α_d {:.3} rad/s²\n\
          target       {:.6} rad\nfault        {:#x} (device {:#x}), warning {:#x}\n\
-         last command seq {} (at t = {:.4} s, epoch {})",
+         time         t = {:.4} s (tick {})\nlast command seq {} (epoch {})",
         if flags.is_empty() {
             String::new()
         } else {
@@ -208,8 +212,9 @@ fn describe(s: &AxisStatus) -> String {
         s.fault,
         s.device_fault,
         s.warning,
-        s.last_seq,
         s.t_s,
+        s.tick,
+        s.last_seq,
         s.epoch,
     )
 }

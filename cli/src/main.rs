@@ -114,7 +114,10 @@ enum Cmd {
 
 fn init_logging() {
     use tracing_subscriber::EnvFilter;
-    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Warn);
+    // iceoryx2's own log, errors only: its warnings are about its housekeeping (no config
+    // file, leftovers of killed processes it cannot remove) and repeat in every process on
+    // every start; ours carry what a failure means. IOX2_LOG_LEVEL=warn shows them.
+    iceoryx2::prelude::set_log_level_from_env_or(iceoryx2::prelude::LogLevel::Error);
     let filter =
         EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,zenoh=warn"));
     // SAFETY: isatty only inspects a descriptor.

@@ -40,18 +40,22 @@ pub use stepdrive_shared::axis::{
     axis_faults, axis_warnings, AxisAck, AxisMode, AxisState, AxisStatus, Refusal, RequestKind,
 };
 use stepdrive_shared::axis::{request_flags, AxisRequest, AxisStreamPoint};
+use stepdrive_shared::scenario::Mode;
 
 /// What went wrong talking to an axis.
 #[derive(Debug, thiserror::Error)]
 pub enum ClientError {
-    /// No stack runs on the instance (or it does not serve commands: a lockstep stack runs
-    /// its program only).
+    /// No stack runs on the instance.
     #[error("no stack serves axis commands on instance `{instance}`: start one with `stepdrive serve --instance {instance}`")]
     NoStack {
         instance: String,
         #[source]
         source: PortError,
     },
+    /// The stack runs in lockstep: its scenario's `[[program]]` is its only source of
+    /// commands (its status can be read).
+    #[error("the stack on instance `{instance}` runs in lockstep: it takes commands only from its scenario's [[program]]; to command an axis, start one with `stepdrive serve --instance {instance}`")]
+    Lockstep { instance: String },
     /// The axis did not take the command; nothing of it was applied.
     #[error("{kind} refused: {reason}")]
     Refused {
@@ -176,15 +180,30 @@ enum Link {
 
 struct LocalLink {
     bus: IpcBus,
-    commands: CommandClient,
+    /// None for a lockstep stack, which takes no commands.
+    commands: Option<CommandClient>,
+    instance: String,
     status: IpcSubscriber<AxisStatus>,
     stream: Option<IpcPublisher<AxisStreamPoint>>,
 }
 
+impl LocalLink {
+    fn commands(&mut self) -> Result<&mut CommandClient, ClientError> {
+        self.commands.as_mut().ok_or_else(|| ClientError::Lockstep {
+            instance: self.instance.clone(),
+        })
+    }
+}
+
 impl Link {
+    /// A lockstep stack's axis: its status can be read, nothing sent.
+    fn status_only(&self) -> bool {
+        matches!(self, Link::Local(l) if l.commands.is_none())
+    }
+
     fn request(&mut self, r: &AxisRequest, timeout: Duration) -> Result<AxisAck, ClientError> {
         match self {
-            Link::Local(l) => Ok(l.commands.request(r, timeout)?),
+            Link::Local(l) => Ok(l.commands()?.request(r, timeout)?),
             Link::Remote(l) => l.request(r, timeout),
         }
     }
@@ -261,11 +280,15 @@ impl Axis {
         stepdrive_shared::services::instance_name(instance).map_err(ClientError::BadInstance)?;
         let role = format!("client-{}", std::process::id());
         let bus = IpcBus::attach(instance, &role, Duration::from_secs(5)).map_err(no_stack)?;
-        let commands = bus.command_client().map_err(no_stack)?;
+        let commands = match bus.mode() {
+            Mode::Lockstep => None,
+            Mode::Realtime | Mode::Hardware => Some(bus.command_client().map_err(no_stack)?),
+        };
         let status = bus.subscriber_of::<AxisStatus>(16)?;
         let link = Link::Local(Box::new(LocalLink {
             bus,
             commands,
+            instance: instance.to_string(),
             status,
             stream: None,
         }));
@@ -295,8 +318,11 @@ impl Axis {
             timeout: Duration::from_secs(2),
         };
         // A status request answers whether the stack has this axis (an unknown index is
-        // refused by the stack, naming it), before anything is read or sent for it.
-        this.simple(RequestKind::Status)?;
+        // refused by the stack, naming it), before anything is read or sent for it. A
+        // lockstep stack answers nothing: its status shows which axes it has.
+        if !this.link.status_only() {
+            this.simple(RequestKind::Status)?;
+        }
         Ok(this)
     }
 
@@ -482,7 +508,7 @@ impl Axis {
         template.target_rad = move_rad;
         template.flags |= request_flags::RELATIVE;
         let mut seq = template.seq;
-        let counts = local.commands.flood(
+        let counts = local.commands()?.flood(
             &template,
             || {
                 seq += 1;

@@ -923,19 +923,13 @@ impl Presence for IpcPresence {
     }
 }
 
-/// The live iceoryx2 nodes of `instance` whose role is one of `roles` (node names are
-/// `<instance>.<role>`): a stack's loops, found before another stack is started on the
-/// same instance.
-/// The instances that have a live iceoryx2 node of this project (`<instance>.<role>`).
-pub fn live_instances() -> std::collections::BTreeSet<String> {
-    let mut found = std::collections::BTreeSet::new();
+/// The names of every live iceoryx2 node on this host.
+fn alive_node_names() -> Vec<String> {
+    let mut found = Vec::new();
     let result = Node::<Ipc>::list(&iceoryx_config(), |state| {
         if let NodeState::Alive(view) = state {
             if let Some(details) = iceoryx2::node::NodeView::details(&view) {
-                // Role names have no '.'; instance names may.
-                if let Some((instance, _)) = details.name().as_str().rsplit_once('.') {
-                    found.insert(instance.to_string());
-                }
+                found.push(details.name().as_str().to_string());
             }
         }
         CallbackProgression::Continue
@@ -946,26 +940,30 @@ pub fn live_instances() -> std::collections::BTreeSet<String> {
     found
 }
 
+/// The instances that have a live iceoryx2 node of this project (`<instance>.<role>`).
+pub fn live_instances() -> std::collections::BTreeSet<String> {
+    alive_node_names()
+        .into_iter()
+        // Role names have no '.'; instance names may.
+        .filter_map(|name| {
+            name.rsplit_once('.')
+                .map(|(instance, _)| instance.to_string())
+        })
+        .collect()
+}
+
+/// The live iceoryx2 nodes of `instance` whose role is one of `roles` (node names are
+/// `<instance>.<role>`): a stack's loops, found before another stack is started on the
+/// same instance.
 pub fn live_nodes(instance: &str, roles: &[&str]) -> Vec<String> {
-    let config = iceoryx_config();
-    let mut found = Vec::new();
-    let result = Node::<Ipc>::list(&config, |state| {
-        if let NodeState::Alive(view) = state {
-            if let Some(details) = iceoryx2::node::NodeView::details(&view) {
-                let name = details.name().as_str();
-                let role = name
-                    .strip_prefix(instance)
-                    .and_then(|rest| rest.strip_prefix('.'));
-                if role.is_some_and(|r| roles.contains(&r)) {
-                    found.push(name.to_string());
-                }
-            }
-        }
-        CallbackProgression::Continue
-    });
-    if let Err(e) = result {
-        tracing::warn!(error = ?e, "could not list iceoryx2 nodes");
-    }
+    let mut found: Vec<String> = alive_node_names()
+        .into_iter()
+        .filter(|name| {
+            name.strip_prefix(instance)
+                .and_then(|rest| rest.strip_prefix('.'))
+                .is_some_and(|r| roles.contains(&r))
+        })
+        .collect();
     found.sort();
     found
 }
@@ -973,19 +971,43 @@ pub fn live_nodes(instance: &str, roles: &[&str]) -> Vec<String> {
 /// Removes what crashed processes left behind (nodes, ports, shared memory). Call it
 /// before starting a stack and after its processes have been reaped.
 pub fn cleanup_dead_nodes() -> usize {
+    use iceoryx2::node::NodeView;
+    use std::sync::atomic::{AtomicBool, Ordering};
+    // Every start and every presence check cleans up: the same leftovers would be reported
+    // on each, so a process says it once.
+    static REPORTED: AtomicBool = AtomicBool::new(false);
     let config = iceoryx_config();
-    let mut removed = 0;
+    let (mut removed, mut failed, mut unreadable) = (0, 0, 0);
+    let mut last_error = None;
     let result = Node::<Ipc>::list(&config, |state| {
         if let NodeState::Dead(view) = state {
-            match view.try_remove_stale_resources() {
-                Ok(()) => removed += 1,
-                Err(e) => tracing::warn!(error = ?e, "could not remove a dead node's resources"),
+            if view.details().is_none() {
+                // Killed while being created or removed: its config is unknown, iceoryx2
+                // would guess it (warning that it does), and the removal fails.
+                unreadable += 1;
+            } else {
+                match view.try_remove_stale_resources() {
+                    Ok(()) => removed += 1,
+                    Err(e) => {
+                        failed += 1;
+                        last_error = Some(e);
+                    }
+                }
             }
         }
         CallbackProgression::Continue
     });
     if let Err(e) = result {
         tracing::warn!(error = ?e, "could not list iceoryx2 nodes");
+    }
+    if failed + unreadable > 0 && !REPORTED.swap(true, Ordering::Relaxed) {
+        tracing::debug!(
+            failed,
+            unreadable,
+            error = ?last_error,
+            "dead iceoryx2 nodes left by killed processes could not be removed; with no \
+             stack running, `rm -rf /tmp/iceoryx2 /dev/shm/iox2_*` clears them"
+        );
     }
     removed
 }

@@ -289,14 +289,52 @@ pub fn realtime_test_args<'a>(
     args
 }
 
+/// The stack time of `inst`'s axis 0 as its status reports it (`stepdrive axis status`,
+/// line `time  t = … s`), if the stack is up and publishing.
+pub fn stack_time(inst: &str) -> Option<f64> {
+    let out = stepdrive(&["axis", "status", "--instance", inst]);
+    if !out.status.success() {
+        return None;
+    }
+    let text = String::from_utf8_lossy(&out.stdout);
+    let line = text.lines().find(|l| l.starts_with("time"))?;
+    let t = line.split("t = ").nth(1)?.split_whitespace().next()?;
+    t.parse().ok()
+}
+
+/// Waits until the stack on `inst` (started as `child`) has run `t_s` seconds of its own
+/// time. A fixed delay after the processes appear is not enough on a loaded machine: their
+/// start (a drive's handshake and alignment included) has been seen to outlast 1.2 s.
+pub fn wait_for_stack_time(inst: &str, child: &mut Child, t_s: f64) {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        if let Some(t) = stack_time(inst) {
+            if t >= t_s {
+                return;
+            }
+        }
+        if let Ok(Some(status)) = child.try_wait() {
+            panic!(
+                "the stack ended ({status}) before t = {t_s} s: {}",
+                stderr_of(child)
+            );
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the stack on {inst} did not reach t = {t_s} s in 60 s"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
 /// Runs `stepdrive` with `args` (a run with `--json`), freezes its current-loop process
-/// with SIGSTOP for `freeze` once `after` has passed since it came up, and returns the
+/// with SIGSTOP for `freeze` once the stack's own time has reached `at_s`, and returns the
 /// run's JSON document.
 pub fn run_with_frozen_current_loop(
     args: &[&str],
     inst: &str,
     json: &Path,
-    after: Duration,
+    at_s: f64,
     freeze: Duration,
 ) -> Value {
     let mut child = Command::new(exe())
@@ -306,13 +344,8 @@ pub fn run_with_frozen_current_loop(
         .stderr(Stdio::piped())
         .spawn()
         .expect("spawn run");
-    let current_loop = || pid_of_role(inst, "current-loop");
-    assert!(
-        wait_until(Duration::from_secs(30), || current_loop().is_some()),
-        "current loop did not come up"
-    );
-    let pid = current_loop().expect("current loop");
-    std::thread::sleep(after);
+    wait_for_stack_time(inst, &mut child, at_s);
+    let pid = pid_of_role(inst, "current-loop").expect("current loop");
     signal(pid, libc::SIGSTOP);
     std::thread::sleep(freeze);
     signal(pid, libc::SIGCONT);

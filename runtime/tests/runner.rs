@@ -364,7 +364,8 @@ impl Node for Ringed {
 /// A clock-paced node given a doorbell (the position loop, rung by a client's command)
 /// acts on a ring between its ticks at once, not at its next deadline; a burst of rings in
 /// one period costs it at most `RINGS_PER_PERIOD` calls; its ticks keep their deadlines.
-/// Periods of 10 ms keep the figures far from scheduling noise.
+/// Periods of 20 ms keep the figures far from scheduling noise (a loaded CI host has held a
+/// process for 20 ms).
 #[test]
 fn a_ring_between_ticks_is_acted_on_at_once_and_a_burst_costs_at_most_the_allowance() {
     use stepdrive_runtime::doorbell::{self, Doorbells};
@@ -373,7 +374,7 @@ fn a_ring_between_ticks_is_acted_on_at_once_and_a_burst_costs_at_most_the_allowa
     let bells = Doorbells::open(&name).expect("doorbells");
     let waiter = bells.waiter(Role::PositionLoop);
     let ringer = bells.ringer_of(Role::PositionLoop);
-    let period = 10_000_000;
+    let period = 20_000_000;
     let rungs = Rc::new(RefCell::new(Vec::new()));
     let node = Ringed {
         period_ns: period,
@@ -384,10 +385,10 @@ fn a_ring_between_ticks_is_acted_on_at_once_and_a_burst_costs_at_most_the_allowa
     let started = monotonic_ns();
     let rings = std::thread::spawn(move || {
         let at = |ms: u64| sleep_until(started + ms * 1_000_000);
-        at(55);
+        at(102);
         let one = monotonic_ns();
         ringer.ring(None);
-        at(125);
+        at(242);
         let burst = monotonic_ns();
         for _ in 0..5 {
             ringer.ring(None);
@@ -408,13 +409,13 @@ fn a_ring_between_ticks_is_acted_on_at_once_and_a_burst_costs_at_most_the_allowa
     doorbell::remove(&name);
     assert_eq!(stats.cycles, 20, "the rings took no tick's place");
     let rungs = rungs.borrow();
-    // The single ring: acted on within 2 ms (its tick was up to 10 ms away).
+    // The single ring: acted on within 10 ms (its tick was 18 ms away).
     let first = rungs
         .iter()
         .find(|&&(_, at)| at >= one && at < burst)
         .unwrap_or_else(|| panic!("the ring at {one} was not acted on: {rungs:?}"));
     assert!(
-        first.1 - one < 2_000_000,
+        first.1 - one < 10_000_000,
         "acted on {} µs after",
         (first.1 - one) / 1000
     );

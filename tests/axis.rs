@@ -65,9 +65,6 @@ fn a_served_axis_is_commanded_from_other_processes() {
         mcap.to_str().expect("a UTF-8 path"),
         "--instance",
         inst.as_str(),
-        // The stack's loops run at ordinary priority here: so does the reader.
-        "--priority",
-        "0",
         "--json",
         json.to_str().expect("a UTF-8 path"),
     ]);
@@ -87,6 +84,11 @@ fn a_served_axis_is_commanded_from_other_processes() {
     // A move to 1 rad from where the rotor stands, waited for.
     let mv = axis(&MOVE_1_RAD_WAITED);
     assert_reached(&mv);
+    // The stack's loops run at ordinary priority here: by default, so does the reader (at
+    // SCHED_FIFO it would go before them).
+    // SAFETY: sched_getscheduler only reads the policy of a process.
+    let policy = unsafe { libc::sched_getscheduler(monitor.id() as libc::pid_t) };
+    assert_eq!(policy, libc::SCHED_OTHER, "the reader's policy");
 
     let qs = axis(&["quick-stop"]);
     assert!(qs.status.success(), "{}", text(&qs));

@@ -205,8 +205,9 @@ pub struct MonitorArgs {
     #[arg(long, value_name = "S", default_value = "5", value_parser = parse_seconds)]
     peer_timeout_s: std::time::Duration,
     /// Read at SCHED_FIFO priority P (1-99; root), 0 for ordinary priority. By default 1
-    /// beside a realtime or hardware stack (as `run`'s own monitor; warned and ordinary
-    /// where the system refuses it) and ordinary beside a lockstep one. Beside loops that
+    /// beside a realtime or hardware stack whose loops run at SCHED_FIFO (as `run`'s own
+    /// monitor; warned and ordinary where the system refuses it), ordinary beside one whose
+    /// loops run at ordinary priority and beside a lockstep one. Beside loops that
     /// spin at SCHED_FIFO a reader at ordinary priority gets too little CPU to keep up (its
     /// misses end the report UNOBSERVED), and the kernel's fair server runs it ahead of
     /// them. Below the loops' priorities, so it never delays them.
@@ -226,7 +227,17 @@ impl MonitorArgs {
         let (p, require) = match (self.priority, mode) {
             (Some(0), _) | (None, Mode::Lockstep) => return Ok(()),
             (Some(p), _) => (p, true),
-            (None, Mode::Realtime | Mode::Hardware) => (READER_PRIORITY, false),
+            (None, Mode::Realtime | Mode::Hardware) => {
+                // Above loops at ordinary priority (a stack started with `--priority 0`),
+                // a FIFO reader would take their CPU: it runs as they do.
+                if !loops_run_realtime(&self.instance) {
+                    tracing::info!(
+                        "the stack's loops run at ordinary priority: so does this reader"
+                    );
+                    return Ok(());
+                }
+                (READER_PRIORITY, false)
+            }
         };
         stepdrive_runtime::rt::RtOptions {
             priority: Some(p),
@@ -239,6 +250,23 @@ impl MonitorArgs {
         .map_err(|e| anyhow::anyhow!("--priority {p}: {}", e.describe()))?;
         Ok(())
     }
+}
+
+/// Whether a loop of the stack on `instance` runs at a real-time policy (SCHED_FIFO/RR).
+fn loops_run_realtime(instance: &str) -> bool {
+    let loops = [
+        Role::Plant.id(),
+        Role::Bridge.id(),
+        Role::CurrentLoop.id(),
+        Role::PositionLoop.id(),
+    ];
+    stepdrive_runtime::ipc::live_nodes_with_pids(instance, &loops)
+        .iter()
+        .any(|&(_, pid)| {
+            // SAFETY: sched_getscheduler only reads the policy of a process (-1 if gone).
+            let policy = unsafe { libc::sched_getscheduler(pid) };
+            policy == libc::SCHED_FIFO || policy == libc::SCHED_RR
+        })
 }
 
 #[derive(Args, Debug)]

@@ -923,13 +923,14 @@ impl Presence for IpcPresence {
     }
 }
 
-/// The names of every live iceoryx2 node on this host.
-fn alive_node_names() -> Vec<String> {
+/// Every live iceoryx2 node on this host: its name and its process.
+fn alive_nodes() -> Vec<(String, i32)> {
     let mut found = Vec::new();
     let result = Node::<Ipc>::list(&iceoryx_config(), |state| {
         if let NodeState::Alive(view) = state {
             if let Some(details) = iceoryx2::node::NodeView::details(&view) {
-                found.push(details.name().as_str().to_string());
+                let pid = details.process_id().value();
+                found.push((details.name().as_str().to_string(), pid));
             }
         }
         CallbackProgression::Continue
@@ -942,10 +943,10 @@ fn alive_node_names() -> Vec<String> {
 
 /// The instances that have a live iceoryx2 node of this project (`<instance>.<role>`).
 pub fn live_instances() -> std::collections::BTreeSet<String> {
-    alive_node_names()
+    alive_nodes()
         .into_iter()
         // Role names have no '.'; instance names may.
-        .filter_map(|name| {
+        .filter_map(|(name, _)| {
             name.rsplit_once('.')
                 .map(|(instance, _)| instance.to_string())
         })
@@ -953,12 +954,12 @@ pub fn live_instances() -> std::collections::BTreeSet<String> {
 }
 
 /// The live iceoryx2 nodes of `instance` whose role is one of `roles` (node names are
-/// `<instance>.<role>`): a stack's loops, found before another stack is started on the
-/// same instance.
-pub fn live_nodes(instance: &str, roles: &[&str]) -> Vec<String> {
-    let mut found: Vec<String> = alive_node_names()
+/// `<instance>.<role>`), with their processes: a stack's loops, found before another stack
+/// is started on the same instance, or to see how they are scheduled.
+pub fn live_nodes_with_pids(instance: &str, roles: &[&str]) -> Vec<(String, i32)> {
+    let mut found: Vec<(String, i32)> = alive_nodes()
         .into_iter()
-        .filter(|name| {
+        .filter(|(name, _)| {
             name.strip_prefix(instance)
                 .and_then(|rest| rest.strip_prefix('.'))
                 .is_some_and(|r| roles.contains(&r))
@@ -966,6 +967,14 @@ pub fn live_nodes(instance: &str, roles: &[&str]) -> Vec<String> {
         .collect();
     found.sort();
     found
+}
+
+/// [`live_nodes_with_pids`], the names alone.
+pub fn live_nodes(instance: &str, roles: &[&str]) -> Vec<String> {
+    live_nodes_with_pids(instance, roles)
+        .into_iter()
+        .map(|(name, _)| name)
+        .collect()
 }
 
 /// Removes what crashed processes left behind (nodes, ports, shared memory). Call it

@@ -136,8 +136,65 @@ pub const HELLO_EVERY_NS: u64 = 50_000_000;
 pub const HANDSHAKE_NS: u64 = 1_000_000_000;
 pub const HANDSHAKE_HELLOS: u32 = 20;
 /// How much longer than its announced time a drive may take to report its alignment done
-/// (and to report the hold after it, and the phase-B step).
+/// (and to report the hold after it, and the phase-B step), by its own timestamps.
 pub const ALIGN_SLACK_MS: u64 = 1_000;
+/// The same on the host's clock, which only bounds a drive that stops sending: a loaded
+/// host reads SAMPLEs late (seen: a healthy drive's alignment judged 1.3 s long), and their
+/// timestamps say how long the drive took.
+pub const ALIGN_HOST_SLACK_MS: u64 = 5_000;
+
+/// When a start-up step (an alignment, its hold, the phase-B step) began, on both clocks.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Since {
+    host_ns: u64,
+    /// On the drive's clock: the newest SAMPLE's timestamp when the step began (the first
+    /// SAMPLE's, if none had come).
+    drive_ns: Option<u64>,
+}
+
+impl Since {
+    fn new(host_ns: u64, link: &DriveLink) -> Self {
+        Self {
+            host_ns,
+            drive_ns: link.newest_sample_seq().map(|_| link.sample_timestamp_ns),
+        }
+    }
+
+    /// How long the step has taken, ms: on the drive's clock (up to its newest SAMPLE) and
+    /// on the host's.
+    fn waited_ms(&mut self, link: &DriveLink, now: u64) -> (u64, u64) {
+        let newest = link.sample_timestamp_ns;
+        if link.newest_sample_seq().is_some() {
+            self.drive_ns.get_or_insert(newest);
+        }
+        let drive = self.drive_ns.map_or(0, |d| newest.saturating_sub(d));
+        (
+            drive / 1_000_000,
+            now.saturating_sub(self.host_ns) / 1_000_000,
+        )
+    }
+
+    /// Past `announced_ms` and its slack on either clock: the one that is, and the wait.
+    fn overdue(&mut self, link: &DriveLink, now: u64, announced_ms: u64) -> Option<(u64, bool)> {
+        let (drive, host) = self.waited_ms(link, now);
+        if drive > announced_ms + ALIGN_SLACK_MS {
+            Some((drive, true))
+        } else if host > announced_ms + ALIGN_HOST_SLACK_MS {
+            Some((host, false))
+        } else {
+            None
+        }
+    }
+}
+
+/// Which clock a start-up step overran on, for its error.
+fn clock_name(by_drive: bool) -> &'static str {
+    if by_drive {
+        "by its own timestamps"
+    } else {
+        "of the host's clock"
+    }
+}
 
 /// Where the start-up sequence of §7 stands.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -153,11 +210,11 @@ enum Stage {
     /// RESET and ALIGN sent: waiting for the samples to show the alignment begin and end.
     Aligning {
         round: Round,
-        since_ns: u64,
+        since: Since,
         seen: bool,
     },
     /// Aligned: collecting the hold's figures ([`Hold`]).
-    Holding { round: Round, since_ns: u64 },
+    Holding { round: Round, since: Since },
     /// Enabled, phase B alone driven by the host's COMMANDs (step 4).
     Stepping(PhaseStep),
     /// Every check passed: the run may begin.
@@ -179,7 +236,7 @@ enum Round {
 /// electrical period towards +θ.
 #[derive(Debug, Clone, Copy, PartialEq)]
 struct PhaseStep {
-    since_ns: u64,
+    since: Since,
     duty_b: i16,
     /// The hold before it.
     from: Hold,
@@ -232,17 +289,23 @@ pub enum Refusal {
     #[error("{0}")]
     Handshake(HandshakeReport),
     #[error(
-        "did not finish its alignment ({align_ms} ms announced) within {waited_ms} ms: no \
-         SAMPLE with ALIGNING set and then cleared (docs/drive-protocol.md §7)"
+        "did not finish its alignment ({align_ms} ms announced) within {waited_ms} ms {}: \
+         no SAMPLE with ALIGNING set and then cleared (docs/drive-protocol.md §7)",
+        clock_name(*by_drive)
     )]
-    Align { align_ms: u16, waited_ms: u64 },
+    Align {
+        align_ms: u16,
+        waited_ms: u64,
+        by_drive: bool,
+    },
     #[error(
-        "stopped answering during {during}: no SAMPLE for {waited_ms} ms \
-         (docs/drive-protocol.md §7)"
+        "did not finish {during} within {waited_ms} ms {} (docs/drive-protocol.md §7)",
+        clock_name(*by_drive)
     )]
     Stalled {
         during: &'static str,
         waited_ms: u64,
+        by_drive: bool,
     },
     #[error(
         "latched {} (fault bits {bits:#06x}) during {during} (docs/drive-protocol.md §5); \
@@ -528,14 +591,14 @@ impl BridgeCore {
                     send(&self.link.control_frame(Action::Align, now));
                     self.stage = Stage::Aligning {
                         round: Round::First,
-                        since_ns: now,
+                        since: Since::new(now, &self.link),
                         seen: false,
                     };
                     return Ok(StartStep::Wait);
                 }
                 Stage::Aligning {
                     round,
-                    since_ns,
+                    mut since,
                     seen,
                 } => {
                     let aligning = self.link.last_status & status::ALIGNING != 0;
@@ -545,22 +608,23 @@ impl BridgeCore {
                         self.fault_check(alignment_name(round))?;
                     }
                     if seen && !aligning {
-                        self.stage = Stage::Holding { round, since_ns };
+                        self.stage = Stage::Holding { round, since };
                         continue;
                     }
-                    self.align_deadline(since_ns, now)?;
+                    self.align_deadline(&mut since, now)?;
                     self.stage = Stage::Aligning {
                         round,
-                        since_ns,
+                        since,
                         seen: seen || aligning,
                     };
                     return Ok(StartStep::Wait);
                 }
-                Stage::Holding { round, since_ns } => {
+                Stage::Holding { round, mut since } => {
                     self.fault_check(alignment_name(round))?;
                     let hold = self.link.hold();
                     if !hold.complete() {
-                        self.align_deadline(since_ns, now)?;
+                        self.align_deadline(&mut since, now)?;
+                        self.stage = Stage::Holding { round, since };
                         return Ok(StartStep::Wait);
                     }
                     self.check_hold(&hold)?;
@@ -578,11 +642,14 @@ impl BridgeCore {
                 }
                 Stage::Stepping(mut step) => {
                     self.fault_check("the phase-B step")?;
-                    let waited_ms = now.saturating_sub(step.since_ns) / 1_000_000;
-                    if waited_ms > u64::from(self.align_ms()) + ALIGN_SLACK_MS {
+                    let announced = u64::from(self.align_ms());
+                    if let Some((waited_ms, by_drive)) =
+                        step.since.overdue(&self.link, now, announced)
+                    {
                         return Err(Refusal::Stalled {
                             during: "the phase-B step",
                             waited_ms,
+                            by_drive,
                         });
                     }
                     if let (Some(first), Some(newest)) = (step.first, self.link.newest_sample_seq())
@@ -592,7 +659,7 @@ impl BridgeCore {
                             send(&self.link.control_frame(Action::Align, now));
                             self.stage = Stage::Aligning {
                                 round: Round::Last,
-                                since_ns: now,
+                                since: Since::new(now, &self.link),
                                 seen: false,
                             };
                             return Ok(StartStep::Wait);
@@ -648,15 +715,16 @@ impl BridgeCore {
         Ok(())
     }
 
-    fn align_deadline(&self, since_ns: u64, now: u64) -> Result<(), Refusal> {
-        let waited_ms = now.saturating_sub(since_ns) / 1_000_000;
-        if waited_ms > u64::from(self.align_ms()) + ALIGN_SLACK_MS {
-            return Err(Refusal::Align {
-                align_ms: self.align_ms(),
+    fn align_deadline(&self, since: &mut Since, now: u64) -> Result<(), Refusal> {
+        let align_ms = self.align_ms();
+        match since.overdue(&self.link, now, u64::from(align_ms)) {
+            Some((waited_ms, by_drive)) => Err(Refusal::Align {
+                align_ms,
                 waited_ms,
-            });
+                by_drive,
+            }),
+            None => Ok(()),
         }
-        Ok(())
     }
 
     /// A fault latched during the checks ends the start-up: the drive named it.
@@ -718,7 +786,7 @@ impl BridgeCore {
         let config = self.link.config()?;
         let periods = (u64::from(config.align_ms) * u64::from(config.sample_rate_hz) / 1000).max(2);
         Some(PhaseStep {
-            since_ns: now,
+            since: Since::new(now, &self.link),
             duty_b,
             from: *hold,
             periods: u32::try_from(periods).unwrap_or(u32::MAX),
@@ -1065,20 +1133,117 @@ mod tests {
     }
 
     fn sample_with(seq: u32, applied: u32, status: u16) -> Vec<u8> {
-        frame_bytes(
+        frame_bytes(seq, Message::Sample(still_sample(applied, status)))
+    }
+
+    fn still_sample(applied: u32, status: u16) -> Sample {
+        Sample {
+            encoder_counts: 0,
+            adc_a: 32768,
+            adc_b: 32768,
+            adc_bus: 2400,
+            duty_a: 0,
+            duty_b: 0,
+            applied_command_seq: applied,
+            fault_bits: 0,
+            status,
+        }
+    }
+
+    /// A SAMPLE stamped `at_ns` on the drive's clock.
+    fn timed_sample(seq: u32, at_ns: u64, status: u16) -> Vec<u8> {
+        let mut b = [0u8; stepdrive_drive_protocol::MAX_FRAME];
+        let frame = stepdrive_drive_protocol::Frame {
             seq,
-            Message::Sample(Sample {
-                encoder_counts: 0,
-                adc_a: 32768,
-                adc_b: 32768,
-                adc_bus: 2400,
-                duty_a: 0,
-                duty_b: 0,
-                applied_command_seq: applied,
-                fault_bits: 0,
-                status,
-            }),
-        )
+            timestamp_ns: at_ns,
+            message: Message::Sample(still_sample(0, status)),
+        };
+        let n = stepdrive_drive_protocol::encode(&frame, &mut b);
+        b[..n].to_vec()
+    }
+
+    /// §7 step 4: how long a drive takes to align is read on its own clock (its SAMPLEs'
+    /// timestamps); the host's clock only bounds a drive that stops sending. The default
+    /// CONFIG announces 300 ms.
+    #[test]
+    fn the_alignment_is_timed_on_the_drives_clock() {
+        const MS: u64 = 1_000_000;
+        // Configured, the stack ready: RESET and ALIGN go out at host time 0.
+        let aligning = || {
+            let mut c = BridgeCore::new(CoreSettings {
+                sample_hz: 20_000.0,
+                samples: 10,
+                silence_periods: 4,
+                plan_every: 3,
+                observer_hz: 400.0,
+                calibration: EncoderCalibration {
+                    offset_counts: Some(0),
+                    reverse: false,
+                    held_load: None,
+                },
+                resistance_ohm: 14.8,
+                rotor_teeth: 50.0,
+            });
+            let mut stats = StatsReport::default();
+            let config = frame_bytes(0, Message::Config(default_config(20_000.0, 200, 8)));
+            c.on_frame(&config, 0, &mut stats);
+            // A configured drive streams SAMPLEs, disabled, before it is told to align.
+            c.on_frame(&timed_sample(99, 0, 0), 0, &mut stats);
+            let mut sent = 0;
+            assert_eq!(c.startup(0, true, &mut |_| sent += 1), Ok(StartStep::Wait));
+            assert_eq!(sent, 2, "RESET and ALIGN");
+            (c, stats)
+        };
+        let at = |c: &mut BridgeCore, now: u64| c.startup(now, true, &mut |_| {});
+
+        // A host held up for 3 s reads a healthy drive's SAMPLEs late: 300 ms of aligning
+        // by their timestamps, accepted (before: refused, "within 3000 ms").
+        let (mut c, mut stats) = aligning();
+        c.on_frame(
+            &timed_sample(100, MS, status::ALIGNING),
+            3000 * MS,
+            &mut stats,
+        );
+        assert_eq!(at(&mut c, 3000 * MS), Ok(StartStep::Wait));
+        c.on_frame(&timed_sample(101, 301 * MS, 0), 3001 * MS, &mut stats);
+        assert_eq!(at(&mut c, 3001 * MS), Ok(StartStep::Wait), "holding");
+        assert_eq!(c.awaiting(), "the alignment");
+
+        // Still aligning 1.3 s later by its own clock: refused, naming that clock.
+        let (mut c, mut stats) = aligning();
+        for (i, t) in [1, 700, 1302].into_iter().enumerate() {
+            c.on_frame(
+                &timed_sample(100 + i as u32, t * MS, status::ALIGNING),
+                t * MS,
+                &mut stats,
+            );
+        }
+        match at(&mut c, 1302 * MS) {
+            Err(
+                e @ Refusal::Align {
+                    by_drive: true,
+                    waited_ms: 1302,
+                    ..
+                },
+            ) => {
+                assert!(e.to_string().contains("by its own timestamps"), "{e}");
+            }
+            other => panic!("{other:?}"),
+        }
+
+        // Silent after the ALIGN: waited for on the host's clock, then refused.
+        let (mut c, _) = aligning();
+        assert_eq!(at(&mut c, 2000 * MS), Ok(StartStep::Wait));
+        match at(&mut c, 5301 * MS) {
+            Err(
+                e @ Refusal::Align {
+                    by_drive: false, ..
+                },
+            ) => {
+                assert!(e.to_string().contains("of the host's clock"), "{e}");
+            }
+            other => panic!("{other:?}"),
+        }
     }
 
     /// §7 step 5: samples the drive sent before it took the ENABLE (still in flight when

@@ -289,8 +289,8 @@ pub fn realtime_test_args<'a>(
     args
 }
 
-/// The stack time of `inst`'s axis 0 as its status reports it (`stepdrive axis status`,
-/// line `time  t = … s`), if the stack is up and publishing.
+/// The stack time of `inst`'s axis 0 as its status reports it (what `stepdrive axis
+/// status` prints on its `time` line), if the stack is up and publishing.
 pub fn stack_time(inst: &str) -> Option<f64> {
     let out = stepdrive(&["axis", "status", "--instance", inst]);
     if !out.status.success() {
@@ -304,12 +304,18 @@ pub fn stack_time(inst: &str) -> Option<f64> {
 
 /// Waits until the stack on `inst` (started as `child`) has run `t_s` seconds of its own
 /// time. A fixed delay after the processes appear is not enough on a loaded machine: their
-/// start (a drive's handshake and alignment included) has been seen to outlast 1.2 s.
+/// start (a drive's handshake and alignment included) has been seen to outlast 1.2 s. One
+/// client, connected once, reads the status: a new `stepdrive axis status` each time costs
+/// a connection (a request the position loop answers) that a loaded host makes slow.
 pub fn wait_for_stack_time(inst: &str, child: &mut Child, t_s: f64) {
     let deadline = Instant::now() + Duration::from_secs(60);
+    let mut axis = None;
     loop {
-        if let Some(t) = stack_time(inst) {
-            if t >= t_s {
+        if axis.is_none() {
+            axis = stepdrive_client::Axis::connect(inst, 0).ok();
+        }
+        if let Some(a) = axis.as_mut() {
+            if a.status().is_ok_and(|s| s.t_s >= t_s) {
                 return;
             }
         }
@@ -323,7 +329,7 @@ pub fn wait_for_stack_time(inst: &str, child: &mut Child, t_s: f64) {
             Instant::now() < deadline,
             "the stack on {inst} did not reach t = {t_s} s in 60 s"
         );
-        std::thread::sleep(Duration::from_millis(20));
+        std::thread::sleep(Duration::from_millis(5));
     }
 }
 

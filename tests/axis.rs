@@ -475,3 +475,32 @@ fn a_lockstep_stack_shows_its_status_and_refuses_commands_naming_serve() {
     wait_with_timeout(&mut run, Duration::from_secs(30));
     assert!(wait_until(Duration::from_secs(5), || processes_with(&inst).is_empty()));
 }
+
+/// A client started before the stack it asks for (a script that launches both): it waits
+/// for the stack, then for its position loop to serve commands, and its first request is
+/// answered once the loops tick, after the drive's handshake and alignments. (Before: the
+/// request went out before the position loop served the service, was lost, and the client
+/// failed after 2 s with "answer … failed".)
+#[test]
+fn a_client_started_before_a_hardware_stack_gets_its_status() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("early-client");
+    let scenario = dir.file("slow.toml", &slow_scenario());
+    let json = dir.path("hw.json");
+    let inst = instance("early-client");
+    let status = std::process::Command::new(exe())
+        .args(["axis", "status", "--instance", &inst])
+        .env("RUST_LOG", "warn")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("spawn axis status");
+    let mut args = hardware_args(&scenario, &inst, &json);
+    args.extend(["--duration", "2.0"]);
+    let mut run = spawn_run(&args);
+    let out = status.wait_with_output().expect("axis status");
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("Operation enabled"), "{}", text(&out));
+    let ended = wait_with_timeout(&mut run, Duration::from_secs(60));
+    assert!(ended.success(), "{}", stderr_of(&mut run));
+}

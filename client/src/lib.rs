@@ -101,6 +101,11 @@ pub enum ClientError {
     LocalOnly(&'static str),
 }
 
+/// How long a request waits for its answer.
+const REQUEST_TIMEOUT: Duration = Duration::from_secs(2);
+/// How long [`Axis::connect`] waits for a stack just launched to answer.
+const START_WAIT: Duration = Duration::from_secs(5);
+
 /// The SCHED_FIFO priority a streaming client takes by default: below the stack's loops
 /// (80 and 81), above everything at ordinary priority.
 pub const STREAM_PRIORITY: u8 = 10;
@@ -193,6 +198,22 @@ impl LocalLink {
             instance: self.instance.clone(),
         })
     }
+
+    /// Waits up to `timeout` for the position loop to serve the command service.
+    fn wait_for_server(&mut self, timeout: Duration) -> Result<(), ClientError> {
+        let deadline = Instant::now() + timeout;
+        let commands = self.commands()?;
+        while !commands.has_server() {
+            if Instant::now() >= deadline {
+                return Err(ClientError::Timeout {
+                    what: "the stack's position loop serving commands".to_string(),
+                    timeout,
+                });
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        }
+        Ok(())
+    }
 }
 
 impl Link {
@@ -271,7 +292,8 @@ pub fn faulted(s: &AxisStatus) -> Result<(), ClientError> {
 
 impl Axis {
     /// Connects to axis `axis` of the stack on `instance`, waiting up to 5 s for it to
-    /// come up.
+    /// come up and up to 5 s more for its position loop to answer (a hardware stack's loops
+    /// tick once its drive has aligned).
     pub fn connect(instance: &str, axis: u32) -> Result<Self, ClientError> {
         let no_stack = |source| ClientError::NoStack {
             instance: instance.to_string(),
@@ -315,13 +337,22 @@ impl Axis {
             axis,
             link,
             next_seq: u64::from(client) << 32,
-            timeout: Duration::from_secs(2),
+            timeout: REQUEST_TIMEOUT,
         };
         // A status request answers whether the stack has this axis (an unknown index is
         // refused by the stack, naming it), before anything is read or sent for it. A
         // lockstep stack answers nothing: its status shows which axes it has.
         if !this.link.status_only() {
-            this.simple(RequestKind::Status)?;
+            // A stack just launched: its position loop may not serve commands yet (a request
+            // sent before it does is lost), and a hardware stack's loops tick only once the
+            // drive has aligned (about a second after launch).
+            if let Link::Local(l) = &mut this.link {
+                l.wait_for_server(START_WAIT)?;
+            }
+            this.timeout = START_WAIT;
+            let checked = this.simple(RequestKind::Status);
+            this.timeout = REQUEST_TIMEOUT;
+            checked?;
         }
         Ok(this)
     }

@@ -491,6 +491,12 @@ pub struct NoAnswer {
 }
 
 impl CommandClient {
+    /// Whether a server (the position loop) is on the service: a request sent before it
+    /// came is never delivered.
+    pub fn has_server(&self) -> bool {
+        self._factory.dynamic_config().number_of_servers() > 0
+    }
+
     /// Sends `request` and waits up to `timeout` for its answer.
     pub fn request(
         &mut self,

@@ -445,17 +445,8 @@ after_current = true
 fn a_lockstep_stack_shows_its_status_and_refuses_commands_naming_serve() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("lockstep-client");
-    let scenario = dir.file("long.toml", LONG);
     let inst = instance("lockstep-client");
-    let mut run = spawn_run(&[
-        "run",
-        "--method",
-        "proposed",
-        "--instance",
-        &inst,
-        "--scenario",
-        scenario.to_str().unwrap(),
-    ]);
+    let mut run = start_long_run(&dir, &inst);
     wait_for_stack_time(&inst, &mut run, 0.05);
     let first = stack_time(&inst).expect("a status");
     let enable = stepdrive(&["axis", "--instance", &inst, "enable"]);

@@ -1101,7 +1101,8 @@ mod tests {
 
     const PERIOD: u64 = 50_000;
 
-    fn core(samples: u64) -> BridgeCore {
+    /// A core that has taken the drive's CONFIG (default, 20 kHz), not yet begun.
+    fn configured(samples: u64) -> BridgeCore {
         let mut c = BridgeCore::new(CoreSettings {
             sample_hz: 20_000.0,
             samples,
@@ -1122,6 +1123,11 @@ mod tests {
             c.on_frame(&config, 0, &mut stats),
             Received::Config(_)
         ));
+        c
+    }
+
+    fn core(samples: u64) -> BridgeCore {
+        let mut c = configured(samples);
         c.begin(0);
         c
     }
@@ -1170,23 +1176,8 @@ mod tests {
         const MS: u64 = 1_000_000;
         // Configured, the stack ready: RESET and ALIGN go out at host time 0.
         let aligning = || {
-            let mut c = BridgeCore::new(CoreSettings {
-                sample_hz: 20_000.0,
-                samples: 10,
-                silence_periods: 4,
-                plan_every: 3,
-                observer_hz: 400.0,
-                calibration: EncoderCalibration {
-                    offset_counts: Some(0),
-                    reverse: false,
-                    held_load: None,
-                },
-                resistance_ohm: 14.8,
-                rotor_teeth: 50.0,
-            });
+            let mut c = configured(10);
             let mut stats = StatsReport::default();
-            let config = frame_bytes(0, Message::Config(default_config(20_000.0, 200, 8)));
-            c.on_frame(&config, 0, &mut stats);
             // A configured drive streams SAMPLEs, disabled, before it is told to align.
             c.on_frame(&timed_sample(99, 0, 0), 0, &mut stats);
             let mut sent = 0;

@@ -87,15 +87,17 @@ fn processes_started_by_hand_find_each_other() {
         scenario.to_str().unwrap(),
     ];
     let spawn = |role: &str, extra: &[&str]| {
-        Command::new(exe())
-            .arg(role)
-            .args(common)
-            .args(extra)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("spawn")
+        Launched::new(
+            Command::new(exe())
+                .arg(role)
+                .args(common)
+                .args(extra)
+                .env("RUST_LOG", "info")
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped())
+                .spawn()
+                .expect("spawn"),
+        )
     };
     // Started in the "wrong" order on purpose: the plant waits for the loops.
     let mut plant = spawn("plant", &[]);

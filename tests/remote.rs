@@ -5,7 +5,7 @@
 mod common;
 
 use common::*;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// Two network namespaces joined by a veth pair, removed when dropped.
@@ -95,24 +95,6 @@ impl Drop for Link {
     }
 }
 
-/// A stack that is stopped (Ctrl-C) when the test ends, passed or not: a stack left
-/// behind holds its CPUs and fails every later realtime test.
-struct Served(Child);
-
-impl Drop for Served {
-    fn drop(&mut self) {
-        if let Ok(None) = self.0.try_wait() {
-            signal(self.0.id(), libc::SIGINT);
-            let deadline = Instant::now() + Duration::from_secs(20);
-            while Instant::now() < deadline && matches!(self.0.try_wait(), Ok(None)) {
-                std::thread::sleep(Duration::from_millis(50));
-            }
-            let _ = self.0.kill();
-            let _ = self.0.wait();
-        }
-    }
-}
-
 /// A value after `label` in `axis status`'s text (`ω            -0.4581 rad/s`).
 fn field(status: &str, label: &str) -> Option<f64> {
     status
@@ -141,7 +123,7 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
         .stderr(Stdio::piped())
         .spawn()
         .expect("spawn serve");
-    let mut serve = Served(serve);
+    let mut serve = Launched::new(serve);
     let remote = |args: &[&str]| {
         let mut all = vec!["axis", "--instance", &inst, "--connect", &endpoint];
         all.extend(args);
@@ -160,11 +142,11 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
         remote(&["status"]).status.success()
     }) {
         let last = text(&remote(&["status"]));
-        signal(serve.0.id(), libc::SIGINT);
-        let _ = wait_with_timeout(&mut serve.0, Duration::from_secs(30));
+        signal(serve.id(), libc::SIGINT);
+        let _ = wait_with_timeout(&mut serve, Duration::from_secs(30));
         panic!(
             "no answer through the gateway: {last}\nserve said: {}",
-            stderr_of(&mut serve.0)
+            stderr_of(&mut serve)
         );
     }
     let st = remote(&["status"]);
@@ -252,9 +234,9 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
     assert!(stopped < bound, "standstill {stopped:?} after the cut");
     println!("link cut → standstill in Quick stop active after {stopped:?}");
 
-    signal(serve.0.id(), libc::SIGINT);
-    let status = wait_with_timeout(&mut serve.0, Duration::from_secs(30));
-    let err = stderr_of(&mut serve.0);
+    signal(serve.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    let err = stderr_of(&mut serve);
     assert_eq!(status.code(), Some(0), "{err}");
     assert!(
         err.contains("went away") && err.contains("quick stop taken"),

@@ -174,6 +174,50 @@ pub fn wait_or_explain(
     );
 }
 
+/// A launcher a failing test does not leave behind: dropped while still running (a test
+/// that panicked before it waited), it is interrupted like Ctrl-C, which stops its loops,
+/// and killed if it has not ended 20 s later. A stack left running holds its CPUs and its
+/// instance, and every later test that starts a realtime stack would fail on it.
+pub struct Launched(Child);
+
+impl Launched {
+    /// A launcher started some other way (e.g. in a network namespace).
+    pub fn new(child: Child) -> Self {
+        Self(child)
+    }
+}
+
+impl std::ops::Deref for Launched {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        &self.0
+    }
+}
+
+impl std::ops::DerefMut for Launched {
+    fn deref_mut(&mut self) -> &mut Child {
+        &mut self.0
+    }
+}
+
+impl Drop for Launched {
+    fn drop(&mut self) {
+        if !matches!(self.0.try_wait(), Ok(None)) {
+            return;
+        }
+        signal(self.0.id(), libc::SIGINT);
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while Instant::now() < deadline {
+            if !matches!(self.0.try_wait(), Ok(None)) {
+                return;
+            }
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
 pub fn wait_until(timeout: Duration, mut cond: impl FnMut() -> bool) -> bool {
     let deadline = Instant::now() + timeout;
     while Instant::now() < deadline {
@@ -188,7 +232,7 @@ pub fn wait_until(timeout: Duration, mut cond: impl FnMut() -> bool) -> bool {
 /// A long run the supervision tests can interrupt.
 pub const LONG: &str = "[trajectory]\nhold_s = 300.0\n";
 
-pub fn start_long_run(dir: &TempDir, inst: &str) -> Child {
+pub fn start_long_run(dir: &TempDir, inst: &str) -> Launched {
     let scenario = dir.file("long.toml", LONG);
     let child = Command::new(exe())
         .args([
@@ -205,6 +249,7 @@ pub fn start_long_run(dir: &TempDir, inst: &str) -> Child {
         .stderr(Stdio::piped())
         .spawn()
         .expect("spawn run");
+    let child = Launched(child);
     // Wait until all three stack processes are up.
     assert!(
         wait_until(Duration::from_secs(30), || {
@@ -237,14 +282,16 @@ pub fn stdout_of(child: &mut Child) -> String {
 }
 
 /// `stepdrive ARGS` started in the background, its output piped.
-pub fn spawn_run(args: &[&str]) -> Child {
-    Command::new(exe())
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn stepdrive")
+pub fn spawn_run(args: &[&str]) -> Launched {
+    Launched(
+        Command::new(exe())
+            .args(args)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn stepdrive"),
+    )
 }
 
 /// The process of `role` (plant, current-loop, ...) in the stack on `inst`.
@@ -343,13 +390,7 @@ pub fn run_with_frozen_current_loop(
     at_s: f64,
     freeze: Duration,
 ) -> Value {
-    let mut child = Command::new(exe())
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn run");
+    let mut child = spawn_logged(args);
     wait_for_stack_time(inst, &mut child, at_s);
     let pid = pid_of_role(inst, "current-loop").expect("current loop");
     signal(pid, libc::SIGSTOP);
@@ -388,7 +429,7 @@ pub fn free_tcp_port() -> u16 {
 
 /// `stepdrive serve` on `inst` in the background, ordinary scheduling and no pinning (tests
 /// share two cores), with `extra` options.
-pub fn spawn_serve(inst: &str, extra: &[&str]) -> Child {
+pub fn spawn_serve(inst: &str, extra: &[&str]) -> Launched {
     let mut args = vec!["serve", "--instance", inst];
     args.extend(ORDINARY_STACK);
     args.extend_from_slice(extra);
@@ -411,14 +452,16 @@ pub fn run_proposed(inst: &str, scenario: &Path, extra: &[&str]) -> Output {
     stepdrive(&args)
 }
 
-pub fn spawn_logged(args: &[&str]) -> Child {
-    Command::new(exe())
-        .args(args)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn")
+pub fn spawn_logged(args: &[&str]) -> Launched {
+    Launched(
+        Command::new(exe())
+            .args(args)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("spawn"),
+    )
 }
 
 /// A hardware-mode run of the proposed method, without real-time settings.

@@ -644,6 +644,10 @@ pub enum AxisMode {
     /// The scenario's own profile (the paper's trapezoid).
     ScenarioProfile = 4,
     QuickStop = 5,
+    /// A move of several axes together, planned for all of them at once: every axis leaves
+    /// on the same tick and arrives on the same tick (CiA 402's interpolated position mode
+    /// plays that role for a multi-axis controller).
+    Coordinated = 6,
 }
 
 impl AxisMode {
@@ -655,6 +659,7 @@ impl AxisMode {
             AxisMode::CyclicPosition,
             AxisMode::ScenarioProfile,
             AxisMode::QuickStop,
+            AxisMode::Coordinated,
         ]
         .into_iter()
         .find(|m| *m as u32 == v)
@@ -668,6 +673,7 @@ impl AxisMode {
             AxisMode::CyclicPosition => "cyclic synchronous position",
             AxisMode::ScenarioProfile => "scenario profile",
             AxisMode::QuickStop => "quick stop",
+            AxisMode::Coordinated => "coordinated move",
         }
     }
 }

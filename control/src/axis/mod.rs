@@ -12,6 +12,7 @@
 //! and gives (12) the setpoint it returns. No IPC, no clock, no allocation in a tick.
 
 pub mod coordinated;
+pub mod group;
 pub mod otg;
 pub mod stream;
 pub mod track;
@@ -117,6 +118,11 @@ pub struct Axis {
     reference: Reference,
     torque_ff: f64,
     t: f64,
+    /// A coordinated move of its group runs: the group gives each tick's state.
+    coordinated: bool,
+    /// The group's state for the next tick, and the jerk that led to it.
+    coordinated_next: Option<(Reference, f64)>,
+    coordinated_jerk: f64,
 }
 
 impl Axis {
@@ -156,6 +162,9 @@ impl Axis {
             reference: at,
             torque_ff: 0.0,
             t: 0.0,
+            coordinated: false,
+            coordinated_next: None,
+            coordinated_jerk: 0.0,
         }
     }
 
@@ -217,6 +226,7 @@ impl Axis {
         self.profile = None;
         self.queued = None;
         self.end_stream();
+        self.end_coordinated();
         self.following_since = None;
         self.torque_ff = 0.0;
         self.epoch = self.epoch.wrapping_add(1);
@@ -232,13 +242,23 @@ impl Axis {
     /// Takes the trajectory from wherever the setpoint is now (a change of source while
     /// enabled keeps θ_d, ω_d, α_d continuous).
     fn take_over(&mut self, m: &Measured) {
-        if self.mode == AxisMode::ScenarioProfile || self.mode == AxisMode::CyclicPosition {
+        if matches!(
+            self.mode,
+            AxisMode::ScenarioProfile | AxisMode::CyclicPosition | AxisMode::Coordinated
+        ) {
             self.otg.restart(self.reference);
             self.otg_t = m.t;
         }
+        self.end_coordinated();
         self.profile = None;
         self.end_stream();
         self.torque_ff = 0.0;
+    }
+
+    /// Leaves the group's move: from here the generator holds or takes the axis on.
+    fn end_coordinated(&mut self) {
+        self.coordinated = false;
+        self.coordinated_next = None;
     }
 
     fn end_stream(&mut self) {
@@ -248,6 +268,7 @@ impl Axis {
     }
 
     fn power_off(&mut self, to: AxisState) {
+        self.end_coordinated();
         self.state = to;
         self.mode = AxisMode::Hold;
         self.profile = None;
@@ -745,6 +766,62 @@ impl Axis {
         Ok(s.after_jerk(m.t - self.otg_t, jerk))
     }
 
+    /// A coordinated move's target checked as a move's is (enabled, finite, within the
+    /// soft limits), nothing applied: the state the group plans from (the last tick's
+    /// setpoint, in axis coordinates; the move's first step is the next tick's).
+    fn coordinated_start(&self, target: f64) -> Result<Reference, Refused> {
+        self.enabled("a coordinated move")?;
+        if !target.is_finite() {
+            return Err(refuse(Refusal::NotFinite, format!("target {target}")));
+        }
+        self.within_soft_limits(target)?;
+        Ok(self.reference)
+    }
+
+    /// The group's move takes the axis towards `target` (checked by
+    /// [`Self::coordinated_start`]) from the next tick on.
+    fn enter_coordinated(&mut self, target: f64, m: &Measured) {
+        self.take_over(m);
+        self.queued = None;
+        self.target = target;
+        self.mode = AxisMode::Coordinated;
+        self.coordinated = true;
+        self.move_id += 1;
+        self.setpoint_acked = true;
+    }
+
+    /// Still in the group's move (no command, quick stop or fault took it out).
+    fn in_coordinated(&self) -> bool {
+        self.coordinated && self.mode == AxisMode::Coordinated && self.state.outputs_on()
+    }
+
+    /// The group's state for the next tick and the jerk that led to it; `last`: the move
+    /// ends there, at rest on its target, and the generator holds it from then on.
+    fn follow_coordinated(&mut self, at: Reference, jerk: f64, last: bool) {
+        self.coordinated_next = Some((at, jerk));
+        if last {
+            self.otg.set_limits(move_limits(&self.p));
+            self.otg.restart(at);
+            self.coordinated = false;
+        }
+    }
+
+    /// The holding brake no longer holds at `t` (a coordinated move needs every axis's
+    /// released: the axes must leave on the same tick).
+    fn free_to_move(&self, t: f64) -> bool {
+        self.brake_released(t)
+    }
+
+    /// Quick stop from Operation enabled (the group's stop policy); false if the axis was
+    /// not enabled.
+    fn quick_stop_if_enabled(&mut self, m: &Measured) -> bool {
+        if self.state != AxisState::OperationEnabled {
+            return false;
+        }
+        self.quick_stop(m);
+        true
+    }
+
     /// One tick at the measured state `m`: the device's faults, the source's setpoint, the
     /// envelope's checks. Returns what the torque law is to follow.
     pub fn tick(&mut self, m: &Measured) -> Setpoint {
@@ -794,6 +871,17 @@ impl Axis {
                 Ok(r) => r,
                 Err(e) => self.trajectory_failed(e),
             },
+            AxisMode::Coordinated if self.coordinated || self.coordinated_next.is_some() => {
+                // The group steps its move every tick; a tick it did not (none so far) would
+                // stand where the last one left the axis.
+                let (at, jerk) = self
+                    .coordinated_next
+                    .take()
+                    .unwrap_or((self.reference, 0.0));
+                self.otg_t = m.t;
+                self.coordinated_jerk = jerk;
+                at
+            }
             _ => match self.otg_to(m.t) {
                 Ok(r) => r,
                 Err(e) => self.trajectory_failed(e),
@@ -832,6 +920,7 @@ impl Axis {
                 AxisMode::ScenarioProfile => 0.0,
                 _ if !self.state.outputs_on() => 0.0,
                 AxisMode::CyclicPosition => self.followed_jerk,
+                AxisMode::Coordinated if self.coordinated => self.coordinated_jerk,
                 _ => self.otg.jerk(),
             },
             brake_released: self.brake_released(m.t),
@@ -890,6 +979,12 @@ impl Axis {
             AxisMode::ProfileVelocity => standing,
             AxisMode::QuickStop => standing && self.reference.omega == 0.0,
             AxisMode::Hold => e.abs() <= self.p.target_window_rad,
+            AxisMode::Coordinated => {
+                // The group's last step puts the setpoint on the target at rest.
+                !self.coordinated
+                    && self.reference.omega == 0.0
+                    && (self.target - theta).abs() <= self.p.target_window_rad
+            }
             AxisMode::CyclicPosition | AxisMode::ScenarioProfile => false,
         };
         let mut word = self.state.statusword();

@@ -217,6 +217,9 @@ fn link_error(e: anyhow::Error) -> RunError {
     }
 }
 
+/// How long the ping side keeps offering its last ping to a full socket queue.
+const LAST_PING_PATIENCE_NS: u64 = 2_000_000_000;
+
 /// Pings at absolute deadlines, like the plant publishes its samples.
 struct Ping {
     period_ns: u64,
@@ -274,7 +277,17 @@ impl Node for Ping {
             flags: if last { state_flags::LAST } else { 0 },
             ..Default::default()
         };
-        link.send(&m).map_err(link_error)?;
+        let mut sent = link.send(&m).map_err(link_error)?;
+        if last {
+            // The last ping ends the pong side's run: dropped (a socket queue a loaded
+            // pong had let fill), the pong waited out its peer timeout and the baseline was
+            // lost. The measurement is over, so waiting here costs nothing.
+            let deadline = cx.now() + LAST_PING_PATIENCE_NS;
+            while !sent && cx.now() < deadline {
+                std::thread::sleep(Duration::from_millis(1));
+                sent = link.send(&m).map_err(link_error)?;
+            }
+        }
         self.sent += 1;
         Ok(if last { Flow::Last } else { Flow::Continue })
     }

@@ -55,6 +55,9 @@ struct Launched {
     _bus: IpcBus,
     /// Realtime and hardware: the CPUs of its loops, held for the run.
     _cpu_claim: Option<cpus::CpuClaim>,
+    /// Lockstep: CPUs that poll instead of halting while the stack runs (its hand-offs are
+    /// wake-ups of the other CPU).
+    _wakeups: Option<stepdrive_runtime::wakeup::WakeupLatencyHold>,
     deployment: Deployment,
 }
 
@@ -176,6 +179,10 @@ fn launch(
         }),
         _bus: bus,
         _cpu_claim: cpu_claim,
+        _wakeups: match mode {
+            Mode::Lockstep => stepdrive_runtime::wakeup::hold_zero_wakeup_latency(),
+            Mode::Realtime | Mode::Hardware => None,
+        },
         deployment: d,
     })
 }

@@ -12,7 +12,7 @@
 //! (1), `--bound RAD` (1e-4: exit 1 above it), `--lead S` (the axis's), `--priority P` (SCHED_FIFO, 10; 0: ordinary,
 //! see [`stepdrive_client::realtime_priority`] for why not), `--instance NAME` (stepdrive),
 //! `--connect tcp/HOST:PORT` (through a `stepdrive gateway`, from another host: the status
-//! comes at the gateway's rate, and the lead defaults to 0.1 s), `--trace 1` (print every judged status beyond the bound: its tick, the stream time, the
+//! comes at the gateway's rate, and the lead defaults to 0.5 s), `--trace 1` (print every judged status beyond the bound: its tick, the stream time, the
 //! setpoint's and the rotor's distance from the sine, the warnings).
 //! The axis is enabled if it is not; it is left holding at the end of the stream.
 

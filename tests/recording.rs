@@ -547,8 +547,9 @@ fn a_live_view_serves_the_state_channel_decimated_to_its_rate() {
         "no live view on {addr}"
     );
     let mut ws = socket.expect("connected");
-    // The server is up before the stack: a loaded host has taken over 10 s from one to the
-    // other, so the messages are awaited once the stack runs.
+    // The server is up before the stack starts: the messages are awaited once the stack
+    // runs. (In one CI run none came for 10 s after the subscription; if that recurs, the
+    // panic below says where the stack's time was.)
     wait_for_stack_time(&inst, &mut serve, 0.05);
     ws.get_mut()
         .set_read_timeout(Some(Duration::from_secs(10)))

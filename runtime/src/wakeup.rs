@@ -4,7 +4,7 @@
 //! lockstep hand-off that sleeps on a doorbell is a wake-up of a process on the other CPU;
 //! from a halted virtual CPU that costs a VM exit and an interrupt, ~9 µs one way here.
 //! Measured on this project's machine (docs/measurements.md): the default scenario's
-//! lockstep run 0.386 → 0.307 s (medians of 10, interleaved).
+//! lockstep run 0.479 → 0.345 s (medians of 10, interleaved with the build before).
 //!
 //! The request lasts while the file stays open: the kernel drops it when the holder exits,
 //! killed or not. Opening it needs root; without, runs are as they were (said at debug).

@@ -234,22 +234,15 @@ pub const LONG: &str = "[trajectory]\nhold_s = 300.0\n";
 
 pub fn start_long_run(dir: &TempDir, inst: &str) -> Launched {
     let scenario = dir.file("long.toml", LONG);
-    let child = Command::new(exe())
-        .args([
-            "run",
-            "--method",
-            "proposed",
-            "--instance",
-            inst,
-            "--scenario",
-        ])
-        .arg(&scenario)
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("spawn run");
-    let child = Launched(child);
+    let child = spawn_logged(&[
+        "run",
+        "--method",
+        "proposed",
+        "--instance",
+        inst,
+        "--scenario",
+        scenario.to_str().expect("a UTF-8 path"),
+    ]);
     // Wait until all three stack processes are up.
     assert!(
         wait_until(Duration::from_secs(30), || {
@@ -283,11 +276,16 @@ pub fn stdout_of(child: &mut Child) -> String {
 
 /// `stepdrive ARGS` started in the background, its output piped.
 pub fn spawn_run(args: &[&str]) -> Launched {
+    spawn_with(args, Stdio::piped())
+}
+
+/// `stepdrive ARGS` in the background, its stderr piped, its stdout to `stdout`.
+fn spawn_with(args: &[&str], stdout: Stdio) -> Launched {
     Launched(
         Command::new(exe())
             .args(args)
             .env("RUST_LOG", "warn")
-            .stdout(Stdio::piped())
+            .stdout(stdout)
             .stderr(Stdio::piped())
             .spawn()
             .expect("spawn stepdrive"),
@@ -452,16 +450,9 @@ pub fn run_proposed(inst: &str, scenario: &Path, extra: &[&str]) -> Output {
     stepdrive(&args)
 }
 
+/// `stepdrive ARGS` in the background, its stdout dropped and its stderr (the log) piped.
 pub fn spawn_logged(args: &[&str]) -> Launched {
-    Launched(
-        Command::new(exe())
-            .args(args)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("spawn"),
-    )
+    spawn_with(args, Stdio::null())
 }
 
 /// A hardware-mode run of the proposed method, without real-time settings.

@@ -218,7 +218,8 @@ impl AxisGroup {
                 refusal: e.refusal,
                 text: format!("axis {i}: {}", e.text),
             })?;
-            if !axis.free_to_move(at.t) {
+            // The axes must leave on the same tick: no brake may still hold.
+            if !axis.brake_released(at.t) {
                 return Err(refuse(
                     Refusal::WrongState,
                     format!(
@@ -397,6 +398,19 @@ mod tests {
         (g, params, m)
     }
 
+    /// [`three`] after its first tick (t = 0), the rotors where it put them: the setpoints'
+    /// buffer is returned with them.
+    fn three_ticked(
+        policy: StopPolicy,
+        at: [f64; 3],
+    ) -> (AxisGroup, Vec<AxisParams>, [Measured; 3], [Setpoint; 3]) {
+        let (mut g, params, mut m) = three(policy, at);
+        let mut out = [idle_setpoint(); 3];
+        g.tick(&m, &mut out).expect("tick");
+        follow(&mut m, &out, 0);
+        (g, params, m, out)
+    }
+
     /// The rotors on their setpoints (a perfect plant) at the tick after `k`.
     fn follow(m: &mut [Measured; 3], out: &[Setpoint], k: u64) {
         for (mi, sp) in m.iter_mut().zip(out) {
@@ -427,10 +441,7 @@ mod tests {
     fn a_coordinated_move_leaves_and_arrives_on_one_tick_within_every_limit() {
         let start = [0.5, 2.0, -1.0];
         let goal = [1.5, -4.0, 11.0];
-        let (mut g, params, mut m) = three(StopPolicy::All, start);
-        let mut out = [idle_setpoint(); 3];
-        g.tick(&m, &mut out).expect("tick");
-        follow(&mut m, &out, 0);
+        let (mut g, params, mut m, mut out) = three_ticked(StopPolicy::All, start);
         let targets: Vec<(usize, f64)> = goal.iter().copied().enumerate().collect();
         g.move_together(&targets, &m).expect("planned");
         let duration = g.coordinated_duration_s().expect("running");
@@ -506,10 +517,7 @@ mod tests {
     /// (|p × d| / |d|), and one on the line is not off at all.
     #[test]
     fn the_contour_error_is_the_distance_from_the_straight_line() {
-        let (mut g, _, mut m) = three(StopPolicy::Own, [0.0; 3]);
-        let mut out = [idle_setpoint(); 3];
-        g.tick(&m, &mut out).expect("tick");
-        follow(&mut m, &out, 0);
+        let (mut g, _, mut m, mut out) = three_ticked(StopPolicy::Own, [0.0; 3]);
         g.move_together(&[(0, 3.0), (1, 4.0), (2, 0.0)], &m)
             .expect("planned");
         m[0].theta = 1.5;
@@ -531,10 +539,7 @@ mod tests {
     /// to a standstill at their quick-stop deceleration and hold there, not faulted.
     #[test]
     fn a_faulted_axis_quick_stops_the_others_and_none_of_them_faults() {
-        let (mut g, params, mut m) = three(StopPolicy::All, [0.0; 3]);
-        let mut out = [idle_setpoint(); 3];
-        g.tick(&m, &mut out).expect("tick");
-        follow(&mut m, &out, 0);
+        let (mut g, params, mut m, mut out) = three_ticked(StopPolicy::All, [0.0; 3]);
         g.move_together(&[(0, 3.0), (1, 8.0), (2, 10.0)], &m)
             .expect("planned");
         let mut fault_at = None;
@@ -591,10 +596,7 @@ mod tests {
     /// the others finish the coordinated move on its tick.
     #[test]
     fn with_policy_own_the_others_finish_the_move() {
-        let (mut g, _, mut m) = three(StopPolicy::Own, [0.0; 3]);
-        let mut out = [idle_setpoint(); 3];
-        g.tick(&m, &mut out).expect("tick");
-        follow(&mut m, &out, 0);
+        let (mut g, _, mut m, mut out) = three_ticked(StopPolicy::Own, [0.0; 3]);
         g.move_together(&[(0, 2.0), (1, 4.0), (2, 6.0)], &m)
             .expect("planned");
         let ticks = (g.coordinated_duration_s().expect("running") / T).round() as u64;
@@ -617,10 +619,7 @@ mod tests {
     /// leaves every axis as it was.
     #[test]
     fn a_coordinated_move_that_cannot_be_taken_says_why_and_moves_nothing() {
-        let (mut g, _, mut m) = three(StopPolicy::All, [0.0; 3]);
-        let mut out = [idle_setpoint(); 3];
-        g.tick(&m, &mut out).expect("tick");
-        follow(&mut m, &out, 0);
+        let (mut g, _, m, mut out) = three_ticked(StopPolicy::All, [0.0; 3]);
         let limit = g.axis(2).map(|a| a.p.position_max_rad).unwrap_or(f64::NAN);
         type Case<'a> = (&'a [(usize, f64)], Refusal, &'a str);
         let cases: [Case; 6] = [

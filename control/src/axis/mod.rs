@@ -806,12 +806,6 @@ impl Axis {
         }
     }
 
-    /// The holding brake no longer holds at `t` (a coordinated move needs every axis's
-    /// released: the axes must leave on the same tick).
-    fn free_to_move(&self, t: f64) -> bool {
-        self.brake_released(t)
-    }
-
     /// Quick stop from Operation enabled (the group's stop policy); false if the axis was
     /// not enabled.
     fn quick_stop_if_enabled(&mut self, m: &Measured) -> bool {

@@ -495,3 +495,166 @@ fn a_client_started_before_a_hardware_stack_gets_its_status() {
     let ended = wait_with_timeout(&mut run, Duration::from_secs(60));
     assert!(ended.success(), "{}", stderr_of(&mut run));
 }
+
+/// The short scenario's three axes: x as the file says, y without load, z with twice the
+/// inertia.
+fn three_axes(extra: &str) -> String {
+    format!(
+        "{SHORT}{extra}
+[[axis]]
+name = \"x\"
+[[axis]]
+name = \"y\"
+[axis.load]
+torque_nm = 0.0
+[[axis]]
+name = \"z\"
+[axis.motor]
+inertia_kg_m2 = 2.0e-5
+"
+    )
+}
+
+/// A stack of three axes is three loop processes, each serving every axis; each axis's
+/// figures are bit for bit those of a one-axis stack of its own scenario (the axes share
+/// the processes, nothing else).
+#[test]
+fn three_axes_in_one_stack_are_each_what_a_stack_of_their_own_gives() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("three-axes");
+    let inst = instance("three-axes");
+    let three = dir.file("three.toml", &three_axes(""));
+    let json = dir.path("three.json");
+    let out = run_proposed(&inst, &three, &["--json", json.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out));
+    let doc = read_json(&json);
+    let run = run_of(&doc, "proposed");
+    let axes = run["axes"].as_array().expect("the other axes' reports");
+    assert_eq!(axes.len(), 2, "{run}");
+    let own = [
+        (None, run),
+        (Some("[load]\ntorque_nm = 0.0\n"), &axes[0]),
+        (Some("[motor]\ninertia_kg_m2 = 2.0e-5\n"), &axes[1]),
+    ];
+    for (n, (tables, in_three)) in own.into_iter().enumerate() {
+        if n > 0 {
+            assert_eq!(in_three["axis"], n, "{in_three}");
+            assert_eq!(in_three["name"], ["x", "y", "z"][n], "{in_three}");
+        }
+        assert_eq!(in_three["outcome"], "ok", "axis {n}: {in_three}");
+        let alone = dir.file(
+            &format!("alone{n}.toml"),
+            &format!("{SHORT}{}", tables.unwrap_or("")),
+        );
+        let alone_json = dir.path(&format!("alone{n}.json"));
+        let out = run_proposed(
+            &format!("{inst}-{n}"),
+            &alone,
+            &["--json", alone_json.to_str().unwrap()],
+        );
+        assert!(out.status.success(), "{}", text(&out));
+        let doc = read_json(&alone_json);
+        let alone = run_of(&doc, "proposed");
+        for key in [
+            "samples",
+            "cruise_max_abs_error_rad",
+            "max_abs_error_rad",
+            "final_error_rad",
+            "mean_copper_loss_w",
+            "max_abs_voltage_v",
+        ] {
+            assert_eq!(
+                in_three[key], alone[key],
+                "axis {n}'s {key}: in the three-axis stack, then alone"
+            );
+        }
+    }
+    // The axes differ where their scenarios do: y carries no load.
+    assert_ne!(
+        num(run, "cruise_mean_torque_nm"),
+        num(&axes[0], "cruise_mean_torque_nm")
+    );
+}
+
+/// One axis of three faults (its following-error window is too tight for its move): the
+/// run fails with the fault's exit code, and the headline names that axis; the others
+/// finish their moves.
+#[test]
+fn a_fault_on_one_axis_of_three_fails_the_run_naming_that_axis() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("three-axes-fault");
+    let inst = instance("three-axes-fault");
+    let mut program = String::new();
+    for (axis, to) in [(0, 1.0), (1, -2.0), (2, 3.0)] {
+        program += &format!(
+            "[[program]]\nat_s = 0.0\naxis = {axis}\ncommand = \"enable\"\n\
+             [[program]]\nat_s = 0.1\naxis = {axis}\ncommand = \"move\"\nto = {to}\n"
+        );
+    }
+    let text_of = three_axes(&program).replace(
+        "[axis.motor]\ninertia_kg_m2 = 2.0e-5\n",
+        "[axis.limits]\nfollowing_error_window_rad = 1e-6\nfollowing_error_time_s = 0.001\n",
+    );
+    let scenario = dir.file("fault.toml", &text_of);
+    let json = dir.path("fault.json");
+    let out = run_proposed(&inst, &scenario, &["--json", json.to_str().unwrap()]);
+    assert_eq!(out.status.code(), Some(3), "{}", text(&out));
+    let said = text(&out);
+    assert!(
+        said.contains("axis 2 (z): FAULT (exit 3)") && said.contains("FOLLOWING_ERROR"),
+        "{said}"
+    );
+    let doc = read_json(&json);
+    assert_eq!(doc["outcome"], "fault", "{doc}");
+    let run = run_of(&doc, "proposed");
+    assert_eq!(run["outcome"], "ok", "axis 0 is healthy: {run}");
+    let axes = run["axes"].as_array().expect("the other axes' reports");
+    assert_eq!(axes[0]["outcome"], "ok");
+    assert_eq!(axes[1]["outcome"], "fault");
+    // x and y reached their targets (each axis's moves are its own).
+    for (axis, target) in [(run, 1.0), (&axes[0], -2.0)] {
+        let moves = axis["moves"].as_array().expect("moves");
+        assert_eq!(moves.len(), 1, "{axis}");
+        assert_eq!(num(&moves[0], "target_rad"), target);
+        assert!(moves[0]["duration_s"].as_f64().is_some(), "{axis}");
+    }
+}
+
+/// `serve` of a three-axis scenario: each axis is commanded by its index (`--axis`), the
+/// others stay as they were; an index the stack does not have is refused.
+#[test]
+fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("served-three");
+    let inst = instance("served-three");
+    let scenario = dir.file("three.toml", &three_axes(""));
+    let mut serve = spawn_serve(&inst, &["--scenario", scenario.to_str().unwrap()]);
+    let axis = |n: &str, args: &[&str]| {
+        let mut all = vec!["axis", "--instance", inst.as_str(), "--axis", n];
+        all.extend(args);
+        stepdrive(&all)
+    };
+    assert!(
+        wait_until(Duration::from_secs(30), || axis("2", &["status"])
+            .status
+            .success()),
+        "the served stack did not answer"
+    );
+    let enabled = axis("2", &["enable"]);
+    assert!(enabled.status.success(), "{}", text(&enabled));
+    let moved = axis("2", &MOVE_1_RAD_WAITED);
+    assert_reached(&moved);
+    for (n, state) in [
+        ("2", "Operation enabled"),
+        ("0", "Switch on disabled"),
+        ("1", "Switch on disabled"),
+    ] {
+        let st = axis(n, &["status"]);
+        assert!(text(&st).contains(state), "axis {n}: {}", text(&st));
+    }
+    let unknown = axis("3", &["status"]);
+    assert!(!unknown.status.success(), "{}", text(&unknown));
+    signal(serve.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    assert!(status.success(), "{}", stderr_of(&mut serve));
+}

@@ -17,7 +17,7 @@ pub struct AxisArgs {
     /// The served stack's instance name.
     #[arg(long, default_value = DEFAULT_INSTANCE, global = true, value_parser = stepdrive_shared::services::instance_name)]
     instance: String,
-    /// The axis (this stack has axis 0).
+    /// The axis: 0, or in a multi-axis stack its `[[axis]]` index
     #[arg(long, default_value_t = 0, global = true)]
     axis: u32,
     /// Reach the stack through the `stepdrive gateway` at this Zenoh endpoint

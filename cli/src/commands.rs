@@ -10,7 +10,7 @@ use stepdrive_monitor::latency::session::{run_latency, table as latency_table, L
 use stepdrive_monitor::record::recording::{Chunks, Recording};
 use stepdrive_monitor::report::metrics::RunReport;
 use stepdrive_monitor::report::outcome::Outcome;
-use stepdrive_monitor::report::table::{document, headline, overall, table};
+use stepdrive_monitor::report::table::{document, headlines, overall, table};
 use stepdrive_monitor::studies::simulate::{simulate as simulate_run, simulate_stalls};
 use stepdrive_monitor::supervise::attach::{attach_reader, watch, ResetResult};
 use stepdrive_monitor::supervise::launcher::{run_stack, LaunchOptions};
@@ -394,7 +394,7 @@ fn conclude(s: &Scenario, runs: &[RunReport], json: Option<JsonOut>) -> Result<(
         out.commit(&(text + "\n"))?;
         println!("results written to {}", path.display());
     }
-    let headlines: Vec<String> = runs.iter().filter_map(|r| headline(s, r)).collect();
+    let headlines: Vec<String> = runs.iter().flat_map(|r| headlines(s, r)).collect();
     for h in &headlines {
         println!("\n{h}");
     }
@@ -505,7 +505,7 @@ pub fn run(a: RunArgs) -> Result<()> {
                 return Err(e.context(format!("the {method} run could not start")));
             }
         };
-        let stop = report.outcome >= Outcome::ProcessDied;
+        let stop = report.worst() >= Outcome::ProcessDied;
         runs.push(report);
         if stop {
             break;

@@ -301,7 +301,9 @@ impl Axis {
         };
         stepdrive_shared::services::instance_name(instance).map_err(ClientError::BadInstance)?;
         let role = format!("client-{}", std::process::id());
-        let bus = IpcBus::attach(instance, &role, Duration::from_secs(5)).map_err(no_stack)?;
+        let mut bus = IpcBus::attach(instance, &role, Duration::from_secs(5)).map_err(no_stack)?;
+        // Each axis of a multi-axis stack has its own services.
+        stepdrive_runtime::port::PortFactory::set_axis(&mut bus, axis);
         let commands = match bus.mode() {
             Mode::Lockstep => None,
             Mode::Realtime | Mode::Hardware => Some(bus.command_client().map_err(no_stack)?),

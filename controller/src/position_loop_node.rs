@@ -62,6 +62,8 @@ impl PositionLoopPorts {
 }
 
 pub struct PositionLoopNode {
+    /// The axis it serves (its index in a multi-axis stack).
+    axis: u32,
     body: PositionLoop,
     program: Program,
     pace: Pace,
@@ -88,12 +90,15 @@ impl PositionLoopNode {
     /// half a current period, so that the sample is out when the tick reads it; a
     /// simulation, 0: same instant, the plant first). The scenario's program, if any, is
     /// read now (its stream files too).
-    pub fn new(s: &Scenario, mode: Mode, phase_ns: u64) -> Result<Self, RunError> {
+    /// `axis`: the axis it serves, whose index its commands, setpoints and status carry
+    /// (`s` is that axis's scenario).
+    pub fn new(s: &Scenario, axis: u32, mode: Mode, phase_ns: u64) -> Result<Self, RunError> {
         let period_ns = s.sample_period_ns();
         let ratio = s.rate_ratio();
         Ok(Self {
+            axis,
             body: PositionLoop::new(s),
-            program: Program::new(s).map_err(|e| RunError::node(Role::PositionLoop, e))?,
+            program: Program::new(s, axis).map_err(|e| RunError::node(Role::PositionLoop, e))?,
             pace: match mode {
                 Mode::Lockstep => Pace::Input,
                 _ => Pace::Clock {
@@ -134,10 +139,13 @@ impl PositionLoopNode {
             t_s: state.sample_time_s,
             ..Default::default()
         };
-        let result = if request.axis != 0 {
+        let result = if request.axis != self.axis {
             Err((
                 Refusal::UnknownAxis,
-                format!("axis {} (this stack has axis 0 only)", request.axis),
+                format!(
+                    "axis {} (this is axis {}'s command service)",
+                    request.axis, self.axis
+                ),
             ))
         } else {
             self.body
@@ -214,6 +222,7 @@ impl PositionLoopNode {
             let _ = self.body.axis().stream_point(&p, &m);
         }
         let mut sp = self.body.on_tick(state);
+        sp.axis = self.axis;
         sp.publish_time_ns = cx.now();
         ports.setpoints.publish(&sp)?;
         if n > 0 {
@@ -228,6 +237,7 @@ impl PositionLoopNode {
             }
         }
         let mut status = self.body.status(state);
+        status.axis = self.axis;
         status.publish_time_ns = cx.now();
         ports.status.publish(&status)?;
         if self.body.axis().device_reset_wanted() && state.fault != 0 {

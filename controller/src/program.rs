@@ -49,13 +49,16 @@ pub struct Program {
 }
 
 impl Program {
-    pub fn new(s: &Scenario) -> Result<Self, ProgramError> {
+    /// `axis`: the index its requests carry (a multi-axis stack's position loop serves
+    /// each axis's own steps).
+    pub fn new(s: &Scenario, axis: u32) -> Result<Self, ProgramError> {
         let mut p = Program::default();
         for (i, step) in s.program.iter().enumerate() {
             // The request's seq is the step's number, from 1.
             let seq = i as u64 + 1;
             let mut r = AxisRequest {
                 seq,
+                axis,
                 ..Default::default()
             };
             let kind = match step.command {

@@ -12,6 +12,7 @@ use stepdrive_controller::identify_node::{IdentifyNode, IdentifyPorts};
 use stepdrive_controller::position_loop_node::{PositionLoopNode, PositionLoopPorts};
 use stepdrive_plant::node::{PlantNode, PlantPorts, PlantSettings};
 use stepdrive_runtime::deploy::Deployment;
+use stepdrive_runtime::lanes::Lanes;
 use stepdrive_runtime::node::Node;
 use stepdrive_runtime::pacer::WaitStrategy;
 use stepdrive_runtime::port::PortFactory;
@@ -98,6 +99,8 @@ pub enum AssembleError {
     NoDrive,
     #[error(transparent)]
     BadDrive(#[from] stepdrive_bridge::node::BadDriveAddr),
+    #[error("the {role} serves one axis; this scenario has {axes} ([[axis]] tables): a multi-axis stack runs in lockstep or realtime with the simulated plant")]
+    OneAxisOnly { role: Role, axes: usize },
     #[error("--wait event is for the current loop; the bridge waits for the drive's frames with sleep, spin or hybrid:<µs>")]
     BridgeEvent,
 }
@@ -115,6 +118,9 @@ pub fn assemble<A: Assemble>(
     bus: &mut impl PortFactory,
     a: &mut A,
 ) -> Result<A::Out, RunError> {
+    if setup.scenario.axis_count() > 1 {
+        return assemble_axes(role, setup, bus, a);
+    }
     match role {
         Role::Plant => {
             let (n, p) = plant(setup, bus)?;
@@ -129,7 +135,7 @@ pub fn assemble<A: Assemble>(
             a.node(n, p)
         }
         Role::PositionLoop => {
-            let (n, p) = position_loop(setup, bus)?;
+            let (n, p) = position_loop(setup, bus, 0)?;
             a.node(n, p)
         }
         Role::Identify => {
@@ -140,6 +146,65 @@ pub fn assemble<A: Assemble>(
             Err(RunError::node(role, AssembleError::NotANode(role)))
         }
     }
+}
+
+/// A multi-axis stack's `role`: one node per axis, each built from its axis's scenario on
+/// its axis's ports, stepped as one ([`Lanes`]).
+fn assemble_axes<A: Assemble, B: PortFactory>(
+    role: Role,
+    setup: &Setup,
+    bus: &mut B,
+    a: &mut A,
+) -> Result<A::Out, RunError> {
+    match role {
+        Role::Plant => {
+            let (n, p) = lanes_of(setup, bus, |s, b, _| plant(s, b))?;
+            a.node(n, p)
+        }
+        Role::CurrentLoop => {
+            let (n, p) = lanes_of(setup, bus, |s, b, _| current_loop(s, b))?;
+            a.node(n, p)
+        }
+        Role::PositionLoop => {
+            let (n, p) = lanes_of(setup, bus, position_loop)?;
+            a.node(n, p)
+        }
+        Role::Bridge | Role::Identify => Err(RunError::node(
+            role,
+            AssembleError::OneAxisOnly {
+                role,
+                axes: setup.scenario.axis_count(),
+            },
+        )),
+        Role::EmulatedDrive | Role::Monitor | Role::Tool(_) => {
+            Err(RunError::node(role, AssembleError::NotANode(role)))
+        }
+    }
+}
+
+/// Every axis's node of one role, built by `build` from the axis's setup on its ports.
+fn lanes_of<N: Node, B: PortFactory>(
+    setup: &Setup,
+    bus: &mut B,
+    build: impl Fn(&Setup, &mut B, u32) -> Result<(N, N::Ports), RunError>,
+) -> Result<(Lanes<N>, Vec<N::Ports>), RunError> {
+    let axes = setup.scenario.axis_count();
+    let (mut nodes, mut ports) = (Vec::with_capacity(axes), Vec::with_capacity(axes));
+    for axis in 0..axes {
+        let Some(scenario) = setup.scenario.for_axis(axis) else {
+            unreachable!("axis {axis} is below the axis count {axes}")
+        };
+        bus.set_axis(axis as u32);
+        let lane = Setup {
+            scenario,
+            ..setup.clone()
+        };
+        let (n, p) = build(&lane, bus, axis as u32)?;
+        nodes.push(n);
+        ports.push(p);
+    }
+    bus.set_axis(0);
+    Ok((Lanes::new(nodes, setup.mode == Mode::Lockstep), ports))
 }
 
 /// The simulated plant.
@@ -188,6 +253,7 @@ pub fn current_loop(
 pub fn position_loop(
     setup: &Setup,
     bus: &mut impl PortFactory,
+    axis: u32,
 ) -> Result<(PositionLoopNode, PositionLoopPorts), RunError> {
     // Half a current period after the plant's samples: each tick finds its sample out. In
     // one thread the plant simply goes first.
@@ -198,7 +264,7 @@ pub fn position_loop(
         0
     };
     Ok((
-        PositionLoopNode::new(s, setup.mode, phase_ns)?,
+        PositionLoopNode::new(s, axis, setup.mode, phase_ns)?,
         PositionLoopPorts::open(bus, setup.mode)?,
     ))
 }

@@ -111,6 +111,8 @@ pub struct IpcBus {
     verifier: AttributeVerifier,
     /// Lockstep: the instance's doorbells, rung by every publisher.
     doorbells: Option<Doorbells>,
+    /// The axis whose services the next ports are opened on ([`PortFactory::set_axis`]).
+    axis: u32,
 }
 
 impl IpcBus {
@@ -159,6 +161,7 @@ impl IpcBus {
             stamp: stamp.clone(),
             verifier,
             doorbells,
+            axis: 0,
         })
     }
 
@@ -264,7 +267,7 @@ impl IpcBus {
     }
 
     fn topic<M: Message>(&self) -> Result<(String, TopicFactory<M>), PortError> {
-        let name = self.names.topic(M::TOPIC);
+        let name = self.names.topic_of(M::TOPIC, self.axis);
         let qos = M::TOPIC.qos(self.stamp.mode);
         let factory = self.service(
             &name,
@@ -339,6 +342,10 @@ impl IpcBus {
 }
 
 impl PortFactory for IpcBus {
+    fn set_axis(&mut self, axis: u32) {
+        self.axis = axis;
+    }
+
     fn publisher<M: Message>(&mut self) -> Result<Box<dyn Publish<M>>, PortError> {
         Ok(Box::new(self.publisher_of::<M>()?))
     }
@@ -644,7 +651,7 @@ impl CommandClient {
 
 impl IpcBus {
     fn command_service(&self) -> Result<(String, CommandFactory), PortError> {
-        let name = self.names.topic(Topic::AxisCommand);
+        let name = self.names.topic_of(Topic::AxisCommand, self.axis);
         let factory = self.service(
             &name,
             MessagingPattern::RequestResponse,

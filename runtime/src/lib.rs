@@ -16,6 +16,7 @@ pub mod doorbell;
 pub mod error;
 pub mod inbox;
 pub mod ipc;
+pub mod lanes;
 pub mod memory;
 pub mod node;
 pub mod pacer;

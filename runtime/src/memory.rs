@@ -21,16 +21,20 @@ struct Queue<M> {
 
 type Queues<M> = Rc<RefCell<Vec<Rc<RefCell<Queue<M>>>>>>;
 
+/// A topic of one axis (the statistics: axis 0, one per process).
+type Key = (Topic, u32);
+
 #[derive(Default)]
 struct Counts {
-    publishers: HashMap<Topic, usize>,
-    subscribers: HashMap<Topic, usize>,
+    publishers: HashMap<Key, usize>,
+    subscribers: HashMap<Key, usize>,
 }
 
 /// The ports of one simulated stack.
 pub struct MemoryBus {
     mode: Mode,
-    topics: HashMap<Topic, Box<dyn Any>>,
+    axis: u32,
+    topics: HashMap<Key, Box<dyn Any>>,
     counts: Rc<RefCell<Counts>>,
 }
 
@@ -38,15 +42,20 @@ impl MemoryBus {
     pub fn new(mode: Mode) -> Self {
         Self {
             mode,
+            axis: 0,
             topics: HashMap::new(),
             counts: Rc::default(),
         }
     }
 
+    fn key(&self, topic: Topic) -> Key {
+        (topic, if topic.per_axis() { self.axis } else { 0 })
+    }
+
     fn queues<M: Message>(&mut self) -> Queues<M> {
         let entry = self
             .topics
-            .entry(M::TOPIC)
+            .entry(self.key(M::TOPIC))
             .or_insert_with(|| Box::new(Queues::<M>::default()));
         // One message type per topic (the contract's `Message::TOPIC`), so this always holds.
         match entry.downcast_ref::<Queues<M>>() {
@@ -57,25 +66,21 @@ impl MemoryBus {
 }
 
 impl PortFactory for MemoryBus {
+    fn set_axis(&mut self, axis: u32) {
+        self.axis = axis;
+    }
+
     fn publisher<M: Message>(&mut self) -> Result<Box<dyn Publish<M>>, PortError> {
-        *self
-            .counts
-            .borrow_mut()
-            .publishers
-            .entry(M::TOPIC)
-            .or_default() += 1;
+        let key = self.key(M::TOPIC);
+        *self.counts.borrow_mut().publishers.entry(key).or_default() += 1;
         Ok(Box::new(MemoryPublisher {
             queues: self.queues::<M>(),
         }))
     }
 
     fn subscriber<M: Message>(&mut self, depth: usize) -> Result<Box<dyn Subscribe<M>>, PortError> {
-        *self
-            .counts
-            .borrow_mut()
-            .subscribers
-            .entry(M::TOPIC)
-            .or_default() += 1;
+        let key = self.key(M::TOPIC);
+        *self.counts.borrow_mut().subscribers.entry(key).or_default() += 1;
         let overwrite = M::TOPIC.qos(self.mode).safe_overflow;
         let queue = Rc::new(RefCell::new(Queue {
             items: VecDeque::with_capacity(depth),
@@ -98,7 +103,10 @@ impl PortFactory for MemoryBus {
     }
 
     fn presence(&mut self) -> Result<Box<dyn Presence>, PortError> {
-        Ok(Box::new(MemoryPresence(Rc::clone(&self.counts))))
+        Ok(Box::new(MemoryPresence {
+            counts: Rc::clone(&self.counts),
+            axis: self.axis,
+        }))
     }
 }
 
@@ -151,17 +159,33 @@ impl Listen for Nothing {
     }
 }
 
-struct MemoryPresence(Rc<RefCell<Counts>>);
+struct MemoryPresence {
+    counts: Rc<RefCell<Counts>>,
+    axis: u32,
+}
+
+impl MemoryPresence {
+    fn key(&self, topic: Topic) -> Key {
+        (topic, if topic.per_axis() { self.axis } else { 0 })
+    }
+}
 
 impl Presence for MemoryPresence {
     fn publishers(&self, topic: Topic) -> usize {
-        self.0.borrow().publishers.get(&topic).copied().unwrap_or(0)
+        let key = self.key(topic);
+        self.counts
+            .borrow()
+            .publishers
+            .get(&key)
+            .copied()
+            .unwrap_or(0)
     }
     fn subscribers(&self, topic: Topic) -> usize {
-        self.0
+        let key = self.key(topic);
+        self.counts
             .borrow()
             .subscribers
-            .get(&topic)
+            .get(&key)
             .copied()
             .unwrap_or(0)
     }

@@ -86,7 +86,7 @@ pub enum Flow {
 /// What a node sees of the world during one call: the time, its statistics, and when its
 /// cycle was due and began.
 pub struct Cx<'a> {
-    clock: &'a dyn Clock,
+    pub(crate) clock: &'a dyn Clock,
     /// Role-specific figures (hops, counters); the runner records the generic ones.
     pub stats: &'a mut StatsReport,
     /// A clock-paced cycle's deadline; 0 for an input-paced one.

@@ -120,6 +120,9 @@ pub trait Presence {
 /// Opens ports: one implementation per transport, so a role's ports are built the same way
 /// for a process and for a simulation.
 pub trait PortFactory {
+    /// The axis whose ports the next calls open (a multi-axis stack's topics are per axis:
+    /// [`Topic::path_of`]); 0 until set.
+    fn set_axis(&mut self, axis: u32);
     fn publisher<M: Message>(&mut self) -> Result<Box<dyn Publish<M>>, PortError>;
     /// `depth`: messages queued before the oldest is overwritten (realtime) or the
     /// publisher waits (lockstep).

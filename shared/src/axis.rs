@@ -215,6 +215,9 @@ pub enum ProgramCommand {
 #[serde(deny_unknown_fields)]
 pub struct ProgramStep {
     pub at_s: f64,
+    /// The axis it commands (a multi-axis scenario's `[[axis]]` index; 0 otherwise).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub axis: u32,
     pub command: ProgramCommand,
     /// move: the target (set-position: the new position), rad.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -240,6 +243,10 @@ pub struct ProgramStep {
     /// stream: its lead, s (absent: `[axis] stream_lead_s`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub lead_s: Option<f64>,
+}
+
+fn is_zero(v: &u32) -> bool {
+    *v == 0
 }
 
 impl ProgramStep {

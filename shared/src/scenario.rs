@@ -238,6 +238,38 @@ pub struct Scenario {
     /// scenario's trajectory, deterministically in lockstep.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub program: Vec<ProgramStep>,
+    /// A multi-axis stack's axes (`[[axis]]` tables), each a whole scenario of its own;
+    /// empty: one axis, the file's tables ([`Self::axis_count`], [`Self::for_axis`]).
+    #[serde(skip)]
+    pub axes: Vec<AxisOf>,
+    /// One axis of a multi-axis program that has no step of its own: it waits disabled
+    /// instead of running the trajectory.
+    #[serde(skip)]
+    pub held: bool,
+}
+
+/// The most axes one stack runs.
+pub const MAX_AXES: usize = 8;
+
+/// What an `[[axis]]` table may set: the axis's own tables, laid over the file's.
+const AXIS_KEYS: [(&str, &str); 8] = [
+    ("name", "name"),
+    ("motor", "motor"),
+    ("load", "load"),
+    ("plant", "plant"),
+    ("gains", "gains"),
+    ("control", "control"),
+    ("drive", "drive"),
+    ("limits", "axis"),
+];
+
+/// One axis of a multi-axis scenario: its `[[axis]]` table as written, and the scenario
+/// it makes (the file's tables with the axis's on top, its program steps only).
+#[derive(Debug, Clone, PartialEq)]
+pub struct AxisOf {
+    pub name: String,
+    pub table: toml::Table,
+    pub scenario: Scenario,
 }
 
 impl Default for Scenario {
@@ -256,6 +288,8 @@ impl Default for Scenario {
             control: ControlParams::default(),
             axis: AxisParams::default(),
             program: Vec::new(),
+            axes: Vec::new(),
+            held: false,
         }
     }
 }
@@ -339,6 +373,20 @@ pub(crate) fn within(
     ))
 }
 
+/// Lays `value` over `into` in `table`: tables field by field, anything else replaced.
+fn lay_over(table: &mut toml::Table, into: &str, value: &toml::Value) {
+    match (table.get_mut(into), value) {
+        (Some(toml::Value::Table(under)), toml::Value::Table(over)) => {
+            for (key, v) in over {
+                lay_over(under, key, v);
+            }
+        }
+        _ => {
+            table.insert(into.to_string(), value.clone());
+        }
+    }
+}
+
 pub(crate) fn invalid(field: &'static str, message: String) -> ScenarioError {
     ScenarioError::Invalid { field, message }
 }
@@ -367,16 +415,179 @@ impl Scenario {
     }
 
     pub fn from_toml_str(text: &str) -> Result<Self, ScenarioError> {
-        let scenario: Scenario = toml::from_str(text).map_err(|e| ScenarioError::Parse {
+        let parse_error = |message: String| ScenarioError::Parse {
             path: PathBuf::from("<string>"),
-            message: e.to_string(),
-        })?;
+            message,
+        };
+        let table: toml::Table = toml::from_str(text).map_err(|e| parse_error(e.to_string()))?;
+        if matches!(table.get("axis"), Some(toml::Value::Array(_))) {
+            return Self::with_axes(table);
+        }
+        // One axis: read straight from the text, whose errors point at their line.
+        let scenario: Scenario = toml::from_str(text).map_err(|e| parse_error(e.to_string()))?;
         scenario.validate()?;
+        if let Some((i, step)) = scenario
+            .program
+            .iter()
+            .enumerate()
+            .find(|(_, p)| p.axis != 0)
+        {
+            return Err(invalid(
+                "program.axis",
+                format!(
+                    "(step {i}) names axis {}; without [[axis]] tables the scenario has axis 0 only",
+                    step.axis
+                ),
+            ));
+        }
         Ok(scenario)
     }
 
+    /// A file with `[[axis]]` tables: the file's other tables are every axis's defaults, and
+    /// each axis's tables lay its own values over them, field by field.
+    fn with_axes(mut table: toml::Table) -> Result<Self, ScenarioError> {
+        let parse_error = |message: String| ScenarioError::Parse {
+            path: PathBuf::from("<string>"),
+            message,
+        };
+        let Some(toml::Value::Array(entries)) = table.remove("axis") else {
+            unreachable!("with_axes is called for an [[axis]] array")
+        };
+        if entries.is_empty() || entries.len() > MAX_AXES {
+            return Err(invalid(
+                "axis",
+                format!(
+                    "has {} [[axis]] tables; a stack runs 1..={MAX_AXES}",
+                    entries.len()
+                ),
+            ));
+        }
+        let mut base: Scenario = toml::Value::Table(table.clone())
+            .try_into()
+            .map_err(|e: toml::de::Error| parse_error(e.to_string()))?;
+        base.validate()?;
+        let n = entries.len();
+        if let Some((i, step)) = base
+            .program
+            .iter()
+            .enumerate()
+            .find(|(_, p)| p.axis as usize >= n)
+        {
+            return Err(invalid(
+                "program.axis",
+                format!(
+                    "(step {i}) names axis {}; the scenario has axes 0..{}",
+                    step.axis,
+                    n - 1
+                ),
+            ));
+        }
+        let mut axes = Vec::with_capacity(n);
+        for (i, entry) in entries.into_iter().enumerate() {
+            let toml::Value::Table(entry) = entry else {
+                return Err(invalid("axis", format!("(axis {i}) must be a table")));
+            };
+            let mut merged = table.clone();
+            let mut name = format!("axis{i}");
+            for (key, value) in &entry {
+                let Some(&(_, into)) = AXIS_KEYS.iter().find(|(k, _)| k == key) else {
+                    let keys: Vec<&str> = AXIS_KEYS.iter().map(|(k, _)| *k).collect();
+                    return Err(invalid(
+                        "axis",
+                        format!(
+                            "(axis {i}) has an unknown key `{key}`; an [[axis]] table takes {}",
+                            keys.join(", ")
+                        ),
+                    ));
+                };
+                if key == "name" {
+                    match value.as_str() {
+                        Some(text) if !text.is_empty() => name = text.to_string(),
+                        _ => {
+                            return Err(invalid(
+                                "axis.name",
+                                format!("(axis {i}) must be a non-empty string"),
+                            ))
+                        }
+                    }
+                    continue;
+                }
+                lay_over(&mut merged, into, value);
+            }
+            if let Some(other) = axes.iter().position(|a: &AxisOf| a.name == name) {
+                return Err(invalid(
+                    "axis.name",
+                    format!("(axis {i}) `{name}` is axis {other}'s name too"),
+                ));
+            }
+            let mut scenario: Scenario = toml::Value::Table(merged)
+                .try_into()
+                .map_err(|e: toml::de::Error| parse_error(format!("axis {i} ({name}): {e}")))?;
+            // Every axis runs as long as the whole program, on its own steps.
+            if !scenario.run.until_stopped {
+                scenario.run.duration_s = Some(base.duration_s());
+            }
+            scenario.held = !scenario.program.is_empty()
+                && !scenario.program.iter().any(|p| p.axis as usize == i);
+            scenario.program.retain(|p| p.axis as usize == i);
+            // Within its own scenario an axis is the one axis; its loops know their index.
+            for step in &mut scenario.program {
+                step.axis = 0;
+            }
+            scenario.validate().map_err(|e| match e {
+                ScenarioError::Invalid { field, message } => ScenarioError::Invalid {
+                    field,
+                    message: format!("(axis {i}, {name}) {message}"),
+                },
+                other => other,
+            })?;
+            axes.push(AxisOf {
+                name,
+                table: entry,
+                scenario,
+            });
+        }
+        base.axes = axes;
+        Ok(base)
+    }
+
+    /// How many axes the stack runs (1 without `[[axis]]` tables).
+    pub fn axis_count(&self) -> usize {
+        self.axes.len().max(1)
+    }
+
+    /// Axis `n`'s own scenario: the scenario itself for a one-axis file; a multi-axis file's
+    /// axis has its tables over the file's and only its program steps. `None` past the last.
+    pub fn for_axis(&self, n: usize) -> Option<&Scenario> {
+        if self.axes.is_empty() {
+            return (n == 0).then_some(self);
+        }
+        self.axes.get(n).map(|a| &a.scenario)
+    }
+
+    /// Axis `n`'s name: its `[[axis]]` table's, or `axis<n>`.
+    pub fn axis_name(&self, n: usize) -> String {
+        self.axes
+            .get(n)
+            .map_or_else(|| format!("axis{n}"), |a| a.name.clone())
+    }
+
     pub fn to_toml_string(&self) -> Result<String, ScenarioError> {
-        toml::to_string(self).map_err(|e| ScenarioError::Serialise(e.to_string()))
+        let error = |e: toml::ser::Error| ScenarioError::Serialise(e.to_string());
+        if self.axes.is_empty() {
+            return toml::to_string(self).map_err(error);
+        }
+        let mut table = toml::Table::try_from(self).map_err(error)?;
+        table.insert(
+            "axis".to_string(),
+            toml::Value::Array(
+                self.axes
+                    .iter()
+                    .map(|a| toml::Value::Table(a.table.clone()))
+                    .collect(),
+            ),
+        );
+        toml::to_string(&table).map_err(error)
     }
 
     /// As [`Self::to_toml_string`], with the `[plant]`, `[control]` and `[axis]` tables
@@ -392,7 +603,8 @@ impl Scenario {
         let rest = AtDefaults {
             plant: self.plant.is_default().then_some(&self.plant),
             control: self.control.is_default().then_some(&self.control),
-            axis: self.axis.is_default().then_some(&self.axis),
+            // A multi-axis file's `axis` is its `[[axis]]` array.
+            axis: (self.axis.is_default() && self.axes.is_empty()).then_some(&self.axis),
         };
         let rest = toml::to_string(&rest).map_err(|e| ScenarioError::Serialise(e.to_string()))?;
         Ok(format!("{}\n{rest}", self.to_toml_string()?))
@@ -689,7 +901,7 @@ impl Scenario {
     /// no `[[program]]`, and not a stack served until stopped (whose axis waits for
     /// commands).
     pub fn runs_profile(&self) -> bool {
-        self.program.is_empty() && !self.run.until_stopped
+        self.program.is_empty() && !self.run.until_stopped && !self.held
     }
 
     /// Length of the run, s: `run.duration_s`, or one pass of the trajectory, or with a
@@ -963,5 +1175,134 @@ mod tests {
                 prop_assert!(s.eq7_bound_rad().is_finite());
             }
         });
+    }
+}
+
+#[cfg(test)]
+mod axes_tests {
+    use super::*;
+
+    const THREE: &str = r#"
+name = "three"
+[motor]
+inertia_kg_m2 = 2.0e-5
+
+[[program]]
+at_s = 0.0
+command = "enable"
+[[program]]
+at_s = 0.1
+axis = 2
+command = "enable"
+[[program]]
+at_s = 0.5
+axis = 2
+command = "move"
+to = 3.0
+
+[[axis]]
+name = "x"
+
+[[axis]]
+name = "y"
+[axis.motor]
+resistance_ohm = 1.2
+[axis.limits]
+v_max_rad_s = 20.0
+
+[[axis]]
+[axis.load]
+torque_nm = 0.0
+"#;
+
+    /// Each axis is the file's tables with its own laid over them field by field, and runs
+    /// its own steps, renumbered to its own axis 0, for as long as the whole program.
+    #[test]
+    fn axis_tables_lay_their_fields_over_the_files() {
+        let s = Scenario::from_toml_str(THREE).unwrap();
+        assert_eq!(s.axis_count(), 3);
+        let (x, y, z) = (
+            s.for_axis(0).unwrap(),
+            s.for_axis(1).unwrap(),
+            s.for_axis(2).unwrap(),
+        );
+        assert!(s.for_axis(3).is_none());
+        assert_eq!(s.axis_name(1), "y");
+        assert_eq!(s.axis_name(2), "axis2");
+        // The file's motor under every axis, y's resistance over it.
+        for a in [x, y, z] {
+            assert_eq!(a.motor.inertia_kg_m2, 2.0e-5);
+        }
+        assert_eq!(y.motor.resistance_ohm, 1.2);
+        assert_eq!(
+            x.motor.resistance_ohm,
+            MotorParams::default().resistance_ohm
+        );
+        assert_eq!(y.axis.v_max_rad_s, 20.0);
+        assert_eq!(y.axis.a_max_rad_s2, AxisParams::default().a_max_rad_s2);
+        assert_eq!(x.axis, AxisParams::default());
+        assert_eq!(z.load.torque_nm, 0.0);
+        assert_eq!(x.load.torque_nm, LoadParams::default().torque_nm);
+        // Steps: x one, y none (it waits disabled), z two, all as axis 0 of their own.
+        assert_eq!(x.program.len(), 1);
+        assert!(y.program.is_empty() && y.held && !y.runs_profile());
+        assert_eq!(z.program.len(), 2);
+        assert!(z.program.iter().all(|p| p.axis == 0));
+        assert_eq!(z.program[1].to, Some(3.0));
+        for a in [x, y, z] {
+            assert_eq!(a.duration_s(), 0.5 + PROGRAM_TAIL_S);
+            assert_eq!(a.sample_count(), s.sample_count());
+        }
+    }
+
+    /// What the stack announces reads back as the same scenario.
+    #[test]
+    fn a_multi_axis_scenario_reads_back_from_its_own_text() {
+        let s = Scenario::from_toml_str(THREE).unwrap();
+        let text = s.to_toml_string().unwrap();
+        assert_eq!(Scenario::from_toml_str(&text).unwrap(), s);
+        assert!(s.to_full_toml_string().is_ok());
+    }
+
+    /// A file without `[[axis]]` is its own one axis, unchanged.
+    #[test]
+    fn a_file_without_axis_tables_is_one_axis() {
+        let s = Scenario::from_toml_str("[axis]\nv_max_rad_s = 20.0\n").unwrap();
+        assert_eq!(s.axis_count(), 1);
+        assert_eq!(s.for_axis(0), Some(&s));
+        assert!(s.for_axis(1).is_none());
+        assert!(s.axes.is_empty() && !s.held);
+    }
+
+    /// Bad axis tables are refused naming the axis and what is wrong.
+    #[test]
+    fn bad_axis_tables_are_refused_with_the_axis_named() {
+        let cases: [(String, &str); 6] = [
+            ("[[axis]]\nspeed = 3\n".into(), "unknown key `speed`"),
+            (
+                "[[axis]]\n[[axis]]\n[axis.motor]\nresistance_ohm = -1.0\n".into(),
+                "(axis 1, axis1)",
+            ),
+            (
+                "[[axis]]\nname = \"a\"\n[[axis]]\nname = \"a\"\n".into(),
+                "axis 0's name too",
+            ),
+            ("[[axis]]\n".repeat(9), "a stack runs 1..=8"),
+            (
+                "[[program]]\nat_s = 0.0\naxis = 1\ncommand = \"enable\"\n[[axis]]\n".into(),
+                "names axis 1",
+            ),
+            (
+                "[[program]]\nat_s = 0.0\naxis = 1\ncommand = \"enable\"\n".into(),
+                "axis 0 only",
+            ),
+        ];
+        for (text, expected) in cases {
+            let e = Scenario::from_toml_str(&text).unwrap_err().to_string();
+            assert!(
+                e.contains(expected),
+                "{text}\n→ {e}\n(expected `{expected}`)"
+            );
+        }
     }
 }

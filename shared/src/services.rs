@@ -99,6 +99,26 @@ impl Topic {
         }
     }
 
+    /// Whether each axis of a multi-axis stack has its own (every topic but the statistics,
+    /// which are one per process).
+    pub fn per_axis(self) -> bool {
+        self != Topic::Stats
+    }
+
+    /// The name under the instance for `axis`: axis 0's is [`Self::path`] (a one-axis
+    /// stack's names are unchanged); another axis's loop topics are under `axis/<n>/`
+    /// (`axis/2/drive/state`) and its axis topics name it (`axis/2/status`).
+    pub fn path_of(self, axis: u32) -> std::borrow::Cow<'static, str> {
+        let path = self.path();
+        if axis == 0 || !self.per_axis() {
+            return path.into();
+        }
+        match path.strip_prefix("axis/0/") {
+            Some(rest) => format!("axis/{axis}/{rest}").into(),
+            None => format!("axis/{axis}/{path}").into(),
+        }
+    }
+
     /// The settings of this topic in `mode`; the same for every opener.
     pub fn qos(self, mode: Mode) -> Qos {
         // Lockstep: a full queue makes the publisher wait and nothing is ever dropped.
@@ -259,6 +279,11 @@ impl ServiceNames {
         format!("{}/{}", self.instance, topic.path())
     }
 
+    /// `topic`'s service for `axis` ([`Topic::path_of`]).
+    pub fn topic_of(&self, topic: Topic, axis: u32) -> String {
+        format!("{}/{}", self.instance, topic.path_of(axis))
+    }
+
     pub fn state_ready(&self) -> String {
         format!("{}/{STATE_READY}", self.instance)
     }
@@ -272,6 +297,40 @@ impl ServiceNames {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Axis 0 keeps a one-axis stack's names; every other axis has its own, except the
+    /// statistics (one report per process).
+    #[test]
+    fn each_axis_has_its_own_services_and_axis_0_keeps_todays() {
+        let names = ServiceNames::new("cell").unwrap();
+        assert_eq!(names.topic_of(Topic::State, 0), "cell/drive/state");
+        assert_eq!(names.topic_of(Topic::State, 2), "cell/axis/2/drive/state");
+        assert_eq!(
+            names.topic_of(Topic::Setpoint, 1),
+            "cell/axis/1/control/setpoint"
+        );
+        assert_eq!(names.topic_of(Topic::AxisStatus, 0), "cell/axis/0/status");
+        assert_eq!(names.topic_of(Topic::AxisStatus, 3), "cell/axis/3/status");
+        assert_eq!(names.topic_of(Topic::AxisCommand, 7), "cell/axis/7/command");
+        assert_eq!(names.topic_of(Topic::Stats, 5), "cell/monitor/stats");
+        let all = [
+            Topic::State,
+            Topic::Command,
+            Topic::Plan,
+            Topic::Setpoint,
+            Topic::Reset,
+            Topic::AxisStatus,
+            Topic::AxisStream,
+            Topic::AxisCommand,
+            Topic::AxisAcks,
+        ];
+        let mut seen = std::collections::BTreeSet::new();
+        for axis in 0..8 {
+            for t in all {
+                assert!(seen.insert(names.topic_of(t, axis)), "{t:?} of axis {axis}");
+            }
+        }
+    }
 
     /// An instance name is one harmless path component: a slash, `..`, a space or an
     /// empty name is refused before anything touches the filesystem.

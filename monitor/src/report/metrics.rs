@@ -103,6 +103,29 @@ pub struct RunReport {
     /// model's, from the electrical zero), where the ones above come from its sensors.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub truth: Option<TruthReport>,
+    /// A multi-axis stack's other axes (1, 2, ...), each judged by the same rules; the
+    /// figures above are axis 0's.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub axes: Vec<AxisRun>,
+}
+
+/// One more axis of a multi-axis run: its own figures and outcome.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct AxisRun {
+    pub axis: usize,
+    pub name: String,
+    #[serde(flatten)]
+    pub report: RunReport,
+}
+
+impl RunReport {
+    /// How the run ended on its worst axis: what its exit code says.
+    pub fn worst(&self) -> Outcome {
+        self.axes
+            .iter()
+            .map(|a| a.report.outcome)
+            .fold(self.outcome, Outcome::max)
+    }
 }
 
 /// A run's figures from the true rotor state.
@@ -810,6 +833,7 @@ impl Metrics {
             setpoint_stale_at_s: self.first_stale.map(|(_, t)| t),
             stepped_out_at_s: self.stepped_out_at,
             fault_cleared_at_s: self.cleared_at,
+            axes: Vec::new(),
         }
     }
 }

@@ -24,7 +24,20 @@ pub struct Document<'a> {
 
 /// The most severe outcome of a set of runs.
 pub fn overall(runs: &[RunReport]) -> Outcome {
-    runs.iter().map(|r| r.outcome).max().unwrap_or(Outcome::Ok)
+    runs.iter()
+        .map(RunReport::worst)
+        .max()
+        .unwrap_or(Outcome::Ok)
+}
+
+/// [`headline`] of a run and of each of its other axes that did not go well.
+pub fn headlines(s: &Scenario, r: &RunReport) -> Vec<String> {
+    let own = headline(s.for_axis(0).unwrap_or(s), r);
+    let axes = r.axes.iter().filter_map(|a| {
+        let h = headline(s.for_axis(a.axis)?, &a.report)?;
+        Some(format!("axis {} ({}): {h}", a.axis, a.name))
+    });
+    own.into_iter().chain(axes).collect()
 }
 
 pub fn document<'a>(s: &'a Scenario, runs: &'a [RunReport]) -> Document<'a> {
@@ -172,6 +185,43 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             let _ = write!(out, "{:>col_w$}", f(r));
         }
         out.push('\n');
+    }
+    for r in runs.iter().filter(|r| !r.axes.is_empty()) {
+        // The columns above are axis 0's; each other axis gets a line of its own.
+        let _ = writeln!(
+            out,
+            "\n{} axes (above: axis 0, {}):\n  {:>4} {:<10} {:>22} {:>14} {:>14} {:>14} {:>9} {:>8}",
+            r.method,
+            s.axis_name(0),
+            "axis",
+            "name",
+            "outcome",
+            "cruise max |e|",
+            "max |e|",
+            "final error",
+            "samples",
+            "faulted"
+        );
+        for a in &r.axes {
+            let o = &a.report;
+            let outcome = o.outcome.title().to_lowercase();
+            let _ = writeln!(
+                out,
+                "  {:>4} {:<10} {:>22} {:>14} {:>14} {:>14} {:>9} {:>8}",
+                a.axis,
+                a.name,
+                if o.complete {
+                    outcome
+                } else {
+                    format!("{outcome}, incomplete")
+                },
+                sci(o.cruise_max_abs_error_rad),
+                sci(o.max_abs_error_rad),
+                sci(o.final_error_rad),
+                o.samples,
+                o.fault_samples
+            );
+        }
     }
     for r in runs {
         if r.moves.is_empty() {

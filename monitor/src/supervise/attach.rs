@@ -226,6 +226,7 @@ pub fn watch(
         states,
         stats: bus.subscriber::<StatsReport>(4)?,
         controls,
+        axes: Vec::new(),
     };
     let observer = Observer::new(scenario, mode).recording(recording, method);
     // A reader may be started before the stack: it waits for the first sample as long as

@@ -12,7 +12,7 @@ use crate::supervise::children::{
 };
 use crate::supervise::cpus;
 use crate::supervise::observer::Observer;
-use crate::supervise::supervisor::{Controls, Ending, Feeds, Supervisor, Until};
+use crate::supervise::supervisor::{AxisFeed, Controls, Ending, Feeds, Supervisor, Until};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
 use std::process::ExitStatus;
@@ -146,7 +146,26 @@ fn launch(
     // first. The device still waits for the current loop's subscription before its first
     // sample, so the position loop (which starts once any setpoint subscriber is there) has
     // nothing to answer before.
-    let controls = Controls::open(&mut bus, mode, recording, !s.runs_profile())?;
+    let controls = Controls::open(
+        &mut bus,
+        mode,
+        recording,
+        !s.for_axis(0).unwrap_or(s).runs_profile(),
+    )?;
+    // Every other axis is watched by the same rules: the devices wait for these too.
+    let mut axes = Vec::with_capacity(s.axis_count() - 1);
+    for axis in 1..s.axis_count() {
+        let Some(own) = s.for_axis(axis) else {
+            unreachable!("axis {axis} is below the axis count")
+        };
+        bus.set_axis(axis as u32);
+        axes.push(AxisFeed {
+            axis,
+            states: bus.subscriber::<DriveState>(MONITOR_BUFFER)?,
+            controls: Controls::open(&mut bus, mode, false, !own.runs_profile())?,
+        });
+    }
+    bus.set_axis(0);
 
     let mut children = Vec::with_capacity(stack.nodes.len() + 1);
     // Only an emulated drive knows where the rotor really is; it writes that beside the
@@ -176,6 +195,7 @@ fn launch(
             states,
             stats,
             controls,
+            axes,
         }),
         _bus: bus,
         _cpu_claim: cpu_claim,
@@ -210,7 +230,8 @@ fn supervise<'a, 'r>(
         &mut l.children,
         Some(&l.files),
         timeouts,
-    );
+    )
+    .watching_axes();
     let ending = sup.run(Until::LastSample)?;
     let mut failures = Vec::new();
     if ending == Ending::Last {
@@ -242,7 +263,7 @@ pub fn run_stack(
         _ => Vec::new(),
     };
     let mut l = launch(&stack, s, opts, recording.is_some(), &method_arg)?;
-    let observer = Observer::new(s, mode).recording(recording, method);
+    let observer = Observer::new(s.for_axis(0).unwrap_or(s), mode).recording(recording, method);
     let truth = l.truth.clone();
     let (ending, failures, mut sup) = supervise(&mut l, s, mode, method.as_str(), observer)?;
     let wall = sup.observer.wall_s();
@@ -251,6 +272,7 @@ pub fn run_stack(
         Ending::Stopped(stop) => Some(stop),
     };
     let mut report = sup.observer.report(method, mode.as_str(), wall, stop);
+    report.axes = sup.axis_reports(method, mode.as_str());
     if !failures.is_empty() && report.complete {
         report.outcome = report.outcome.max(Outcome::ProcessDied);
         report.stopped_because = Some(failures.join("; "));

@@ -5,6 +5,7 @@
 //! termination flag and the stream's liveness, gathers every loop's statistics, and shows
 //! progress.
 
+use crate::report::metrics::AxisRun;
 use crate::report::timing::{rss_kib, Resources, Rss, TimingReport};
 use crate::supervise::children::{RunFiles, Supervised};
 use crate::supervise::observer::{Observer, Stop};
@@ -28,6 +29,25 @@ pub struct Feeds {
     pub stats: Box<dyn Subscribe<StatsReport>>,
     /// What a recorder, or a program's figures, take besides: see [`Controls::open`].
     pub controls: Option<Controls>,
+    /// A multi-axis stack's other axes (1, 2, ...).
+    pub axes: Vec<AxisFeed>,
+}
+
+/// What the supervisor reads of another axis of a multi-axis stack: its states, and the
+/// controls its figures need.
+pub struct AxisFeed {
+    pub axis: usize,
+    pub states: Box<dyn Subscribe<DriveState>>,
+    pub controls: Option<Controls>,
+}
+
+/// Another axis under watch: its feed, its own observer (the same rules as axis 0's),
+/// and when a state of it last came.
+struct AxisWatch<'r> {
+    feed: AxisFeed,
+    name: String,
+    observer: Observer<'r>,
+    heard: Option<Instant>,
 }
 
 /// The setpoints, commands, plans, and the axis's answers and status.
@@ -208,6 +228,7 @@ pub struct Supervisor<'a, 'r> {
     startup_timeout: Duration,
     peer_timeout: Duration,
     resource: Resource,
+    axes: Vec<AxisWatch<'r>>,
 }
 
 impl<'a, 'r> Supervisor<'a, 'r> {
@@ -234,7 +255,99 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             startup_timeout: timeouts.0,
             peer_timeout: timeouts.1,
             resource: Resource::default(),
+            axes: Vec::new(),
         }
+    }
+
+    /// Watches the feeds' other axes, each with its own observer (built from its axis's
+    /// scenario): a fault, a step-out, a gap or a silence on any axis is the run's.
+    pub fn watching_axes(mut self) -> Self {
+        let s = self.s;
+        let mode = self.mode;
+        self.axes = std::mem::take(&mut self.feeds.axes)
+            .into_iter()
+            .map(|feed| AxisWatch {
+                name: s.axis_name(feed.axis),
+                observer: Observer::new(s.for_axis(feed.axis).unwrap_or(s), mode),
+                feed,
+                heard: None,
+            })
+            .collect();
+        self
+    }
+
+    /// Every other axis's report, judged like axis 0's.
+    pub fn axis_reports(&mut self, method: stepdrive_shared::Method, mode: &str) -> Vec<AxisRun> {
+        self.axes
+            .iter_mut()
+            .map(|a| {
+                let wall = a.observer.wall_s();
+                AxisRun {
+                    axis: a.feed.axis,
+                    name: a.name.clone(),
+                    report: a.observer.report(method, mode, wall, None),
+                }
+            })
+            .collect()
+    }
+
+    /// Every axis has seen its last sample.
+    fn all_last_seen(&self) -> bool {
+        self.observer.last_seen() && self.axes.iter().all(|a| a.observer.last_seen())
+    }
+
+    /// Takes the other axes' controls and states; a stop names its axis.
+    fn drain_axes(&mut self) -> Result<Result<bool, Stop>, stepdrive_runtime::port::PortError> {
+        let mut got = false;
+        for a in &mut self.axes {
+            let mut states = 0u32;
+            loop {
+                if states.is_multiple_of(CONTROLS_EVERY) {
+                    if let Some(c) = a.feed.controls.as_mut() {
+                        take_controls(c, &mut a.observer)?;
+                    }
+                }
+                if a.observer.last_seen() {
+                    break;
+                }
+                let Some(st) = a.feed.states.receive()? else {
+                    break;
+                };
+                states += 1;
+                got = true;
+                a.heard = Some(Instant::now());
+                if let Err(mut stop) = a.observer.state(&st) {
+                    stop.because = format!("axis {} ({}): {}", a.feed.axis, a.name, stop.because);
+                    return Ok(Err(stop));
+                }
+            }
+        }
+        Ok(Ok(got))
+    }
+
+    /// Another axis that has gone silent before its last sample.
+    fn silent_axis(&self, started: Instant) -> Option<Stop> {
+        self.axes.iter().find_map(|a| {
+            let n = a.observer.metrics().samples();
+            let limit = if n == 0 {
+                self.startup_timeout
+            } else {
+                self.peer_timeout
+            } + Duration::from_secs(1);
+            let quiet = a.heard.unwrap_or(started).elapsed();
+            (!a.observer.last_seen() && quiet > limit).then(|| {
+                Stop::new(
+                    crate::report::outcome::Outcome::ProcessDied,
+                    format!(
+                        "axis {} ({}): no state sample for {:.1} s (after {n} samples); the \
+                         stack is stuck",
+                        a.feed.axis,
+                        a.name,
+                        quiet.as_secs_f64()
+                    ),
+                )
+            })
+        })
     }
 
     /// Takes what arrived: statistics, the controls when recording, and states (by the
@@ -264,41 +377,24 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 break;
             }
         }
-        Ok(Ok(got))
+        match self.drain_axes()? {
+            Ok(axes) => Ok(Ok(got || axes)),
+            Err(stop) => Ok(Err(stop)),
+        }
     }
 
-    /// Takes the setpoints, commands, plans, answers and statuses that arrived.
+    /// Takes the setpoints, commands, plans, answers and statuses that arrived (of every
+    /// axis).
     pub fn drain_controls(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
-        let Some(c) = self.feeds.controls.as_mut() else {
-            return Ok(());
-        };
-        let o = &mut self.observer;
-        if let Some(sub) = c.acks.as_mut() {
-            while let Some(a) = sub.receive()? {
-                o.ack(&a);
+        for a in &mut self.axes {
+            if let Some(c) = a.feed.controls.as_mut() {
+                take_controls(c, &mut a.observer)?;
             }
         }
-        if let Some(sub) = c.setpoints.as_mut() {
-            while let Some(sp) = sub.receive()? {
-                o.setpoint(&sp);
-            }
+        match self.feeds.controls.as_mut() {
+            Some(c) => take_controls(c, &mut self.observer),
+            None => Ok(()),
         }
-        if let Some(sub) = c.commands.as_mut() {
-            while let Some(cmd) = sub.receive()? {
-                o.command(&cmd);
-            }
-        }
-        if let Some(sub) = c.plans.as_mut() {
-            while let Some(p) = sub.receive()? {
-                o.plan(&p);
-            }
-        }
-        if let Some(sub) = c.status.as_mut() {
-            while let Some(st) = sub.receive()? {
-                o.status(&st);
-            }
-        }
-        Ok(())
     }
 
     /// The statistics that arrived since (the final ones, after the children exit).
@@ -329,7 +425,7 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 Ok(got) => got,
                 Err(stop) => break Ending::Stopped(stop),
             };
-            if until == Until::LastSample && self.observer.last_seen() {
+            if until == Until::LastSample && self.all_last_seen() {
                 break Ending::Last;
             }
             // A reader of a served stack: the stack ends when its owner stops it, and every
@@ -370,7 +466,10 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             } else {
                 self.peer_timeout
             } + Duration::from_secs(1);
-            if last_sample_at.elapsed() > limit {
+            if let Some(stop) = self.silent_axis(started) {
+                break Ending::Stopped(stop);
+            }
+            if !self.observer.last_seen() && last_sample_at.elapsed() > limit {
                 break Ending::Stopped(Stop::new(
                     crate::report::outcome::Outcome::ProcessDied,
                     format!(
@@ -587,4 +686,37 @@ impl Progress {
             bar.finish_and_clear();
         }
     }
+}
+
+/// Takes the setpoints, commands, plans, answers and statuses that arrived into `o`.
+fn take_controls(
+    c: &mut Controls,
+    o: &mut Observer,
+) -> Result<(), stepdrive_runtime::port::PortError> {
+    if let Some(sub) = c.acks.as_mut() {
+        while let Some(a) = sub.receive()? {
+            o.ack(&a);
+        }
+    }
+    if let Some(sub) = c.setpoints.as_mut() {
+        while let Some(sp) = sub.receive()? {
+            o.setpoint(&sp);
+        }
+    }
+    if let Some(sub) = c.commands.as_mut() {
+        while let Some(cmd) = sub.receive()? {
+            o.command(&cmd);
+        }
+    }
+    if let Some(sub) = c.plans.as_mut() {
+        while let Some(p) = sub.receive()? {
+            o.plan(&p);
+        }
+    }
+    if let Some(sub) = c.status.as_mut() {
+        while let Some(st) = sub.receive()? {
+            o.status(&st);
+        }
+    }
+    Ok(())
 }

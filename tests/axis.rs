@@ -577,10 +577,11 @@ fn three_axes_in_one_stack_are_each_what_a_stack_of_their_own_gives() {
 }
 
 /// One axis of three faults (its following-error window is too tight for its move): the
-/// run fails with the fault's exit code, and the headline names that axis; the others
-/// finish their moves.
+/// run fails with the fault's exit code, and the headline names that axis. By default the
+/// other two quick-stop on that tick, neither faulted ([group] stop = "all"); with
+/// stop = "own" they finish their moves.
 #[test]
-fn a_fault_on_one_axis_of_three_fails_the_run_naming_that_axis() {
+fn a_fault_on_one_axis_of_three_stops_the_others_and_fails_the_run_naming_it() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("three-axes-fault");
     let inst = instance("three-axes-fault");
@@ -595,29 +596,99 @@ fn a_fault_on_one_axis_of_three_fails_the_run_naming_that_axis() {
         "[axis.motor]\ninertia_kg_m2 = 2.0e-5\n",
         "[axis.limits]\nfollowing_error_window_rad = 1e-6\nfollowing_error_time_s = 0.001\n",
     );
-    let scenario = dir.file("fault.toml", &text_of);
-    let json = dir.path("fault.json");
-    let out = run_proposed(&inst, &scenario, &["--json", json.to_str().unwrap()]);
-    assert_eq!(out.status.code(), Some(3), "{}", text(&out));
-    let said = text(&out);
-    assert!(
-        said.contains("axis 2 (z): FAULT (exit 3)") && said.contains("FOLLOWING_ERROR"),
-        "{said}"
-    );
-    let doc = read_json(&json);
-    assert_eq!(doc["outcome"], "fault", "{doc}");
-    let run = run_of(&doc, "proposed");
-    assert_eq!(run["outcome"], "ok", "axis 0 is healthy: {run}");
-    let axes = run["axes"].as_array().expect("the other axes' reports");
-    assert_eq!(axes[0]["outcome"], "ok");
-    assert_eq!(axes[1]["outcome"], "fault");
-    // x and y reached their targets (each axis's moves are its own).
-    for (axis, target) in [(run, 1.0), (&axes[0], -2.0)] {
-        let moves = axis["moves"].as_array().expect("moves");
-        assert_eq!(moves.len(), 1, "{axis}");
-        assert_eq!(num(&moves[0], "target_rad"), target);
-        assert!(moves[0]["duration_s"].as_f64().is_some(), "{axis}");
+    for (policy, others_finish) in [("", false), ("[group]\nstop = \"own\"\n", true)] {
+        let scenario = dir.file("fault.toml", &format!("{text_of}{policy}"));
+        let json = dir.path("fault.json");
+        let out = run_proposed(&inst, &scenario, &["--json", json.to_str().unwrap()]);
+        assert_eq!(out.status.code(), Some(3), "{}", text(&out));
+        let said = text(&out);
+        assert!(
+            said.contains("axis 2 (z): FAULT (exit 3)") && said.contains("FOLLOWING_ERROR"),
+            "{said}"
+        );
+        let doc = read_json(&json);
+        assert_eq!(doc["outcome"], "fault", "{doc}");
+        let run = run_of(&doc, "proposed");
+        let axes = run["axes"].as_array().expect("the other axes' reports");
+        assert_eq!(axes[1]["outcome"], "fault");
+        for (axis, target) in [(run, 1.0), (&axes[0], -2.0)] {
+            // Healthy, whatever the policy: no fault, no step-out.
+            assert_eq!(axis["outcome"], "ok", "policy {policy:?}: {axis}");
+            assert!(axis["axis_fault"].is_null(), "{axis}");
+            assert!(num(axis, "max_abs_error_rad") < 1e-4, "{axis}");
+            let moves = axis["moves"].as_array().expect("moves");
+            assert_eq!(moves.len(), 1, "{axis}");
+            assert_eq!(num(&moves[0], "target_rad"), target);
+            // Stopped short with the faulted axis, or on to its target.
+            assert_eq!(
+                moves[0]["duration_s"].as_f64().is_some(),
+                others_finish,
+                "policy {policy:?}: {axis}"
+            );
+        }
     }
+}
+
+/// A coordinated move of three axes over different distances, each within its own move
+/// limits: all leave on one tick and arrive on one tick, the slowest setting the
+/// duration; the contour error is reported.
+#[test]
+fn a_coordinated_move_of_three_axes_leaves_and_arrives_on_one_tick() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("coordinated");
+    let inst = instance("coordinated");
+    let mut text_of = String::from("name = \"coordinated\"\n");
+    let axes = [
+        (1.0, (5.0, 50.0, 2000.0)),
+        (-6.0, (10.0, 100.0, 5000.0)),
+        (12.0, (8.0, 40.0, 1000.0)),
+    ];
+    for (axis, (to, _)) in axes.iter().enumerate() {
+        text_of += &format!(
+            "[[program]]\nat_s = 0.0\naxis = {axis}\ncommand = \"enable\"\n\
+             [[program]]\nat_s = 0.1\naxis = {axis}\ncommand = \"move\"\nto = {to}\ncoordinated = true\n"
+        );
+    }
+    for (_, (v, a, j)) in axes {
+        text_of += &format!(
+            "[[axis]]\n[axis.limits]\nmove_v_rad_s = {v}\nmove_a_rad_s2 = {a}\nmove_j_rad_s3 = {j}\n"
+        );
+    }
+    let scenario = dir.file("coordinated.toml", &text_of);
+    let json = dir.path("coordinated.json");
+    let out = run_proposed(&inst, &scenario, &["--json", json.to_str().unwrap()]);
+    assert!(out.status.success(), "{}", text(&out));
+    assert!(text(&out).contains("peak contour error"), "{}", text(&out));
+    let doc = read_json(&json);
+    let run = run_of(&doc, "proposed");
+    let all: Vec<&serde_json::Value> = std::iter::once(run)
+        .chain(run["axes"].as_array().expect("axes"))
+        .collect();
+    let mv = |a: &serde_json::Value| a["moves"][0].clone();
+    // z's own optimum, d/v + v/a + a/j over 12 rad, is the longest: it sets the duration.
+    let slowest = 12.0 / 8.0 + 8.0 / 40.0 + 40.0 / 1000.0;
+    for (n, a) in all.iter().enumerate() {
+        let m = mv(a);
+        assert_eq!(num(&m, "target_rad"), axes[n].0, "{a}");
+        assert_eq!(
+            m["start_s"],
+            mv(all[0])["start_s"],
+            "axis {n} left on another tick"
+        );
+        assert_eq!(
+            m["duration_s"],
+            mv(all[0])["duration_s"],
+            "axis {n} arrived on another tick"
+        );
+        assert!(num(&m, "peak_abs_error_rad") < 1e-5, "{a}");
+        let contour = num(a, "contour_peak_rad");
+        assert!((0.0..1e-5).contains(&contour), "{a}");
+    }
+    let duration = num(&mv(all[0]), "duration_s");
+    assert!(
+        (duration - slowest).abs() < 2e-3,
+        "duration {duration} s, the slowest axis's optimum {slowest} s"
+    );
 }
 
 /// `serve` of a three-axis scenario: each axis is commanded by its index (`--axis`), the

@@ -88,6 +88,10 @@ impl PositionLoop {
         &mut self.axis
     }
 
+    pub fn axis_ref(&self) -> &Axis {
+        &self.axis
+    }
+
     /// One tick from the state sample `state`. `publish_time_ns` is left for the caller.
     pub fn on_tick(&mut self, state: &DriveState) -> TorqueSetpoint {
         let sp = self.axis.tick(&measured(state));

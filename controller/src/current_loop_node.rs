@@ -161,6 +161,9 @@ impl CurrentLoopNode {
     }
 }
 
+/// Each axis's current loop is on its own in a multi-axis stack.
+impl stepdrive_runtime::lanes::Together for CurrentLoopNode {}
+
 impl Node for CurrentLoopNode {
     type Ports = CurrentLoopPorts;
 

@@ -8,17 +8,21 @@
 //! state) or from its own clock at the position rate, on the plant's deadline grid.
 
 use crate::program::Program;
+use stepdrive_control::axis::group::{Axes, Coordinator, StopPolicy};
+use stepdrive_control::axis::{Axis, Measured};
 use stepdrive_control::position_loop::{measured, PositionLoop};
 use stepdrive_runtime::inbox::Inbox;
 use stepdrive_runtime::ipc::COMMANDS_PER_CYCLE;
+use stepdrive_runtime::lanes::Together;
 use stepdrive_runtime::node::{Awaits, Cx, Flow, Late, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{AxisServer, PortError, PortFactory, Presence, Publish, Subscribe};
 use stepdrive_runtime::RunError;
+use stepdrive_shared::axis::request_flags;
 use stepdrive_shared::axis::{
     AxisAck, AxisRequest, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
 };
 use stepdrive_shared::messages::{state_flags, DriveState, ResetRequest, TorqueSetpoint};
-use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::scenario::{GroupStop, Mode};
 use stepdrive_shared::services::{Topic, LOOP_BUFFER};
 use stepdrive_shared::stack::POSITION_LOOP;
 use stepdrive_shared::Scenario;
@@ -82,6 +86,16 @@ pub struct PositionLoopNode {
     /// When the device was last asked to reset, s.
     reset_asked_s: Option<f64>,
     ticks: u64,
+    /// A multi-axis stack: this axis's part of a coordinated move, due and not yet
+    /// started (the lanes start it together at their next tick).
+    coordinated: Option<AxisRequest>,
+    /// A multi-axis stack's coordination, kept by axis 0's lane, and whether the lanes
+    /// tick in this cycle.
+    group: Option<Coordinator>,
+    group_ticks: bool,
+    /// Its newest coordinated move's peak contour error, rad (NaN: it has been in none).
+    contour_rad: f64,
+    stop_policy: StopPolicy,
 }
 
 impl PositionLoopNode {
@@ -118,6 +132,14 @@ impl PositionLoopNode {
             acks: [AxisAck::default(); COMMANDS_PER_CYCLE],
             reset_asked_s: None,
             ticks: 0,
+            coordinated: None,
+            group: None,
+            group_ticks: false,
+            contour_rad: f64::NAN,
+            stop_policy: match s.group.stop {
+                GroupStop::All => StopPolicy::All,
+                GroupStop::Own => StopPolicy::Own,
+            },
         })
     }
 
@@ -177,6 +199,11 @@ impl PositionLoopNode {
         let m = measured(state);
         // The program's commands due by now (and their answers, for the recorders).
         while let Some(request) = self.program.due(state.sample_time_s) {
+            if request.flags & request_flags::COORDINATED != 0 {
+                // Started with the other axes' parts by the lanes (`Together`).
+                self.coordinated = Some(request);
+                continue;
+            }
             let ack = self.apply(&request, state);
             if !ack.taken() {
                 tracing::warn!(
@@ -238,6 +265,7 @@ impl PositionLoopNode {
         }
         let mut status = self.body.status(state);
         status.axis = self.axis;
+        status.contour_rad = self.contour_rad;
         status.publish_time_ns = cx.now();
         ports.status.publish(&status)?;
         if self.body.axis().device_reset_wanted() && state.fault != 0 {
@@ -388,4 +416,124 @@ impl Node for PositionLoopNode {
             Flow::Continue
         })
     }
+}
+
+/// A multi-axis position loop's axes, one per lane, as the coordination reaches them.
+struct LaneAxes<'a>(&'a mut [PositionLoopNode]);
+
+impl Axes for LaneAxes<'_> {
+    fn count(&self) -> usize {
+        self.0.len()
+    }
+    fn axis_ref(&self, i: usize) -> &Axis {
+        self.0[i].body.axis_ref()
+    }
+    fn axis_mut(&mut self, i: usize) -> &mut Axis {
+        self.0[i].body.axis()
+    }
+}
+
+/// The lanes of a multi-axis position loop tick as one machine: the coordinated moves due
+/// (every axis's part, started on one tick and answered), the running one's next states,
+/// and after the axes' ticks the contour error and the stop policy
+/// (`stepdrive_control::axis::group`).
+impl Together for PositionLoopNode {
+    fn before_lanes(lanes: &mut [Self], ports: &mut [PositionLoopPorts]) -> Result<(), RunError> {
+        // The lanes step at every state; they tick (and the coordination with them) at
+        // their ticks only.
+        let ticking = lanes[0].latest.is_some_and(|s| lanes[0].ticks_on(&s));
+        lanes[0].group_ticks = ticking;
+        let Some((m, n)) = lanes_measured(lanes).filter(|_| ticking) else {
+            return Ok(());
+        };
+        let mut group = lanes[0]
+            .group
+            .take()
+            .unwrap_or_else(|| Coordinator::new(1.0 / lanes[0].rate_hz, lanes[0].stop_policy));
+        let mut targets = [(0usize, 0.0f64); MAX_LANES];
+        let mut k = 0;
+        for (i, lane) in lanes.iter().enumerate() {
+            if let Some(r) = lane.coordinated {
+                targets[k] = (i, r.target_rad);
+                k += 1;
+            }
+        }
+        if k > 0 {
+            let result = group.move_together(&mut LaneAxes(lanes), &targets[..k], &m[..n]);
+            if let Err(e) = &result {
+                tracing::warn!("coordinated move refused: {}", e.text);
+            }
+            for (i, lane) in lanes.iter_mut().enumerate() {
+                let Some(request) = lane.coordinated.take() else {
+                    if result.is_ok() {
+                        lane.contour_rad = f64::NAN;
+                    }
+                    continue;
+                };
+                if result.is_ok() {
+                    lane.contour_rad = 0.0;
+                }
+                let mut ack = AxisAck {
+                    request,
+                    tick: lane.ticks,
+                    t_s: m[i].t,
+                    state: lane.body.axis().state() as u32,
+                    ..Default::default()
+                };
+                if let Err(e) = &result {
+                    ack.refusal = e.refusal as u32;
+                    ack.set_text(&e.text);
+                }
+                lane.program.answered(&ack);
+                ports[i].acks.publish(&ack)?;
+            }
+        }
+        group.before_tick(&mut LaneAxes(lanes));
+        lanes[0].group = Some(group);
+        Ok(())
+    }
+
+    fn after_lanes(lanes: &mut [Self], _ports: &mut [PositionLoopPorts]) -> Result<(), RunError> {
+        let Some((m, n)) = lanes_measured(lanes).filter(|_| lanes[0].group_ticks) else {
+            return Ok(());
+        };
+        let Some(mut group) = lanes[0].group.take() else {
+            return Ok(());
+        };
+        let was = group.coordinated_running();
+        let stopped_by = group.stopped_by();
+        group.after_tick(&mut LaneAxes(lanes), &m[..n]);
+        if was {
+            for lane in lanes.iter_mut().filter(|l| !l.contour_rad.is_nan()) {
+                lane.contour_rad = group.contour_peak();
+            }
+        }
+        if group.stopped_by() != stopped_by {
+            if let Some(by) = group.stopped_by() {
+                tracing::warn!(
+                    "axis {by} stopped (fault or quick stop): every other enabled axis quick-stops ([group] stop = \"all\")"
+                );
+            }
+        }
+        if was && !group.coordinated_running() {
+            tracing::info!(
+                contour_peak_rad = group.contour_peak(),
+                "coordinated move ended"
+            );
+        }
+        lanes[0].group = Some(group);
+        Ok(())
+    }
+}
+
+/// The most lanes a position loop serves (`stepdrive_shared::scenario::MAX_AXES`).
+const MAX_LANES: usize = stepdrive_shared::scenario::MAX_AXES;
+
+/// Every lane's measured state at this tick, when every lane has one.
+fn lanes_measured(lanes: &[PositionLoopNode]) -> Option<([Measured; MAX_LANES], usize)> {
+    let mut m = [Measured::default(); MAX_LANES];
+    for (i, lane) in lanes.iter().enumerate().take(MAX_LANES) {
+        m[i] = measured(&lane.latest?);
+    }
+    Some((m, lanes.len().min(MAX_LANES)))
 }

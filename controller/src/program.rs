@@ -81,6 +81,9 @@ impl Program {
             if step.after_current {
                 r.flags |= request_flags::AFTER_CURRENT;
             }
+            if step.coordinated {
+                r.flags |= request_flags::COORDINATED;
+            }
             for (value, flag, field) in [
                 (step.vmax, request_flags::HAS_V, &mut r.v_max_rad_s),
                 (step.amax, request_flags::HAS_A, &mut r.a_max_rad_s2),

@@ -240,6 +240,9 @@ impl PlantNode {
     }
 }
 
+/// Each axis's plant is on its own in a multi-axis stack.
+impl stepdrive_runtime::lanes::Together for PlantNode {}
+
 impl Node for PlantNode {
     type Ports = PlantPorts;
 

@@ -13,14 +13,28 @@ use crate::error::RunError;
 use crate::node::{Awaits, Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_shared::stats::StatsReport;
 
+/// What the lanes of one role do as one machine in each cycle, around their own steps:
+/// a multi-axis position loop's coordinated moves and stop policy. Nothing, by default.
+pub trait Together: Node + Sized {
+    /// Before the lanes step in a cycle in which all of them do (in lockstep, or on the
+    /// clock).
+    fn before_lanes(_lanes: &mut [Self], _ports: &mut [Self::Ports]) -> Result<(), RunError> {
+        Ok(())
+    }
+    /// After they stepped, in such a cycle.
+    fn after_lanes(_lanes: &mut [Self], _ports: &mut [Self::Ports]) -> Result<(), RunError> {
+        Ok(())
+    }
+}
+
 /// One node per axis, as one node. See the module documentation.
 pub struct Lanes<N: Node> {
-    lanes: Vec<Lane<N>>,
+    nodes: Vec<N>,
+    lanes: Vec<Lane>,
     together: bool,
 }
 
-struct Lane<N> {
-    node: N,
+struct Lane {
     /// Started ([`Node::start`] said `Ready`): its epoch.
     started: Option<Option<u64>>,
     /// Input-paced: this cycle's input taken.
@@ -38,28 +52,40 @@ impl<N: Node> Lanes<N> {
         Self {
             together,
             lanes: nodes
-                .into_iter()
-                .map(|node| Lane {
-                    node,
+                .iter()
+                .map(|_| Lane {
                     started: None,
                     ready: false,
                     finished: false,
                 })
                 .collect(),
+            nodes,
         }
     }
 
     pub fn axes(&self) -> usize {
-        self.lanes.len()
+        self.nodes.len()
     }
 
     /// Axis `n`'s node.
     pub fn lane(&self, n: usize) -> Option<&N> {
-        self.lanes.get(n).map(|l| &l.node)
+        self.nodes.get(n)
     }
 
     fn first(&self) -> &N {
-        &self.lanes[0].node
+        &self.nodes[0]
+    }
+
+    /// The lanes with their nodes and ports.
+    fn each<'a>(
+        &'a mut self,
+        ports: &'a mut [N::Ports],
+    ) -> impl Iterator<Item = (&'a mut Lane, &'a mut N, &'a mut N::Ports)> {
+        self.lanes
+            .iter_mut()
+            .zip(self.nodes.iter_mut())
+            .zip(ports.iter_mut())
+            .map(|((l, n), p)| (l, n, p))
     }
 }
 
@@ -160,7 +186,7 @@ impl Kept {
     }
 }
 
-impl<N: Node> Node for Lanes<N> {
+impl<N: Together> Node for Lanes<N> {
     type Ports = Vec<N::Ports>;
 
     fn role(&self) -> Role {
@@ -182,17 +208,17 @@ impl<N: Node> Node for Lanes<N> {
             .or_else(|| lanes().find(|(_, l)| !l.finished && !l.ready))
             .map_or_else(
                 || self.first().awaiting(),
-                |(n, l)| format!("axis {n}: {}", l.node.awaiting()),
+                |(n, _)| format!("axis {n}: {}", self.nodes[n].awaiting()),
             )
     }
 
     fn start(&mut self, ports: &mut Self::Ports, cx: &mut Cx) -> Result<Start, RunError> {
         let mut all = true;
-        for (lane, p) in self.lanes.iter_mut().zip(ports.iter_mut()) {
+        for (lane, node, p) in self.each(ports) {
             if lane.started.is_some() {
                 continue;
             }
-            match lane.node.start(p, &mut lane_cx(cx))? {
+            match node.start(p, &mut lane_cx(cx))? {
                 Start::Waiting => all = false,
                 Start::Ready { epoch_ns } => lane.started = Some(epoch_ns),
             }
@@ -208,8 +234,8 @@ impl<N: Node> Node for Lanes<N> {
     }
 
     fn connect(&mut self, ports: &mut Self::Ports) -> Result<(), RunError> {
-        for (lane, p) in self.lanes.iter_mut().zip(ports.iter_mut()) {
-            lane.node.connect(p)?;
+        for node_ports in self.nodes.iter_mut().zip(ports.iter_mut()) {
+            node_ports.0.connect(node_ports.1)?;
         }
         Ok(())
     }
@@ -217,11 +243,11 @@ impl<N: Node> Node for Lanes<N> {
     fn poll(&mut self, ports: &mut Self::Ports, cx: &mut Cx) -> Result<Poll, RunError> {
         let clock_paced = matches!(self.first().pace(), Pace::Clock { .. });
         let (mut pending, mut fresh, mut skipped) = (false, false, 0);
-        for (lane, p) in self.lanes.iter_mut().zip(ports.iter_mut()) {
+        for (lane, node, p) in self.each(ports) {
             if lane.finished || (lane.ready && !clock_paced) {
                 continue;
             }
-            match lane.node.poll(p, &mut lane_cx(cx))? {
+            match node.poll(p, &mut lane_cx(cx))? {
                 Poll::Pending if clock_paced => lane.ready = true,
                 Poll::Pending => pending = true,
                 Poll::Finished => lane.finished = true,
@@ -250,18 +276,25 @@ impl<N: Node> Node for Lanes<N> {
     }
 
     fn step(&mut self, ports: &mut Self::Ports, cx: &mut Cx) -> Result<Flow, RunError> {
+        let all = self.lanes.iter().all(|l| l.ready && !l.finished);
+        if all {
+            N::before_lanes(&mut self.nodes, ports)?;
+        }
         let mut answered = None;
-        for (lane, p) in self.lanes.iter_mut().zip(ports.iter_mut()) {
+        for (lane, node, p) in self.each(ports) {
             if lane.finished || !lane.ready {
                 continue;
             }
             lane.ready = false;
             let mut lcx = lane_cx(cx);
-            let flow = lane.node.step(p, &mut lcx)?;
+            let flow = node.step(p, &mut lcx)?;
             answered = lcx.answered_ns.or(answered);
             if flow == Flow::Last {
                 lane.finished = true;
             }
+        }
+        if all {
+            N::after_lanes(&mut self.nodes, ports)?;
         }
         if answered.is_some() {
             cx.answered_ns = answered;
@@ -276,8 +309,9 @@ impl<N: Node> Node for Lanes<N> {
     fn due_ns(&self) -> Option<u64> {
         self.lanes
             .iter()
-            .filter(|l| !l.finished && !l.ready)
-            .filter_map(|l| l.node.due_ns())
+            .zip(&self.nodes)
+            .filter(|(l, _)| !l.finished && !l.ready)
+            .filter_map(|(_, n)| n.due_ns())
             .min()
     }
 
@@ -288,12 +322,18 @@ impl<N: Node> Node for Lanes<N> {
     fn awaits(&self) -> Awaits {
         // The earliest any waiting lane needs: an answer within a hand-off, else the
         // earliest state one sleeps for.
-        let waiting = || self.lanes.iter().filter(|l| !l.finished && !l.ready);
-        if waiting().any(|l| l.node.awaits() == Awaits::Next) {
+        let waiting = || {
+            self.lanes
+                .iter()
+                .zip(&self.nodes)
+                .filter(|(l, _)| !l.finished && !l.ready)
+                .map(|(_, n)| n)
+        };
+        if waiting().any(|n| n.awaits() == Awaits::Next) {
             return Awaits::Next;
         }
         let state = waiting()
-            .map(|l| match l.node.awaits() {
+            .map(|n| match n.awaits() {
                 Awaits::Later { state } => state,
                 Awaits::Next => None,
             })
@@ -310,45 +350,45 @@ impl<N: Node> Node for Lanes<N> {
         until_ns: u64,
     ) -> Result<bool, RunError> {
         // The first lane still waiting blocks for its input; the others' come with it.
-        for (lane, p) in self.lanes.iter_mut().zip(ports.iter_mut()) {
+        for (lane, node, p) in self.each(ports) {
             if !lane.finished && !lane.ready {
-                return lane.node.block(p, now_ns, until_ns);
+                return node.block(p, now_ns, until_ns);
             }
         }
         Ok(false)
     }
 
     fn rung(&mut self, ports: &mut Self::Ports, cx: &mut Cx) -> Result<(), RunError> {
-        for (lane, p) in self.lanes.iter_mut().zip(ports.iter_mut()) {
+        for (lane, node, p) in self.each(ports) {
             if !lane.finished {
-                lane.node.rung(p, &mut lane_cx(cx))?;
+                node.rung(p, &mut lane_cx(cx))?;
             }
         }
         Ok(())
     }
 
     fn awaiting_rejoin(&self) -> bool {
-        self.lanes.iter().any(|l| l.node.awaiting_rejoin())
+        self.nodes.iter().any(Node::awaiting_rejoin)
     }
 
     fn latched_fault(&self) -> u32 {
-        self.lanes.iter().fold(0, |f, l| f | l.node.latched_fault())
+        self.nodes.iter().fold(0, |f, n| f | n.latched_fault())
     }
 
     fn report(&self, stats: &mut StatsReport) {
         let before = Kept::of(stats);
         let mut total = before;
-        for (n, lane) in self.lanes.iter().enumerate() {
+        for (n, node) in self.nodes.iter().enumerate() {
             Kept::UNSET.write(stats);
-            lane.node.report(stats);
+            node.report(stats);
             total.add(Kept::of(stats), before, n == 0);
         }
         total.write(stats);
     }
 
     fn stop(&mut self, ports: &mut Self::Ports, cx: &mut Cx) {
-        for (lane, p) in self.lanes.iter_mut().zip(ports.iter_mut()) {
-            lane.node.stop(p, &mut lane_cx(cx));
+        for (node, p) in self.nodes.iter_mut().zip(ports.iter_mut()) {
+            node.stop(p, &mut lane_cx(cx));
         }
     }
 }

@@ -228,6 +228,10 @@ pub struct ProgramStep {
     /// move: wait for the current move to end instead of changing at once.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub after_current: bool,
+    /// move (a multi-axis scenario's): part of a coordinated move with every other axis's
+    /// coordinated move step at the same `at_s` (absolute targets, the axes' move limits).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub coordinated: bool,
     /// jog: the speed, rad/s.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub velocity: Option<f64>,
@@ -279,6 +283,17 @@ impl ProgramStep {
                 ))
             }
         };
+        if self.coordinated
+            && (self.command != ProgramCommand::Move || self.relative || self.after_current)
+        {
+            return Err(invalid(
+                field("coordinated"),
+                format!(
+                    "(step {index}, {:?}) coordinated is for an absolute move that changes at once",
+                    self.command
+                ),
+            ));
+        }
         match self.command {
             ProgramCommand::Move | ProgramCommand::SetPosition => need("to", self.to.is_some()),
             ProgramCommand::Jog => need("velocity", self.velocity.is_some()),
@@ -459,6 +474,9 @@ pub mod request_flags {
     pub const HAS_J: u32 = 1 << 4;
     /// Stream start: `lead_s` given (otherwise `[axis] stream_lead_s`).
     pub const HAS_LEAD: u32 = 1 << 5;
+    /// Move (a multi-axis program's): one axis's part of a coordinated move, which every
+    /// axis with such a step at the same time starts on one tick and ends on one tick.
+    pub const COORDINATED: u32 = 1 << 6;
 }
 
 /// Client → position loop, on the axis command service: one command, answered by an
@@ -716,7 +734,7 @@ pub mod axis_warnings {
 #[cfg_attr(
     feature = "ipc",
     derive(ZeroCopySend),
-    type_name("stepdrive.AxisStatus.v2")
+    type_name("stepdrive.AxisStatus.v3")
 )]
 #[repr(C)]
 pub struct AxisStatus {
@@ -766,6 +784,9 @@ pub struct AxisStatus {
     /// buffer one lead deep whatever the two clocks do.
     pub stream_ahead_s: f64,
     pub stream_lead_s: f64,
+    /// A multi-axis stack's running (or last) coordinated move of this axis: the measured
+    /// rotors' peak distance from the move's straight line, rad (NaN: none yet).
+    pub contour_rad: f64,
 }
 
 impl AxisStatus {

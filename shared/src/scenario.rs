@@ -234,6 +234,9 @@ pub struct Scenario {
     /// The axis's limits and defaults (absent: the defaults).
     #[serde(skip_serializing_if = "AxisParams::is_default")]
     pub axis: AxisParams,
+    /// A multi-axis stack's axes as one machine (absent: the defaults).
+    #[serde(skip_serializing_if = "GroupParams::is_default")]
+    pub group: GroupParams,
     /// Timed commands (`[[program]]`): with a program the axis runs it instead of the
     /// scenario's trajectory, deterministically in lockstep.
     #[serde(skip_serializing_if = "Vec::is_empty")]
@@ -246,6 +249,31 @@ pub struct Scenario {
     /// instead of running the trajectory.
     #[serde(skip)]
     pub held: bool,
+}
+
+/// A multi-axis stack's axes as one machine (`[group]`).
+#[derive(Debug, Clone, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GroupParams {
+    /// What a fault or a quick stop of one axis does to the others.
+    pub stop: GroupStop,
+}
+
+impl GroupParams {
+    pub fn is_default(&self) -> bool {
+        *self == Self::default()
+    }
+}
+
+/// [`GroupParams::stop`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GroupStop {
+    /// Every other enabled axis quick-stops (axes sharing a tool must not carry on).
+    #[default]
+    All,
+    /// Each axis stops on its own faults and commands only.
+    Own,
 }
 
 /// The most axes one stack runs.
@@ -287,6 +315,7 @@ impl Default for Scenario {
             plant: PlantParams::default(),
             control: ControlParams::default(),
             axis: AxisParams::default(),
+            group: GroupParams::default(),
             program: Vec::new(),
             axes: Vec::new(),
             held: false,

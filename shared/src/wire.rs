@@ -23,7 +23,7 @@ unsafe impl Wire for AxisAck {
     const TYPE: &'static str = "stepdrive.AxisAck.v1";
 }
 unsafe impl Wire for AxisStatus {
-    const TYPE: &'static str = "stepdrive.AxisStatus.v2";
+    const TYPE: &'static str = "stepdrive.AxisStatus.v3";
 }
 unsafe impl Wire for AxisStreamPoint {
     const TYPE: &'static str = "stepdrive.AxisStreamPoint.v1";
@@ -43,7 +43,7 @@ const _: () = {
     // three f64.
     assert!(
         size_of::<AxisStatus>()
-            == 4 + 4 + 8 + 8 + 8 + 4 + 4 + 8 * 8 + 4 * 4 + 8 + 8 + 8 + 4 + 4 + 3 * 8
+            == 4 + 4 + 8 + 8 + 8 + 4 + 4 + 8 * 8 + 4 * 4 + 8 + 8 + 8 + 4 + 4 + 4 * 8
     );
     // axis, flags, stream, seq, four f64, publish time.
     assert!(size_of::<AxisStreamPoint>() == 4 + 4 + 8 + 8 + 4 * 8 + 8);

@@ -59,10 +59,31 @@ struct Running {
     to: [f64; MAX_AXES],
 }
 
-/// The group. See the module documentation.
+/// A machine's axes by index, as the group's coordination reaches them: the group's own,
+/// or the axes of a multi-axis position loop's lanes (each lane owning its axis).
+pub trait Axes {
+    fn count(&self) -> usize;
+    fn axis_ref(&self, i: usize) -> &Axis;
+    fn axis_mut(&mut self, i: usize) -> &mut Axis;
+}
+
+impl Axes for [Axis] {
+    fn count(&self) -> usize {
+        self.len()
+    }
+    fn axis_ref(&self, i: usize) -> &Axis {
+        &self[i]
+    }
+    fn axis_mut(&mut self, i: usize) -> &mut Axis {
+        &mut self[i]
+    }
+}
+
+/// What only a machine has, over axes held elsewhere: the coordinated move, its contour
+/// error, and the stop policy. Each tick: [`Self::before_tick`], every axis's own tick, then
+/// [`Self::after_tick`]. [`AxisGroup`] is one with its axes.
 #[derive(Debug)]
-pub struct AxisGroup {
-    axes: Vec<Axis>,
+pub struct Coordinator {
     policy: StopPolicy,
     planner: CoordinatedMove,
     running: Option<Running>,
@@ -79,19 +100,10 @@ pub struct AxisGroup {
     contour_peak: f64,
 }
 
-impl AxisGroup {
-    /// `params.len()` axes standing disabled, their position loop ticking every
-    /// `period_s`.
-    pub fn new(
-        params: &[AxisParams],
-        period_s: f64,
-        policy: StopPolicy,
-    ) -> Result<Self, GroupError> {
-        if !(1..=MAX_AXES).contains(&params.len()) {
-            return Err(GroupError::Axes(params.len()));
-        }
-        Ok(Self {
-            axes: params.iter().map(|p| Axis::new(p, period_s)).collect(),
+impl Coordinator {
+    /// For axes whose position loop ticks every `period_s`.
+    pub fn new(period_s: f64, policy: StopPolicy) -> Self {
+        Self {
             policy,
             planner: CoordinatedMove::new(period_s),
             running: None,
@@ -100,19 +112,7 @@ impl AxisGroup {
             stopping: 0,
             stopped_by: None,
             contour_peak: 0.0,
-        })
-    }
-
-    pub fn len(&self) -> usize {
-        self.axes.len()
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.axes.is_empty()
-    }
-
-    pub fn axis(&self, i: usize) -> Option<&Axis> {
-        self.axes.get(i)
+        }
     }
 
     pub fn policy(&self) -> StopPolicy {
@@ -136,31 +136,9 @@ impl AxisGroup {
         self.contour_peak
     }
 
-    fn unknown(&self, i: usize) -> Refused {
-        refuse(
-            Refusal::UnknownAxis,
-            format!(
-                "no axis {i}: the group has axes 0 … {}",
-                self.axes.len() - 1
-            ),
-        )
-    }
-
-    /// Axis `i`'s command, as [`Axis::request`] takes it.
-    pub fn request(&mut self, i: usize, r: &AxisRequest, m: &Measured) -> Result<(), Refused> {
-        let unknown = self.unknown(i);
-        self.axes.get_mut(i).ok_or(unknown)?.request(r, m)
-    }
-
-    /// A point of axis `i`'s stream, as [`Axis::stream_point`] takes it.
-    pub fn stream_point(
-        &mut self,
-        i: usize,
-        p: &AxisStreamPoint,
-        m: &Measured,
-    ) -> Result<(), Refused> {
-        let unknown = self.unknown(i);
-        self.axes.get_mut(i).ok_or(unknown)?.stream_point(p, m)
+    /// The coordinated move's duration, s (a whole number of ticks), while one runs.
+    pub fn coordinated_duration_s(&self) -> Option<f64> {
+        self.running.map(|_| self.planner.duration_s())
     }
 
     /// A coordinated move: each `(axis, target)` to rest at its target, within the axis's
@@ -170,8 +148,9 @@ impl AxisGroup {
     /// [`MAX_AXES`], an axis not in Operation enabled or its brake still holding, a target
     /// not finite or outside its soft limits, a coordinated move already running (stop it,
     /// or let it arrive), or a move the generator cannot plan.
-    pub fn move_together(
+    pub fn move_together<A: Axes + ?Sized>(
         &mut self,
+        axes: &mut A,
         targets: &[(usize, f64)],
         m: &[Measured],
     ) -> Result<(), Refused> {
@@ -210,10 +189,10 @@ impl AxisGroup {
                     format!("axis {i} is named twice"),
                 ));
             }
-            let (axis, at) = match (self.axes.get(i), m.get(i)) {
-                (Some(axis), Some(at)) => (axis, at),
-                _ => return Err(self.unknown(i)),
+            let Some(at) = m.get(i).filter(|_| i < axes.count()) else {
+                return Err(unknown(i, axes.count()));
             };
+            let axis = axes.axis_ref(i);
             let start = axis.coordinated_start(target).map_err(|e| Refused {
                 refusal: e.refusal,
                 text: format!("axis {i}: {}", e.text),
@@ -241,48 +220,22 @@ impl AxisGroup {
             .map_err(|e| refuse(Refusal::WrongState, e.to_string()))?;
         for j in 0..n {
             let i = run.members[j];
-            self.axes[i].enter_coordinated(run.to[j], &m[i]);
+            axes.axis_mut(i).enter_coordinated(run.to[j], &m[i]);
         }
         self.running = Some(run);
         self.contour_peak = 0.0;
         Ok(())
     }
 
-    /// The coordinated move's duration, s (a whole number of ticks), while one runs.
-    pub fn coordinated_duration_s(&self) -> Option<f64> {
-        self.running.map(|_| self.planner.duration_s())
-    }
-
-    /// One tick of every axis at its measured state `m[i]`: the coordinated move's next
-    /// states, each axis's own tick (its setpoint into `out[i]`), the contour error, and
-    /// the stop policy (an axis that started to stop at this tick, or by a command since
-    /// the last, quick-stops every other enabled axis from the next tick on).
-    pub fn tick(&mut self, m: &[Measured], out: &mut [Setpoint]) -> Result<(), GroupError> {
-        let n = self.axes.len();
-        if m.len() != n || out.len() < n {
-            return Err(GroupError::Lengths {
-                axes: n,
-                measured: m.len(),
-                setpoints: out.len(),
-            });
-        }
-        self.step_coordinated();
-        for (i, axis) in self.axes.iter_mut().enumerate() {
-            out[i] = axis.tick(&m[i]);
-        }
-        self.watch_contour(m);
-        self.apply_policy(m);
-        Ok(())
-    }
-
-    /// Gives the running move's axes their next states; a move none of whose axes is still
-    /// in it (each was commanded elsewhere, quick-stopped or faulted) is over.
-    fn step_coordinated(&mut self) {
+    /// Before the axes' own ticks: the running move's axes take their next states; a move
+    /// none of whose axes is still in it (each was commanded elsewhere, quick-stopped or
+    /// faulted) is over.
+    pub fn before_tick<A: Axes + ?Sized>(&mut self, axes: &mut A) {
         let Some(run) = self.running else {
             return;
         };
         let members = &run.members[..run.count];
-        if !members.iter().any(|&i| self.axes[i].in_coordinated()) {
+        if !members.iter().any(|&i| axes.axis_ref(i).in_coordinated()) {
             self.running = None;
             return;
         }
@@ -290,8 +243,9 @@ impl AxisGroup {
         // policy Own) does not stop the others' move short.
         let last = self.planner.step(&mut self.next, &mut self.jerks);
         for (j, &i) in members.iter().enumerate() {
-            if self.axes[i].in_coordinated() {
-                self.axes[i].follow_coordinated(self.next[j], self.jerks[j], last);
+            let axis = axes.axis_mut(i);
+            if axis.in_coordinated() {
+                axis.follow_coordinated(self.next[j], self.jerks[j], last);
             }
         }
         if last {
@@ -299,9 +253,17 @@ impl AxisGroup {
         }
     }
 
+    /// After the axes' own ticks at their measured states `m`: the contour error, and the
+    /// stop policy (an axis that started to stop at this tick, or by a command since the
+    /// last, quick-stops every other enabled axis from the next tick on).
+    pub fn after_tick<A: Axes + ?Sized>(&mut self, axes: &mut A, m: &[Measured]) {
+        self.watch_contour(axes, m);
+        self.apply_policy(axes, m);
+    }
+
     /// The distance of the measured point from the running move's straight line: of its
     /// axes, the measured positions' component across the line from start to target.
-    fn watch_contour(&mut self, m: &[Measured]) {
+    fn watch_contour<A: Axes + ?Sized>(&mut self, axes: &A, m: &[Measured]) {
         let Some(run) = &self.running else {
             return;
         };
@@ -311,7 +273,7 @@ impl AxisGroup {
         for j in 0..k {
             let i = run.members[j];
             d[j] = run.to[j] - run.from[j];
-            p[j] = self.axes[i].position(&m[i]) - run.from[j];
+            p[j] = axes.axis_ref(i).position(&m[i]) - run.from[j];
         }
         let length2: f64 = d[..k].iter().map(|x| x * x).sum();
         let along: f64 = p[..k].iter().zip(&d[..k]).map(|(a, b)| a * b).sum();
@@ -327,11 +289,11 @@ impl AxisGroup {
         self.contour_peak = self.contour_peak.max(across2.sqrt());
     }
 
-    fn apply_policy(&mut self, m: &[Measured]) {
+    fn apply_policy<A: Axes + ?Sized>(&mut self, axes: &mut A, m: &[Measured]) {
         let mut now = 0u32;
-        for (i, axis) in self.axes.iter().enumerate() {
+        for i in 0..axes.count() {
             if matches!(
-                axis.state(),
+                axes.axis_ref(i).state(),
                 AxisState::Fault | AxisState::FaultReactionActive | AxisState::QuickStopActive
             ) {
                 now |= 1 << i;
@@ -340,13 +302,112 @@ impl AxisGroup {
         let started = now & !self.stopping;
         if self.policy == StopPolicy::All && started != 0 {
             self.stopped_by = Some(started.trailing_zeros() as usize);
-            for (i, axis) in self.axes.iter_mut().enumerate() {
-                if axis.quick_stop_if_enabled(&m[i]) {
+            for (i, mi) in m.iter().enumerate().take(axes.count()) {
+                if axes.axis_mut(i).quick_stop_if_enabled(mi) {
                     now |= 1 << i;
                 }
             }
         }
         self.stopping = now;
+    }
+}
+
+fn unknown(i: usize, count: usize) -> Refused {
+    refuse(
+        Refusal::UnknownAxis,
+        format!("no axis {i}: the group has axes 0 … {}", count - 1),
+    )
+}
+
+/// The group: its axes and their coordination. See the module documentation.
+#[derive(Debug)]
+pub struct AxisGroup {
+    axes: Vec<Axis>,
+    coordinator: Coordinator,
+}
+
+impl std::ops::Deref for AxisGroup {
+    type Target = Coordinator;
+    fn deref(&self) -> &Coordinator {
+        &self.coordinator
+    }
+}
+
+impl AxisGroup {
+    /// `params.len()` axes standing disabled, their position loop ticking every
+    /// `period_s`.
+    pub fn new(
+        params: &[AxisParams],
+        period_s: f64,
+        policy: StopPolicy,
+    ) -> Result<Self, GroupError> {
+        if !(1..=MAX_AXES).contains(&params.len()) {
+            return Err(GroupError::Axes(params.len()));
+        }
+        Ok(Self {
+            axes: params.iter().map(|p| Axis::new(p, period_s)).collect(),
+            coordinator: Coordinator::new(period_s, policy),
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.axes.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.axes.is_empty()
+    }
+
+    pub fn axis(&self, i: usize) -> Option<&Axis> {
+        self.axes.get(i)
+    }
+
+    /// Axis `i`'s command, as [`Axis::request`] takes it.
+    pub fn request(&mut self, i: usize, r: &AxisRequest, m: &Measured) -> Result<(), Refused> {
+        let unknown = unknown(i, self.axes.len());
+        self.axes.get_mut(i).ok_or(unknown)?.request(r, m)
+    }
+
+    /// A point of axis `i`'s stream, as [`Axis::stream_point`] takes it.
+    pub fn stream_point(
+        &mut self,
+        i: usize,
+        p: &AxisStreamPoint,
+        m: &Measured,
+    ) -> Result<(), Refused> {
+        let unknown = unknown(i, self.axes.len());
+        self.axes.get_mut(i).ok_or(unknown)?.stream_point(p, m)
+    }
+
+    /// [`Coordinator::move_together`] of this group's axes.
+    pub fn move_together(
+        &mut self,
+        targets: &[(usize, f64)],
+        m: &[Measured],
+    ) -> Result<(), Refused> {
+        self.coordinator
+            .move_together(self.axes.as_mut_slice(), targets, m)
+    }
+
+    /// One tick of every axis at its measured state `m[i]`: the coordinated move's next
+    /// states, each axis's own tick (its setpoint into `out[i]`), the contour error, and
+    /// the stop policy.
+    pub fn tick(&mut self, m: &[Measured], out: &mut [Setpoint]) -> Result<(), GroupError> {
+        let n = self.axes.len();
+        if m.len() != n || out.len() < n {
+            return Err(GroupError::Lengths {
+                axes: n,
+                measured: m.len(),
+                setpoints: out.len(),
+            });
+        }
+        let axes = self.axes.as_mut_slice();
+        self.coordinator.before_tick(axes);
+        for (i, axis) in axes.iter_mut().enumerate() {
+            out[i] = axis.tick(&m[i]);
+        }
+        self.coordinator.after_tick(axes, m);
+        Ok(())
     }
 
     /// Axis `i`'s status at the tick just run, with its index.

@@ -1034,6 +1034,7 @@ impl Axis {
             } else {
                 f64::NAN
             },
+            contour_rad: f64::NAN,
         }
     }
 }

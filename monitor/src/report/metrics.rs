@@ -40,6 +40,10 @@ pub struct RunReport {
     /// When the first latched fault was cleared (a reset), s; absent: it stayed latched.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub fault_cleared_at_s: Option<f64>,
+    /// A multi-axis program's coordinated moves of this axis: the measured rotors' peak
+    /// distance from the moves' straight lines (the contour error), rad.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub contour_peak_rad: Option<f64>,
     /// When |θ_d − θ| first passed the step-out threshold (one electrical period), s.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub stepped_out_at_s: Option<f64>,
@@ -269,6 +273,7 @@ pub struct Metrics {
     /// The first sample beyond the step-out threshold, s.
     stepped_out_at: Option<f64>,
     axis_fault: Option<AxisFaultEvent>,
+    contour_peak: Option<f64>,
 }
 
 /// The axis faulted: when, and why.
@@ -424,6 +429,7 @@ impl Metrics {
             cleared_at: None,
             stepped_out_at: None,
             axis_fault: None,
+            contour_peak: None,
         }
     }
 
@@ -563,6 +569,12 @@ impl Metrics {
                 m.target = st.target_rad;
                 m.target_told = true;
             }
+        }
+        if st.contour_rad.is_finite() {
+            self.contour_peak = Some(
+                self.contour_peak
+                    .map_or(st.contour_rad, |c| c.max(st.contour_rad)),
+            );
         }
         if st.fault != 0 && self.axis_fault.is_none() {
             self.axis_fault = Some(AxisFaultEvent {
@@ -833,6 +845,7 @@ impl Metrics {
             setpoint_stale_at_s: self.first_stale.map(|(_, t)| t),
             stepped_out_at_s: self.stepped_out_at,
             fault_cleared_at_s: self.cleared_at,
+            contour_peak_rad: self.contour_peak,
             axes: Vec::new(),
         }
     }

@@ -222,6 +222,18 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
                 o.fault_samples
             );
         }
+        let contour = std::iter::once(r.contour_peak_rad)
+            .chain(r.axes.iter().map(|a| a.report.contour_peak_rad))
+            .flatten()
+            .reduce(f64::max);
+        if let Some(c) = contour {
+            let _ = writeln!(
+                out,
+                "  coordinated moves: peak contour error {} rad (the rotors' distance from \
+                 the moves' straight lines)",
+                sci(c)
+            );
+        }
     }
     for r in runs {
         if r.moves.is_empty() {

@@ -729,3 +729,26 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
     assert!(status.success(), "{}", stderr_of(&mut serve));
 }
+
+/// What runs one axis refuses a multi-axis scenario before anything starts, naming `run`.
+#[test]
+fn commands_that_run_one_axis_refuse_a_multi_axis_scenario() {
+    let dir = TempDir::new("one-axis-only");
+    let three = dir.file("three.toml", &three_axes(""));
+    let three = three.to_str().unwrap();
+    for args in [
+        vec!["simulate", "--scenario", three],
+        vec!["robustness", "--scenario", three, "--json", "/dev/null"],
+        vec!["run", "--mode", "hardware", "--scenario", three],
+        vec!["serve", "--mode", "hardware", "--scenario", three],
+    ] {
+        let out = stepdrive(&args);
+        assert_eq!(out.status.code(), Some(1), "{args:?}: {}", text(&out));
+        assert!(
+            text(&out).contains("has 3 axes ([[axis]] tables)")
+                && text(&out).contains("stepdrive run"),
+            "{args:?}: {}",
+            text(&out)
+        );
+    }
+}

@@ -1,7 +1,9 @@
 //! The sub-commands that are not a process of the stack: launching and simulating runs,
 //! measuring latency, printing and checking configuration.
 
-use crate::options::{parse_seconds, seconds, LiveArgs, ScenarioOpt, StackArgs, Throttling};
+use crate::options::{
+    one_axis, parse_seconds, seconds, LiveArgs, ScenarioOpt, StackArgs, Throttling,
+};
 use anyhow::{Context, Result};
 use clap::Args;
 use std::path::PathBuf;
@@ -457,6 +459,9 @@ fn chunks(uncompressed: bool) -> Chunks {
 
 pub fn run(a: RunArgs) -> Result<()> {
     let mut s = a.select.scenario.load()?;
+    if a.mode == Mode::Hardware {
+        one_axis(&s, "hardware mode (one bridge, one drive)")?;
+    }
     a.stack.apply_duration(&mut s)?;
     let deployment = a.stack.deployment(a.mode)?;
     let json = JsonOut::create(a.select.json.as_ref())?;
@@ -603,6 +608,9 @@ impl Drop for GatewayChild {
 
 pub fn serve(a: ServeArgs) -> Result<()> {
     let mut s = a.scenario.load()?;
+    if a.mode == ServeMode::Hardware {
+        one_axis(&s, "hardware mode (one bridge, one drive)")?;
+    }
     if !s.program.is_empty() {
         anyhow::bail!(
             "scenario {} has a [[program]]: a served stack takes its commands from clients \
@@ -688,7 +696,7 @@ fn close_recording(recording: Option<Recording>, plots: Option<&std::path::Path>
 }
 
 pub fn simulate(a: SimulateArgs) -> Result<()> {
-    let s = a.select.scenario.load()?;
+    let s = a.select.scenario.load_one_axis("`simulate`")?;
     let json = JsonOut::create(a.select.json.as_ref())?;
     let mut runs = Vec::with_capacity(a.select.methods.len());
     if a.stalls.is_empty() {
@@ -904,7 +912,7 @@ pub struct RobustnessArgs {
 /// the table and summed up at the end, not errors of the command.
 pub fn robustness(a: RobustnessArgs) -> Result<()> {
     use stepdrive_monitor::studies::robustness::{run_table, tables, RobustnessDocument};
-    let s = a.scenario.load()?;
+    let s = a.scenario.load_one_axis("`robustness`")?;
     let threads = a.threads.map_or_else(
         || std::thread::available_parallelism().map_or(1, |n| n.get()),
         usize::from,
@@ -1010,7 +1018,7 @@ fn positive(s: &str) -> Result<f64, String> {
 pub fn identify(a: IdentifyArgs) -> Result<()> {
     use stepdrive_control::identify::Bounds;
     use stepdrive_monitor::studies::identify::{default_max_speed, identified_scenario, table};
-    let s = a.scenario.load()?;
+    let s = a.scenario.load_one_axis("`identify`")?;
     writable(&a.out).with_context(|| {
         format!(
             "cannot write the identified scenario to {} (checked before the sequence runs)",

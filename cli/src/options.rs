@@ -106,6 +106,27 @@ impl ScenarioOpt {
             None => Ok(Scenario::default()),
         }
     }
+
+    /// [`Self::load`] for a command that runs one axis (`simulate`, `robustness`,
+    /// `identify`): a scenario with `[[axis]]` tables is refused, naming `run`.
+    pub fn load_one_axis(&self, command: &str) -> Result<Scenario> {
+        let s = self.load()?;
+        one_axis(&s, command)?;
+        Ok(s)
+    }
+}
+
+/// Refuses a multi-axis scenario for `what`, which runs one axis.
+pub fn one_axis(s: &Scenario, what: &str) -> Result<()> {
+    if s.axis_count() > 1 {
+        anyhow::bail!(
+            "scenario {} has {} axes ([[axis]] tables); {what} runs one axis: run them with \
+             `stepdrive run` (lockstep or realtime), or give it one axis's scenario",
+            s.name,
+            s.axis_count()
+        );
+    }
+    Ok(())
 }
 
 #[derive(Args, Debug, Clone)]

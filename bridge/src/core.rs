@@ -589,6 +589,7 @@ impl BridgeCore {
                         continue;
                     }
                     send(&self.link.control_frame(Action::Align, now));
+                    self.link.status_seen = 0;
                     self.stage = Stage::Aligning {
                         round: Round::First,
                         since: Since::new(now, &self.link),
@@ -602,6 +603,8 @@ impl BridgeCore {
                     seen,
                 } => {
                     let aligning = self.link.last_status & status::ALIGNING != 0;
+                    // An alignment begun and ended between two readings still counts.
+                    let seen = seen || self.link.status_seen & status::ALIGNING != 0;
                     // Samples sent before the drive took the RESET may still carry a fault
                     // of a previous session; from the ALIGN's first SAMPLE on, one is new.
                     if seen || aligning {
@@ -657,6 +660,7 @@ impl BridgeCore {
                         if newest.wrapping_sub(first) >= step.periods {
                             judge_phase_step(&step, self.settings.rotor_teeth)?;
                             send(&self.link.control_frame(Action::Align, now));
+                            self.link.status_seen = 0;
                             self.stage = Stage::Aligning {
                                 round: Round::Last,
                                 since: Since::new(now, &self.link),
@@ -1234,6 +1238,38 @@ mod tests {
                 assert!(e.to_string().contains("of the host's clock"), "{e}");
             }
             other => panic!("{other:?}"),
+        }
+    }
+
+    /// An alignment begun and ended between two readings (a host busy elsewhere for longer
+    /// than the alignment: a multi-axis bridge starting another drive) still counts: the
+    /// newest SAMPLE no longer says ALIGNING, an earlier one of the batch did. Before, the
+    /// bridge waited for an ALIGNING it had missed and refused the drive 1.3 s later.
+    #[test]
+    fn an_alignment_seen_only_in_a_late_batch_still_counts() {
+        const MS: u64 = 1_000_000;
+        let mut c = configured(10);
+        let mut stats = StatsReport::default();
+        c.on_frame(&timed_sample(99, 0, 0), 0, &mut stats);
+        assert_eq!(c.startup(0, true, &mut |_| {}), Ok(StartStep::Wait));
+        // Read in one go, 400 ms later: aligning, then done and holding still.
+        let batch = [(1, status::ALIGNING), (300, status::ALIGNING)]
+            .into_iter()
+            .chain((301..312).map(|t| (t, 0)));
+        for (i, (t, st)) in batch.enumerate() {
+            c.on_frame(
+                &timed_sample(100 + i as u32, t * MS, st),
+                400 * MS,
+                &mut stats,
+            );
+        }
+        // Past the alignment to judging its hold (these still samples carry no current in
+        // phase A, so it is refused for that), not waiting to see an ALIGNING that is gone.
+        match c.startup(400 * MS, true, &mut |_| {}) {
+            Err(Refusal::Align { .. }) | Ok(StartStep::Wait) => {
+                panic!("still waiting for the alignment it has seen")
+            }
+            _ => {}
         }
     }
 

@@ -265,6 +265,10 @@ pub struct DriveLink {
     pub other_version: (u64, u8),
     /// The status and fault bits of the newest sample.
     pub last_status: u16,
+    /// Every status bit any sample carried since [`Self::clear_status_seen`]: a host that
+    /// reads its samples late (held up, or a multi-axis bridge busy with another drive's
+    /// start-up) still learns that the drive went through a state it has left by now.
+    pub status_seen: u16,
     pub last_fault_bits: u16,
     /// The drive's timestamp of the last accepted sample, ns on the drive's clock.
     pub sample_timestamp_ns: u64,
@@ -304,6 +308,7 @@ impl DriveLink {
             repeated_configs: 0,
             other_version: (0, 0),
             last_status: 0,
+            status_seen: 0,
             last_fault_bits: 0,
             sample_timestamp_ns: 0,
         }
@@ -480,6 +485,7 @@ impl DriveLink {
                 };
                 self.lost_on_wire += u64::from(gap - 1);
                 self.last_status = s.status;
+                self.status_seen |= s.status;
                 self.last_fault_bits = s.fault_bits;
                 self.sample_timestamp_ns = frame.timestamp_ns;
                 self.first_seq.get_or_insert(frame.seq);

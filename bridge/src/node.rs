@@ -313,6 +313,9 @@ fn send_on(wire: &mut Wire, frame: &Frame) {
     wire.send(&buf[..n]);
 }
 
+/// Each axis's drive is on its own in a multi-axis bridge.
+impl stepdrive_runtime::lanes::Together for BridgeNode {}
+
 impl Node for BridgeNode {
     type Ports = BridgePorts;
 

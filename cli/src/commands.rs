@@ -2,7 +2,7 @@
 //! measuring latency, printing and checking configuration.
 
 use crate::options::{
-    one_axis, parse_seconds, seconds, LiveArgs, ScenarioOpt, StackArgs, Throttling,
+    check_drive_count, parse_seconds, seconds, LiveArgs, ScenarioOpt, StackArgs, Throttling,
 };
 use anyhow::{Context, Result};
 use clap::Args;
@@ -459,11 +459,9 @@ fn chunks(uncompressed: bool) -> Chunks {
 
 pub fn run(a: RunArgs) -> Result<()> {
     let mut s = a.select.scenario.load()?;
-    if a.mode == Mode::Hardware {
-        one_axis(&s, "hardware mode (one bridge, one drive)")?;
-    }
     a.stack.apply_duration(&mut s)?;
     let deployment = a.stack.deployment(a.mode)?;
+    check_drive_count(&s, &deployment)?;
     let json = JsonOut::create(a.select.json.as_ref())?;
     let record_path = match (&a.record, &a.plots) {
         (Some(p), _) => Some(p.clone()),
@@ -608,9 +606,6 @@ impl Drop for GatewayChild {
 
 pub fn serve(a: ServeArgs) -> Result<()> {
     let mut s = a.scenario.load()?;
-    if a.mode == ServeMode::Hardware {
-        one_axis(&s, "hardware mode (one bridge, one drive)")?;
-    }
     if !s.program.is_empty() {
         anyhow::bail!(
             "scenario {} has a [[program]]: a served stack takes its commands from clients \
@@ -639,6 +634,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         ServeMode::Hardware => Mode::Hardware,
     };
     let deployment = a.stack.deployment(mode)?;
+    check_drive_count(&s, &deployment)?;
     let _throttling = throttling_guard(&a.stack, &deployment, mode)?;
     let opts = LaunchOptions {
         instance: a.stack.instance.clone(),

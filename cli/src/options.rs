@@ -404,6 +404,13 @@ impl StackArgs {
 /// a serial line must exist.
 fn check_drive_address(addr: &str) -> Result<()> {
     use stepdrive_bridge::node::DriveAddr;
+    // A multi-axis stack's drives, one address per axis.
+    if addr.contains(',') && !addr.starts_with("serial:") && !addr.starts_with('/') {
+        return addr
+            .split(',')
+            .map(str::trim)
+            .try_for_each(check_drive_address);
+    }
     match addr.parse::<DriveAddr>() {
         Err(e) => {
             Err(anyhow::Error::new(e).context("the drive's address (--drive, [drive] address)"))
@@ -466,4 +473,26 @@ mod tests {
         assert_eq!(period("0.001"), Ok(1e-3));
         assert!(period("0.0009").is_err());
     }
+}
+
+/// A hardware stack's drive addresses against its scenario's axes: one per axis.
+pub fn check_drive_count(s: &Scenario, d: &Deployment) -> Result<()> {
+    let Some(addr) = d.drive.address.as_deref() else {
+        return Ok(());
+    };
+    // A serial line's path is one drive, whatever it holds.
+    let given = if addr.starts_with("serial:") || addr.starts_with('/') {
+        1
+    } else {
+        addr.split(',').count()
+    };
+    if given != s.axis_count() {
+        anyhow::bail!(
+            "scenario {} has {} axes and {given} drive addresses were given (--drive A,B,...: \
+             one per axis, in axis order)",
+            s.name,
+            s.axis_count()
+        );
+    }
+    Ok(())
 }

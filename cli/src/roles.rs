@@ -224,9 +224,14 @@ pub fn position_loop(a: ProcessArgs) -> Result<()> {
 
 #[derive(Args, Debug)]
 pub struct EmulateArgs {
-    /// UDP address to listen on for the bridge.
-    #[arg(long, default_value = "127.0.0.1:7700")]
-    pub listen: std::net::SocketAddr,
+    /// UDP address to listen on for the bridge; a multi-axis scenario's drives, one
+    /// address per axis (`A,B,...`), all in this process.
+    #[arg(long, default_value = "127.0.0.1:7700", value_delimiter = ',')]
+    pub listen: Vec<std::net::SocketAddr>,
+    /// A multi-axis scenario's drives: the axis whose drive the injected faults (below)
+    /// act on; the others run clean.
+    #[arg(long, default_value_t = 0, value_name = "N")]
+    pub inject_axis: usize,
     /// Speak on this serial line (UART or pseudo-terminal, COBS framing) instead of UDP.
     #[arg(long, value_name = "PATH")]
     pub serial: Option<PathBuf>,
@@ -364,6 +369,7 @@ pub fn emulate_drive(a: EmulateArgs) -> Result<()> {
     let i = &a.inject;
     run_emulator(&EmulatorOptions {
         listen: a.listen,
+        inject_axis: a.inject_axis,
         serial: a.serial,
         scenario,
         // The drive stands for hardware: it always runs on the wall clock.

@@ -41,6 +41,7 @@ pub use stepdrive_shared::axis::{
 };
 use stepdrive_shared::axis::{request_flags, AxisRequest, AxisStreamPoint};
 use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::Scenario;
 
 /// What went wrong talking to an axis.
 #[derive(Debug, thiserror::Error)]
@@ -56,6 +57,13 @@ pub enum ClientError {
     /// commands (its status can be read).
     #[error("the stack on instance `{instance}` runs in lockstep: it takes commands only from its scenario's [[program]]; to command an axis, start one with `stepdrive serve --instance {instance}`")]
     Lockstep { instance: String },
+    /// The stack has no such axis.
+    #[error("axis {axis}: the stack on instance `{instance}` has {axes} axis/axes (0 … {last})", last = axes - 1)]
+    UnknownAxis {
+        instance: String,
+        axis: u32,
+        axes: usize,
+    },
     /// The axis did not take the command; nothing of it was applied.
     #[error("{kind} refused: {reason}")]
     Refused {
@@ -302,7 +310,21 @@ impl Axis {
         stepdrive_shared::services::instance_name(instance).map_err(ClientError::BadInstance)?;
         let role = format!("client-{}", std::process::id());
         let mut bus = IpcBus::attach(instance, &role, Duration::from_secs(5)).map_err(no_stack)?;
-        // Each axis of a multi-axis stack has its own services.
+        // Each axis of a multi-axis stack has its own services; an axis the stack's
+        // scenario does not have is refused at once (not after a wait for its server).
+        let axes = bus
+            .stack_scenario()
+            .ok()
+            .flatten()
+            .and_then(|b| b.text().and_then(|t| Scenario::from_toml_str(t).ok()))
+            .map(|s| s.axis_count());
+        if let Some(axes) = axes.filter(|&n| axis as usize >= n) {
+            return Err(ClientError::UnknownAxis {
+                instance: instance.to_string(),
+                axis,
+                axes,
+            });
+        }
         stepdrive_runtime::port::PortFactory::set_axis(&mut bus, axis);
         let commands = match bus.mode() {
             Mode::Lockstep => None,

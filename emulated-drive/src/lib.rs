@@ -547,8 +547,11 @@ impl DriveCore {
 
 #[derive(Debug, Clone)]
 pub struct EmulatorOptions {
-    /// UDP address to listen on; ignored when `serial` is given.
-    pub listen: SocketAddr,
+    /// UDP address to listen on, one per axis of the scenario (a multi-axis scenario's
+    /// drives are one process, a drive per address); ignored when `serial` is given.
+    pub listen: Vec<SocketAddr>,
+    /// The axis whose drive the fault injection acts on (the others run clean).
+    pub inject_axis: usize,
     /// Serial line (UART or pseudo-terminal) to use instead of UDP.
     pub serial: Option<std::path::PathBuf>,
     pub scenario: Scenario,
@@ -579,6 +582,12 @@ pub enum EmulatorError {
     Rt(#[from] stepdrive_runtime::rt::RtError),
     #[error(transparent)]
     Run(stepdrive_runtime::RunError),
+    #[error("the scenario has {axes} axes and {given} drive addresses were given (--listen A,B,...: one per axis{serial})")]
+    Axes {
+        axes: usize,
+        given: usize,
+        serial: &'static str,
+    },
     #[error("cannot write the truth file {path}")]
     Truth {
         path: std::path::PathBuf,
@@ -596,13 +605,17 @@ fn align_duty(s: &Scenario, current_ma: u16) -> i16 {
 }
 
 pub fn run_emulator(o: &EmulatorOptions) -> Result<(), EmulatorError> {
+    let axes = o.scenario.axis_count();
+    if axes > 1 || o.listen.len() != 1 {
+        return run_emulators(o);
+    }
     let wire = match &o.serial {
         Some(path) => Wire::open_serial(path).map_err(|source| EmulatorError::Open {
             what: format!("serial line {}", path.display()),
             source,
         })?,
-        None => Wire::bind_udp(o.listen).map_err(|source| EmulatorError::Open {
-            what: format!("UDP socket on {}", o.listen),
+        None => Wire::bind_udp(o.listen[0]).map_err(|source| EmulatorError::Open {
+            what: format!("UDP socket on {}", o.listen[0]),
             source,
         })?,
     };
@@ -619,24 +632,95 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<(), EmulatorError> {
     let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
     core.set_alignment(&o.scenario, o.align_ma, o.align_ms);
     core.set_align_fault(o.inject.align);
-    tracing::info!(listen = %o.listen, serial = ?o.serial, "emulated drive up; waiting for HELLO");
+    tracing::info!(listen = %o.listen[0], serial = ?o.serial, "emulated drive up; waiting for HELLO");
     let node = node::DriveNode::new(&o.scenario, core, Injector::new(o.inject.clone()), truth)
         .lasting(o.duration);
+    run_drive(node, wire, o.wait)
+}
+
+/// A drive on the runner until it is switched off.
+fn run_drive<N: stepdrive_runtime::Node>(
+    node: N,
+    ports: N::Ports,
+    wait: WaitStrategy,
+) -> Result<(), EmulatorError> {
     // A drive has no peer to time out: it waits for a host as long as it runs.
     let forever = Duration::from_secs(1_000_000_000);
     let settings = Settings {
-        wait: o.wait,
+        wait,
         startup_timeout: forever,
         peer_timeout: forever,
         account_host_holds: false,
         linger: Duration::ZERO,
         report_end: true,
     };
-    match Runner::new(node, wire, settings, None).run() {
+    match Runner::new(node, ports, settings, None).run() {
         // SIGINT/SIGTERM is how a drive is switched off.
         Ok(_) | Err(RunError::Terminated) => Ok(()),
         Err(e) => Err(EmulatorError::Run(e)),
     }
+}
+
+/// A multi-axis scenario's drives in one process: a drive per axis, each its own UDP
+/// address, session, clock and motor (its axis's scenario), stepped on one deadline grid
+/// (`stepdrive_runtime::lanes`); the truth is axis 0's, the fault injection
+/// `inject_axis`'s.
+fn run_emulators(o: &EmulatorOptions) -> Result<(), EmulatorError> {
+    let axes = o.scenario.axis_count();
+    if o.listen.len() != axes || o.serial.is_some() {
+        return Err(EmulatorError::Axes {
+            axes,
+            given: if o.serial.is_some() {
+                0
+            } else {
+                o.listen.len()
+            },
+            serial: if o.serial.is_some() {
+                "; a serial line is one drive"
+            } else {
+                ""
+            },
+        });
+    }
+    o.rt.apply()?;
+    let (mut nodes, mut wires) = (Vec::with_capacity(axes), Vec::with_capacity(axes));
+    for (axis, &listen) in o.listen.iter().enumerate() {
+        let Some(s) = o.scenario.for_axis(axis) else {
+            unreachable!("axis {axis} is below the axis count")
+        };
+        wires.push(
+            Wire::bind_udp(listen).map_err(|source| EmulatorError::Open {
+                what: format!("UDP socket on {listen} (axis {axis})"),
+                source,
+            })?,
+        );
+        let truth = match (&o.truth, axis) {
+            (Some(p), 0) => {
+                Some(
+                    truth::TruthWriter::create(p).map_err(|source| EmulatorError::Truth {
+                        path: p.clone(),
+                        source,
+                    })?,
+                )
+            }
+            _ => None,
+        };
+        let mut core = DriveCore::new(s, o.watchdog_periods, o.plan_capacity);
+        core.set_alignment(s, o.align_ma, o.align_ms);
+        let inject = if axis == o.inject_axis {
+            core.set_align_fault(o.inject.align);
+            o.inject.clone()
+        } else {
+            FaultInjection::default()
+        };
+        nodes.push(node::DriveNode::new(s, core, Injector::new(inject), truth).lasting(o.duration));
+    }
+    tracing::info!(listen = ?o.listen, "emulated drives up, one per axis; waiting for HELLO");
+    run_drive(
+        stepdrive_runtime::lanes::Lanes::new(nodes, false),
+        wires,
+        o.wait,
+    )
 }
 
 #[cfg(test)]

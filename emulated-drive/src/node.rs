@@ -69,6 +69,9 @@ impl DriveNode {
     }
 }
 
+/// Each axis's drive is on its own in a multi-axis emulator.
+impl stepdrive_runtime::lanes::Together for DriveNode {}
+
 impl Node for DriveNode {
     type Ports = Wire;
 

@@ -99,6 +99,8 @@ pub enum AssembleError {
     NoDrive,
     #[error(transparent)]
     BadDrive(#[from] stepdrive_bridge::node::BadDriveAddr),
+    #[error("{axes} axes need {axes} drive addresses (--drive A,B,...: one per axis, in axis order); {given} given")]
+    DriveAddresses { axes: usize, given: usize },
     #[error("the {role} serves one axis; this scenario has {axes} ([[axis]] tables): a multi-axis stack runs in lockstep or realtime with the simulated plant")]
     OneAxisOnly { role: Role, axes: usize },
     #[error("--wait event is for the current loop; the bridge waits for the drive's frames with sleep, spin or hybrid:<µs>")]
@@ -169,7 +171,24 @@ fn assemble_axes<A: Assemble, B: PortFactory>(
             let (n, p) = lanes_of(setup, bus, position_loop)?;
             a.node(n, p)
         }
-        Role::Bridge | Role::Identify => Err(RunError::node(
+        Role::Bridge => {
+            let axes = setup.scenario.axis_count();
+            let given = setup
+                .deployment
+                .drive
+                .address
+                .as_deref()
+                .map_or(0, |a| a.split(',').count());
+            if given != axes {
+                return Err(RunError::node(
+                    role,
+                    AssembleError::DriveAddresses { axes, given },
+                ));
+            }
+            let (n, p) = lanes_of(setup, bus, bridge_of)?;
+            a.node(n, p)
+        }
+        Role::Identify => Err(RunError::node(
             role,
             AssembleError::OneAxisOnly {
                 role,
@@ -230,7 +249,17 @@ pub fn bridge(
     setup: &Setup,
     bus: &mut impl PortFactory,
 ) -> Result<(BridgeNode, BridgePorts), RunError> {
-    let settings = bridge_settings(setup)?;
+    bridge_of(setup, bus, 0)
+}
+
+/// The bridge to `axis`'s drive: the deployment's drive address of that axis (a
+/// multi-axis stack's `--drive A,B,...`, one per axis).
+fn bridge_of(
+    setup: &Setup,
+    bus: &mut impl PortFactory,
+    axis: u32,
+) -> Result<(BridgeNode, BridgePorts), RunError> {
+    let settings = bridge_settings(setup, axis as usize)?;
     let node = BridgeNode::new(setup.scenario, settings.clone())?;
     let ports = BridgePorts::open(bus, &settings.drive)?;
     Ok((node, ports))
@@ -283,16 +312,23 @@ pub fn identify(
 
 /// The bridge's settings: the deployment's drive link, the scenario's load for the
 /// alignment's rest angle.
-fn bridge_settings(setup: &Setup) -> Result<BridgeSettings, RunError> {
+fn bridge_settings(setup: &Setup, axis: usize) -> Result<BridgeSettings, RunError> {
     let d = setup.deployment;
     let s = setup.scenario;
     let bad = |e: AssembleError| RunError::node(Role::Bridge, e);
-    let drive: DriveAddr = d
+    let addresses = d
         .drive
         .address
         .as_deref()
         .ok_or(AssembleError::NoDrive)
-        .map_err(bad)?
+        .map_err(bad)?;
+    // One drive per axis: a multi-axis stack's addresses are comma-separated, in axis
+    // order ([`assemble_axes`] checks their count); a one-axis stack's is taken whole.
+    let address = match axis {
+        0 if !addresses.contains(',') => addresses,
+        _ => addresses.split(',').nth(axis).unwrap_or_default().trim(),
+    };
+    let drive: DriveAddr = address
         .parse()
         .map_err(|e| bad(AssembleError::BadDrive(e)))?;
     let wait = d.wait(Role::Bridge, setup.mode);

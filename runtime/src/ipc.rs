@@ -287,7 +287,7 @@ impl IpcBus {
     }
 
     fn state_ready(&self) -> Result<(String, EventFactory), PortError> {
-        let name = self.names.state_ready();
+        let name = self.names.state_ready_of(self.axis);
         let factory = self.service(&name, MessagingPattern::Event, |builder, stamp| {
             builder
                 .event()

@@ -349,13 +349,18 @@ impl<N: Together> Node for Lanes<N> {
         now_ns: u64,
         until_ns: u64,
     ) -> Result<bool, RunError> {
-        // The first lane still waiting blocks for its input; the others' come with it.
-        for (lane, node, p) in self.each(ports) {
-            if !lane.finished && !lane.ready {
-                return node.block(p, now_ns, until_ns);
-            }
+        // One lane waiting blocks on its input. Several: none may block on its own (one
+        // drive's socket would hold up another's frames), so the runner naps between polls.
+        let mut waiting = self
+            .lanes
+            .iter()
+            .enumerate()
+            .filter(|(_, l)| !l.finished && !l.ready)
+            .map(|(n, _)| n);
+        match (waiting.next(), waiting.next()) {
+            (Some(n), None) => self.nodes[n].block(&mut ports[n], now_ns, until_ns),
+            _ => Ok(false),
         }
-        Ok(false)
     }
 
     fn rung(&mut self, ports: &mut Self::Ports, cx: &mut Cx) -> Result<(), RunError> {

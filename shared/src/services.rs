@@ -288,6 +288,14 @@ impl ServiceNames {
         format!("{}/{STATE_READY}", self.instance)
     }
 
+    /// `axis`'s state-ready event (axis 0's is [`Self::state_ready`]).
+    pub fn state_ready_of(&self, axis: u32) -> String {
+        match axis {
+            0 => self.state_ready(),
+            n => format!("{}/axis/{n}/{STATE_READY}", self.instance),
+        }
+    }
+
     /// The iceoryx2 node name of `role` in this instance.
     pub fn node(&self, role: &str) -> String {
         format!("{}.{role}", self.instance)

@@ -60,14 +60,15 @@ pub struct LoopTiming {
 }
 
 impl LoopTiming {
-    fn of(r: &StatsReport) -> Self {
+    /// `deadlines`: deadlines a cycle has (a multi-axis plant: one per axis).
+    fn of(r: &StatsReport, deadlines: u64) -> Self {
         Self {
             cycles: r.cycles,
             misses: r.misses,
             miss_pct: if r.cycles == 0 {
                 f64::NAN
             } else {
-                100.0 * r.misses as f64 / r.cycles as f64
+                100.0 * r.misses as f64 / (r.cycles * deadlines) as f64
             },
             overruns: r.overruns,
             lost: r.lost,
@@ -113,7 +114,8 @@ impl HostHolds {
         )
     }
 
-    fn of(current: &StatsReport, plant: &StatsReport) -> Self {
+    /// `axes`: a multi-axis plant's misses are its axes' (a period per axis).
+    fn of(current: &StatsReport, plant: &StatsReport, axes: u64) -> Self {
         let h = &current.host_held;
         let outside = plant.misses.saturating_sub(current.host_missed);
         Self {
@@ -123,7 +125,8 @@ impl HostHolds {
             deadline_misses_in_holds: current.host_missed.min(plant.misses),
             deadline_misses_queued: current.queued_missed.min(outside),
             deadline_misses_outside_holds: outside,
-            deadline_miss_pct_outside_holds: 100.0 * outside as f64 / plant.cycles.max(1) as f64,
+            deadline_miss_pct_outside_holds: 100.0 * outside as f64
+                / (plant.cycles * axes).max(1) as f64,
         }
     }
 }
@@ -228,8 +231,13 @@ impl TimingReport {
         monitor_lost: u64,
         host_holds_measured: bool,
     ) -> Self {
+        // A multi-axis plant misses per axis: a period of each axis is one deadline.
+        let axes = s.axis_count() as u64;
         let (misses, pct) = plant.as_ref().map_or((0, f64::NAN), |p| {
-            (p.misses, 100.0 * p.misses as f64 / p.cycles.max(1) as f64)
+            (
+                p.misses,
+                100.0 * p.misses as f64 / (p.cycles * axes).max(1) as f64,
+            )
         });
         let counter = |f: fn(&StatsReport) -> u64| plant.as_deref().map_or(0, f);
         Self {
@@ -243,9 +251,9 @@ impl TimingReport {
             sensor_to_actuator: plant
                 .as_ref()
                 .map(|p| Percentiles::of(&p.sensor_to_actuator)),
-            plant: plant.as_deref().map(LoopTiming::of),
-            current_loop: current.as_deref().map(LoopTiming::of),
-            position_loop: position.as_deref().map(LoopTiming::of),
+            plant: plant.as_deref().map(|p| LoopTiming::of(p, axes)),
+            current_loop: current.as_deref().map(|c| LoopTiming::of(c, 1)),
+            position_loop: position.as_deref().map(|q| LoopTiming::of(q, 1)),
             monitor_lost_samples: monitor_lost,
             crc_errors: counter(|p| p.crc_errors),
             bad_frames: counter(|p| p.bad_frames),
@@ -257,7 +265,7 @@ impl TimingReport {
                 .filter(|p| p.round_trip.count > 0)
                 .map(|p| Percentiles::of(&p.round_trip)),
             host_holds: match (&current, &plant) {
-                (Some(c), Some(p)) if host_holds_measured => Some(HostHolds::of(c, p)),
+                (Some(c), Some(p)) if host_holds_measured => Some(HostHolds::of(c, p, axes)),
                 _ => None,
             },
             resources: Resources::default(),

@@ -294,8 +294,11 @@ pub fn path_arg(p: &Path) -> String {
     p.display().to_string()
 }
 
-/// A loopback UDP address no one is using right now, for the emulated drive.
-pub fn free_loopback_port() -> Result<std::net::SocketAddr> {
-    let probe = std::net::UdpSocket::bind("127.0.0.1:0").context("cannot find a free UDP port")?;
-    Ok(probe.local_addr()?)
+/// `n` distinct loopback UDP addresses no one is using right now (the probes are held
+/// until all are found, so no two are the same), for a multi-axis emulated drive.
+pub fn free_loopback_ports(n: usize) -> Result<Vec<std::net::SocketAddr>> {
+    let probes = (0..n)
+        .map(|_| std::net::UdpSocket::bind("127.0.0.1:0").context("cannot find a free UDP port"))
+        .collect::<Result<Vec<_>>>()?;
+    probes.iter().map(|p| Ok(p.local_addr()?)).collect()
 }

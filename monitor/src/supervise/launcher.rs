@@ -8,7 +8,7 @@ use crate::record::recording::Recording;
 use crate::report::metrics::{Metrics, RunReport, TruthReport};
 use crate::report::outcome::{Exit, Outcome};
 use crate::supervise::children::{
-    free_loopback_port, path_arg, spawn_emulated_drive, RunFiles, Supervised,
+    free_loopback_ports, path_arg, spawn_emulated_drive, RunFiles, Supervised,
 };
 use crate::supervise::cpus;
 use crate::supervise::observer::Observer;
@@ -132,7 +132,10 @@ fn launch(
     };
     let emulated = mode == Mode::Hardware && d.drive.address.is_none();
     if emulated {
-        d.drive.address = Some(free_loopback_port()?.to_string());
+        // A drive per axis, all in the one emulator process.
+        let ports = free_loopback_ports(s.axis_count())?;
+        let ports: Vec<String> = ports.iter().map(ToString::to_string).collect();
+        d.drive.address = Some(ports.join(","));
     }
     let files = RunFiles::write(s, &d.resolved(mode), &opts.instance)?;
     let common = files.process_args(mode, &opts.instance);

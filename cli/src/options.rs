@@ -456,25 +456,6 @@ impl LiveArgs {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::number_within;
-
-    #[test]
-    fn a_number_outside_its_range_or_not_a_number_is_refused_naming_the_range() {
-        let rate = |s| number_within(s, 0.0, 10_000.0, true, "Hz");
-        assert_eq!(rate("100"), Ok(100.0));
-        assert_eq!(rate("10000"), Ok(10_000.0));
-        for bad in ["0", "-1", "10000.5", "nan", "inf", "fast"] {
-            let e = rate(bad).expect_err(bad);
-            assert!(e.contains("above 0 … 10000 Hz") && e.contains(bad), "{e}");
-        }
-        let period = |s| number_within(s, 1e-3, 3600.0, false, "seconds");
-        assert_eq!(period("0.001"), Ok(1e-3));
-        assert!(period("0.0009").is_err());
-    }
-}
-
 /// A hardware stack's drive addresses against its scenario's axes: one per axis.
 pub fn check_drive_count(s: &Scenario, d: &Deployment) -> Result<()> {
     let Some(addr) = d.drive.address.as_deref() else {
@@ -495,4 +476,23 @@ pub fn check_drive_count(s: &Scenario, d: &Deployment) -> Result<()> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::number_within;
+
+    #[test]
+    fn a_number_outside_its_range_or_not_a_number_is_refused_naming_the_range() {
+        let rate = |s| number_within(s, 0.0, 10_000.0, true, "Hz");
+        assert_eq!(rate("100"), Ok(100.0));
+        assert_eq!(rate("10000"), Ok(10_000.0));
+        for bad in ["0", "-1", "10000.5", "nan", "inf", "fast"] {
+            let e = rate(bad).expect_err(bad);
+            assert!(e.contains("above 0 … 10000 Hz") && e.contains(bad), "{e}");
+        }
+        let period = |s| number_within(s, 1e-3, 3600.0, false, "seconds");
+        assert_eq!(period("0.001"), Ok(1e-3));
+        assert!(period("0.0009").is_err());
+    }
 }

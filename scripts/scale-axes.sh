@@ -80,7 +80,7 @@ def panel(x0, title, unit, series, ymin):
          f'<text x="{x0 + 14}" y="{(H - B) / 2}" font-size="12" transform="rotate(-90 {x0 + 14} {(H - B) / 2})" text-anchor="middle">{unit}</text>']
     for v in xs:
         g.append(f'<text x="{X(v)}" y="{H - B + 15}" text-anchor="middle" font-size="11">{v}</text>')
-    for e in range(math.floor(lo), math.ceil(hi) + 1):
+    for e in range(math.ceil(lo), math.floor(hi) + 1):
         g.append(f'<text x="{x0 + L - 4}" y="{Y(10 ** e) + 4}" text-anchor="end" font-size="11">1e{e}</text>')
         g.append(f'<line x1="{x0 + L}" y1="{Y(10 ** e)}" x2="{x0 + W - 20}" y2="{Y(10 ** e)}" stroke="#ddd"/>')
     for k, (name, colour, vals) in enumerate(series):

@@ -267,7 +267,7 @@ impl<N: Together> Node for Lanes<N> {
         // On the wall clock a lane whose input is there goes at once, whatever the others
         // wait for: waiting for all would let one axis's backlog stand, its answers a period
         // late ever after. In lockstep no axis falls behind, and one cycle for all costs
-        // one hand-off instead of one per axis (3 axes: 0.5-0.8 s a run against 1.4-1.9 s).
+        // one hand-off instead of one per axis (3 axes: 0.5-1.1 s a run against 1.4-1.9 s).
         let any_ready = self.lanes.iter().any(|l| l.ready && !l.finished);
         if pending && (self.together || !any_ready) {
             return Ok(Poll::Pending);

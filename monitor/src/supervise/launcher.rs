@@ -339,13 +339,15 @@ pub fn serve_stack(
         mode,
         "serve",
         feeds,
-        Observer::new(s, mode).recording(live, Method::Proposed),
+        Observer::new(s.for_axis(0).unwrap_or(s), mode).recording(live, Method::Proposed),
         &mut l.children,
         Some(&l.files),
         timeouts,
-    );
+    )
+    .watching_axes();
     let ending = sup.run(Until::Interrupted)?;
-    let latched = sup.observer.last_fault() & crate::report::outcome::LATCHED;
+    // Any axis's device with a fault latched at the end makes the served stack's verdict.
+    let latched = sup.last_faults() & crate::report::outcome::LATCHED;
     let served_s = sup.observer.metrics().sim_time_s();
     let samples = sup.observer.metrics().samples();
     let misses = sup.finals.device_misses();

@@ -291,6 +291,13 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             .collect()
     }
 
+    /// The devices' latched fault bits at their newest sample, every axis's together.
+    pub fn last_faults(&self) -> u32 {
+        self.axes.iter().fold(self.observer.last_fault(), |f, a| {
+            f | a.observer.last_fault()
+        })
+    }
+
     /// Every axis has seen its last sample.
     fn all_last_seen(&self) -> bool {
         self.observer.last_seen() && self.axes.iter().all(|a| a.observer.last_seen())

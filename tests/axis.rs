@@ -496,6 +496,15 @@ fn a_client_started_before_a_hardware_stack_gets_its_status() {
     assert!(ended.success(), "{}", stderr_of(&mut run));
 }
 
+/// `[[program]]` steps: enable `axis` at 0 s, move it to `to` at 0.1 s (`extra`: more of
+/// the move step's fields).
+fn enable_then_move(axis: usize, to: f64, extra: &str) -> String {
+    format!(
+        "[[program]]\nat_s = 0.0\naxis = {axis}\ncommand = \"enable\"\n\
+         [[program]]\nat_s = 0.1\naxis = {axis}\ncommand = \"move\"\nto = {to}\n{extra}"
+    )
+}
+
 /// The short scenario's three axes: x as the file says, y without load, z with twice the
 /// inertia.
 fn three_axes(extra: &str) -> String {
@@ -585,13 +594,10 @@ fn a_fault_on_one_axis_of_three_stops_the_others_and_fails_the_run_naming_it() {
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("three-axes-fault");
     let inst = instance("three-axes-fault");
-    let mut program = String::new();
-    for (axis, to) in [(0, 1.0), (1, -2.0), (2, 3.0)] {
-        program += &format!(
-            "[[program]]\nat_s = 0.0\naxis = {axis}\ncommand = \"enable\"\n\
-             [[program]]\nat_s = 0.1\naxis = {axis}\ncommand = \"move\"\nto = {to}\n"
-        );
-    }
+    let program: String = [(0, 1.0), (1, -2.0), (2, 3.0)]
+        .into_iter()
+        .map(|(axis, to)| enable_then_move(axis, to, ""))
+        .collect();
     let text_of = three_axes(&program).replace(
         "[axis.motor]\ninertia_kg_m2 = 2.0e-5\n",
         "[axis.limits]\nfollowing_error_window_rad = 1e-6\nfollowing_error_time_s = 0.001\n",
@@ -644,10 +650,7 @@ fn a_coordinated_move_of_three_axes_leaves_and_arrives_on_one_tick() {
         (12.0, (8.0, 40.0, 1000.0)),
     ];
     for (axis, (to, _)) in axes.iter().enumerate() {
-        text_of += &format!(
-            "[[program]]\nat_s = 0.0\naxis = {axis}\ncommand = \"enable\"\n\
-             [[program]]\nat_s = 0.1\naxis = {axis}\ncommand = \"move\"\nto = {to}\ncoordinated = true\n"
-        );
+        text_of += &enable_then_move(axis, *to, "coordinated = true\n");
     }
     for (_, (v, a, j)) in axes {
         text_of += &format!(

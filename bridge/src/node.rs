@@ -66,6 +66,16 @@ impl std::str::FromStr for DriveAddr {
     }
 }
 
+/// The drives a drive-address text names, one per axis in axis order: a comma-separated
+/// list of UDP addresses (`127.0.0.1:7700,127.0.0.1:7701`); a serial line's path is one
+/// drive, whatever it holds.
+pub fn drive_addresses(text: &str) -> Vec<&str> {
+    if text.starts_with("serial:") || text.starts_with('/') {
+        return vec![text];
+    }
+    text.split(',').map(str::trim).collect()
+}
+
 /// What can go wrong between the bridge and its drive, naming the drive.
 #[derive(Debug, thiserror::Error)]
 pub enum BridgeError {
@@ -510,4 +520,22 @@ fn wait_readable(fd: std::os::fd::RawFd, timeout_ns: u64) -> bool {
     };
     // SAFETY: one valid pollfd and timespec; no signal mask change.
     unsafe { libc::ppoll(&mut pfd, 1, &ts, std::ptr::null()) > 0 }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::drive_addresses;
+
+    /// One rule for a drive-address text, wherever it is read: a list of UDP addresses is
+    /// a drive per axis; a serial line's path is one drive even with a comma in it.
+    #[test]
+    fn a_drive_address_text_names_a_drive_per_axis() {
+        assert_eq!(drive_addresses("127.0.0.1:7700"), ["127.0.0.1:7700"]);
+        assert_eq!(
+            drive_addresses("127.0.0.1:7700, 127.0.0.1:7701"),
+            ["127.0.0.1:7700", "127.0.0.1:7701"]
+        );
+        assert_eq!(drive_addresses("/dev/ttyACM0"), ["/dev/ttyACM0"]);
+        assert_eq!(drive_addresses("serial:/tmp/a,b"), ["serial:/tmp/a,b"]);
+    }
 }

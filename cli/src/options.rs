@@ -402,25 +402,24 @@ impl StackArgs {
 /// A drive address that cannot name a drive is bad input, said before anything starts (a
 /// bridge failing on it would be reported as a dead process): a UDP address must resolve,
 /// a serial line must exist.
-fn check_drive_address(addr: &str) -> Result<()> {
-    use stepdrive_bridge::node::DriveAddr;
+fn check_drive_address(addrs: &str) -> Result<()> {
+    use stepdrive_bridge::node::{drive_addresses, DriveAddr};
     // A multi-axis stack's drives, one address per axis.
-    if addr.contains(',') && !addr.starts_with("serial:") && !addr.starts_with('/') {
-        return addr
-            .split(',')
-            .map(str::trim)
-            .try_for_each(check_drive_address);
-    }
-    match addr.parse::<DriveAddr>() {
-        Err(e) => {
-            Err(anyhow::Error::new(e).context("the drive's address (--drive, [drive] address)"))
+    for addr in drive_addresses(addrs) {
+        match addr.parse::<DriveAddr>() {
+            Err(e) => {
+                return Err(
+                    anyhow::Error::new(e).context("the drive's address (--drive, [drive] address)")
+                )
+            }
+            Ok(DriveAddr::Serial(path)) if !path.exists() => anyhow::bail!(
+                "no serial line at {} (--drive-port, [drive] address): is the drive connected?",
+                path.display()
+            ),
+            Ok(_) => {}
         }
-        Ok(DriveAddr::Serial(path)) if !path.exists() => anyhow::bail!(
-            "no serial line at {} (--drive-port, [drive] address): is the drive connected?",
-            path.display()
-        ),
-        Ok(_) => Ok(()),
     }
+    Ok(())
 }
 
 /// The live view in Foxglove or Lichtblick.
@@ -461,12 +460,7 @@ pub fn check_drive_count(s: &Scenario, d: &Deployment) -> Result<()> {
     let Some(addr) = d.drive.address.as_deref() else {
         return Ok(());
     };
-    // A serial line's path is one drive, whatever it holds.
-    let given = if addr.starts_with("serial:") || addr.starts_with('/') {
-        1
-    } else {
-        addr.split(',').count()
-    };
+    let given = stepdrive_bridge::node::drive_addresses(addr).len();
     if given != s.axis_count() {
         anyhow::bail!(
             "scenario {} has {} axes and {given} drive addresses were given (--drive A,B,...: \

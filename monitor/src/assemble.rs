@@ -5,6 +5,7 @@
 //! virtual time.
 
 use stepdrive_bridge::link::{EncoderCalibration, HeldLoad};
+use stepdrive_bridge::node::drive_addresses;
 use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
 use stepdrive_control::identify::Bounds;
 use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
@@ -178,7 +179,7 @@ fn assemble_axes<A: Assemble, B: PortFactory>(
                 .drive
                 .address
                 .as_deref()
-                .map_or(0, |a| a.split(',').count());
+                .map_or(0, |a| drive_addresses(a).len());
             if given != axes {
                 return Err(RunError::node(
                     role,
@@ -322,13 +323,15 @@ fn bridge_settings(setup: &Setup, axis: usize) -> Result<BridgeSettings, RunErro
         .as_deref()
         .ok_or(AssembleError::NoDrive)
         .map_err(bad)?;
-    // One drive per axis: a multi-axis stack's addresses are comma-separated, in axis
-    // order ([`assemble_axes`] checks their count); a one-axis stack's is taken whole.
-    let address = match axis {
-        0 if !addresses.contains(',') => addresses,
-        _ => addresses.split(',').nth(axis).unwrap_or_default().trim(),
-    };
-    let drive: DriveAddr = address
+    // One drive per axis, in axis order ([`assemble_axes`] checks their count).
+    let list = drive_addresses(addresses);
+    let drive: DriveAddr = list
+        .get(axis)
+        .ok_or(AssembleError::DriveAddresses {
+            axes: axis + 1,
+            given: list.len(),
+        })
+        .map_err(bad)?
         .parse()
         .map_err(|e| bad(AssembleError::BadDrive(e)))?;
     let wait = d.wait(Role::Bridge, setup.mode);

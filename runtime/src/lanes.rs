@@ -63,15 +63,6 @@ impl<N: Node> Lanes<N> {
         }
     }
 
-    pub fn axes(&self) -> usize {
-        self.nodes.len()
-    }
-
-    /// Axis `n`'s node.
-    pub fn lane(&self, n: usize) -> Option<&N> {
-        self.nodes.get(n)
-    }
-
     fn first(&self) -> &N {
         &self.nodes[0]
     }

@@ -416,6 +416,15 @@ fn lay_over(table: &mut toml::Table, into: &str, value: &toml::Value) {
     }
 }
 
+/// A scenario text that is not valid TOML of a scenario (the file's path is put in by
+/// [`Scenario::from_toml_file`]).
+fn parse_error(message: String) -> ScenarioError {
+    ScenarioError::Parse {
+        path: PathBuf::from("<string>"),
+        message,
+    }
+}
+
 pub(crate) fn invalid(field: &'static str, message: String) -> ScenarioError {
     ScenarioError::Invalid { field, message }
 }
@@ -444,10 +453,6 @@ impl Scenario {
     }
 
     pub fn from_toml_str(text: &str) -> Result<Self, ScenarioError> {
-        let parse_error = |message: String| ScenarioError::Parse {
-            path: PathBuf::from("<string>"),
-            message,
-        };
         let table: toml::Table = toml::from_str(text).map_err(|e| parse_error(e.to_string()))?;
         if matches!(table.get("axis"), Some(toml::Value::Array(_))) {
             return Self::with_axes(table);
@@ -475,10 +480,6 @@ impl Scenario {
     /// A file with `[[axis]]` tables: the file's other tables are every axis's defaults, and
     /// each axis's tables lay its own values over them, field by field.
     fn with_axes(mut table: toml::Table) -> Result<Self, ScenarioError> {
-        let parse_error = |message: String| ScenarioError::Parse {
-            path: PathBuf::from("<string>"),
-            message,
-        };
         let Some(toml::Value::Array(entries)) = table.remove("axis") else {
             unreachable!("with_axes is called for an [[axis]] array")
         };

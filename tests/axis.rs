@@ -728,6 +728,52 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     }
     let unknown = axis("3", &["status"]);
     assert!(!unknown.status.success(), "{}", text(&unknown));
+
+    // A reader attaches to one axis: one the stack lacks is refused, naming the count; axis
+    // 2's recording holds axis 2's next move.
+    let reader = stepdrive(&["monitor", "--instance", &inst, "--axis", "3"]);
+    assert!(!reader.status.success(), "{}", text(&reader));
+    assert!(text(&reader).contains("has 3 axis"), "{}", text(&reader));
+    let mcap = dir.path("axis2.mcap");
+    let mut recorder = spawn_run(&[
+        "record",
+        "--instance",
+        &inst,
+        "--axis",
+        "2",
+        mcap.to_str().unwrap(),
+    ]);
+    assert!(
+        wait_until(Duration::from_secs(30), || mcap.is_file()),
+        "the recorder did not attach"
+    );
+    assert_reached(&axis(
+        "2",
+        &["move", "--to", "-1", "--wait", "--timeout", "10"],
+    ));
+    std::thread::sleep(Duration::from_millis(300));
+    signal(recorder.id(), libc::SIGINT);
+    wait_with_timeout(&mut recorder, Duration::from_secs(30));
+    let csv = dir.path("csv");
+    let exported = stepdrive(&[
+        "export",
+        "--csv",
+        csv.to_str().unwrap(),
+        mcap.to_str().unwrap(),
+    ]);
+    assert!(exported.status.success(), "{}", text(&exported));
+    let states = Csv::read(&csv.join("proposed_state.csv"));
+    let theta = states.col("theta [");
+    let last: f64 = states
+        .rows()
+        .last()
+        .and_then(|r| r[theta].parse().ok())
+        .expect("axis 2 recorded");
+    assert!(
+        (last + 1.0).abs() < 1e-4,
+        "axis 2 recorded ending at {last} rad"
+    );
+
     signal(serve.id(), libc::SIGINT);
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
     assert!(status.success(), "{}", stderr_of(&mut serve));
@@ -783,4 +829,148 @@ fn a_two_axis_hardware_stack_runs_a_drive_per_axis() {
     for axis in [left, right] {
         assert!(num(axis, "samples") > 0.0, "{axis}");
     }
+}
+
+/// A recording of a multi-axis run holds every axis on its own channels (axis n's under
+/// `/<method>/axis/<n>/`): exported, each axis's states end at its own target and its
+/// answers name its own move; plotted, each axis has its figures.
+#[test]
+fn a_three_axis_recording_holds_every_axis_and_exports_and_plots_each() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("three-axes-recorded");
+    let inst = instance("three-axes-recorded");
+    let targets = [0.5, -0.5, 1.0];
+    let program: String = targets
+        .iter()
+        .enumerate()
+        .map(|(axis, to)| enable_then_move(axis, *to, ""))
+        .collect();
+    let scenario = dir.file("three.toml", &three_axes(&program));
+    let mcap = dir.path("three.mcap");
+    let json = dir.path("three.json");
+    let out = run_proposed(
+        &inst,
+        &scenario,
+        &[
+            "--record",
+            mcap.to_str().unwrap(),
+            "--json",
+            json.to_str().unwrap(),
+        ],
+    );
+    assert!(out.status.success(), "{}", text(&out));
+    let doc = read_json(&json);
+    let samples = num(run_of(&doc, "proposed"), "samples");
+
+    let csv = dir.path("csv");
+    let exported = stepdrive(&[
+        "export",
+        "--csv",
+        csv.to_str().unwrap(),
+        mcap.to_str().unwrap(),
+    ]);
+    assert!(exported.status.success(), "{}", text(&exported));
+    for (n, target) in targets.iter().enumerate() {
+        let prefix = if n == 0 {
+            String::new()
+        } else {
+            format!("axis{n}_")
+        };
+        let states = Csv::read(&csv.join(format!("{prefix}proposed_state.csv")));
+        let theta = states.col("theta [");
+        let rows: Vec<Vec<&str>> = states.rows().collect();
+        assert_eq!(
+            rows.len() as f64,
+            samples,
+            "axis {n}: every sample recorded"
+        );
+        let last: f64 = rows
+            .last()
+            .and_then(|r| r[theta].parse().ok())
+            .expect("a last sample");
+        assert!(
+            (last - target).abs() < 1e-4,
+            "axis {n} ends at {last} rad, its target is {target}"
+        );
+        let acks = Csv::read(&csv.join(format!("{prefix}proposed_axis_ack.csv")));
+        let (kind, to) = (acks.col("kind"), acks.col("target"));
+        assert!(
+            acks.rows()
+                .any(|f| f[kind] == "move" && f[to].parse::<f64>().ok() == Some(*target)),
+            "axis {n}'s answers name its own move to {target}"
+        );
+    }
+
+    let plots = dir.path("plots");
+    let drawn = stepdrive(&[
+        "plot",
+        "--out",
+        plots.to_str().unwrap(),
+        mcap.to_str().unwrap(),
+    ]);
+    assert!(drawn.status.success(), "{}", text(&drawn));
+    for file in ["position.png", "position-axis1.png", "position-axis2.png"] {
+        assert!(plots.join(file).is_file(), "{file} drawn");
+    }
+}
+
+/// Hardware mode, a drive per axis: one axis's drive latches a fault mid-move; the other
+/// axis quick-stops ([group] stop = "all"), neither faulted nor stepped out, and the run
+/// fails naming the faulted axis. (Ordinary scheduling, as every test stack here: the
+/// drives' plans carry the periods the host misses.)
+#[test]
+fn a_drive_fault_on_one_axis_quick_stops_the_other_in_hardware_mode() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("two-drives-fault");
+    let inst = instance("two-drives-fault");
+    let program: String = [0, 1]
+        .into_iter()
+        .map(|axis| enable_then_move(axis, 20.0, ""))
+        .collect();
+    let scenario = dir.file(
+        "two.toml",
+        &format!(
+            "name = \"two-drives-fault\"\n[run]\nduration_s = 1.5\n{program}\
+             [[axis]]\nname = \"left\"\n[[axis]]\nname = \"right\"\n"
+        ),
+    );
+    let (a, b) = (free_udp_port(), free_udp_port());
+    let listen = format!("127.0.0.1:{a},127.0.0.1:{b}");
+    let mut args = vec!["emulate-drive", "--listen", &listen];
+    args.extend(ORDINARY_SCHEDULING);
+    args.extend([
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--inject-axis",
+        "1",
+        "--overcurrent-after",
+        "1.0",
+    ]);
+    let mut drives = spawn_logged(&args);
+    let json = dir.path("two.json");
+    let out = hardware_run(&scenario, &inst, &json, &["--drive", &listen]);
+    signal(drives.id(), libc::SIGTERM);
+    let _ = wait_with_timeout(&mut drives, Duration::from_secs(10));
+    let said = text(&out);
+    assert_eq!(out.status.code(), Some(3), "{said}");
+    assert!(
+        said.contains("axis 1 (right): FAULT (exit 3)") && said.contains("OVERCURRENT"),
+        "{said}"
+    );
+    assert!(
+        said.contains("every other enabled axis quick-stops"),
+        "the stop policy acted: {said}"
+    );
+    let doc = read_json(&json);
+    let left = run_of(&doc, "proposed");
+    assert_eq!(left["outcome"], "ok", "{left}");
+    assert_eq!(num(left, "fault_samples"), 0.0, "{left}");
+    assert!(num(left, "max_abs_error_rad") < 1e-2, "no step-out: {left}");
+    assert!(
+        left["moves"][0]["start_s"]
+            .as_f64()
+            .is_some_and(|t| t < 0.11),
+        "both drives were enabled together: the left axis's move started on time: {left}"
+    );
+    assert_eq!(left["axes"][0]["outcome"], "fault", "{left}");
 }

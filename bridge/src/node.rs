@@ -188,9 +188,74 @@ pub struct BridgeNode {
     /// A sample taken by `poll` for the coming cycle.
     taken: Option<(DriveState, u64)>,
     rx: [u8; 2048],
+    /// A bridge of several drives: its drive has aligned (and stepped phase B) and waits
+    /// for the others' before it is enabled ([`StartGate`]).
+    gate: Option<StartGate>,
+    prepared: bool,
+}
+
+/// The drives of a multi-axis bridge are enabled together: each lane's start-up (HELLO,
+/// CONFIG, ALIGN, the phase-B step) runs on its own, and a lane ready before the others
+/// waits, its drive idle, until every lane is. Enabled one by one instead, the first
+/// drive streamed through the second's 300 ms alignment while its lane took no samples:
+/// the stack lost axis 0's first 0.3 s and the monitor called the run unobserved.
+#[derive(Clone, Debug)]
+pub struct StartGate {
+    ready: std::rc::Rc<std::cell::Cell<usize>>,
+    lanes: usize,
+}
+
+impl StartGate {
+    /// A gate for `lanes` drives.
+    pub fn new(lanes: usize) -> Self {
+        Self {
+            ready: std::rc::Rc::default(),
+            lanes,
+        }
+    }
+
+    fn arrive(&self) {
+        self.ready.set(self.ready.get() + 1);
+    }
+
+    fn open(&self) -> bool {
+        self.ready.get() >= self.lanes
+    }
 }
 
 impl BridgeNode {
+    /// §7 up to ENABLE: the handshake, the alignment and the checks. True once the drive
+    /// may be enabled. Between looks it returns to the runner (false), except during the
+    /// phase-B step, when the drive's armed watchdog needs every SAMPLE answered as it
+    /// comes.
+    fn prepare(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<bool, RunError> {
+        loop {
+            self.read_frames(ports, cx)?;
+            // Asked only while it matters: the phase-B step answers within a period.
+            let p = &ports.presence;
+            let stack_ready = self.core.awaiting_stack()
+                && p.publishers(Topic::Command) >= 1
+                && (p.publishers(Topic::Setpoint) >= 1 || !self.settings.wait_position_loop)
+                && p.subscribers(Topic::State) >= self.settings.wait_subscribers;
+            let now = cx.now();
+            let wire = &mut ports.wire;
+            let step = self
+                .core
+                .startup(now, stack_ready, &mut |f| send_on(wire, f));
+            match step {
+                Err(reason) => return Err(self.refused(ports, reason, now)),
+                Ok(StartStep::Wait) => return Ok(false),
+                Ok(StartStep::Answer) => {
+                    if termination_requested() {
+                        return Ok(false);
+                    }
+                    wait_readable(ports.wire.raw_fd(), STEP_WAIT_NS);
+                }
+                Ok(StartStep::Ready) => return Ok(true),
+            }
+        }
+    }
+
     pub fn new(s: &Scenario, settings: BridgeSettings) -> Result<Self, RunError> {
         if s.rates.compute_delay_periods != 1 {
             return Err(RunError::node(
@@ -224,7 +289,15 @@ impl BridgeNode {
             refused_since_ns: None,
             taken: None,
             rx: [0; 2048],
+            gate: None,
+            prepared: false,
         })
+    }
+
+    /// One drive of several, enabled with the others through `gate`.
+    pub fn with_start_gate(mut self, gate: StartGate) -> Self {
+        self.gate = Some(gate);
+        self
     }
 
     pub fn core(&self) -> &BridgeCore {
@@ -368,34 +441,21 @@ impl Node for BridgeNode {
         }
     }
 
-    /// §7: the handshake, the alignment and the checks, then ENABLE. Between looks it
-    /// returns to the runner, except during the phase-B step, when the drive's armed
-    /// watchdog needs every SAMPLE answered as it comes.
+    /// §7: [`Self::prepare`], then (with the other drives, see [`StartGate`]) ENABLE.
     fn start(&mut self, ports: &mut BridgePorts, cx: &mut Cx) -> Result<Start, RunError> {
-        loop {
-            self.read_frames(ports, cx)?;
-            // Asked only while it matters: the phase-B step answers within a period.
-            let p = &ports.presence;
-            let stack_ready = self.core.awaiting_stack()
-                && p.publishers(Topic::Command) >= 1
-                && (p.publishers(Topic::Setpoint) >= 1 || !self.settings.wait_position_loop)
-                && p.subscribers(Topic::State) >= self.settings.wait_subscribers;
-            let now = cx.now();
-            let wire = &mut ports.wire;
-            let step = self
-                .core
-                .startup(now, stack_ready, &mut |f| send_on(wire, f));
-            match step {
-                Err(reason) => return Err(self.refused(ports, reason, now)),
-                Ok(StartStep::Wait) => return Ok(Start::Waiting),
-                Ok(StartStep::Answer) => {
-                    if termination_requested() {
-                        return Ok(Start::Waiting);
-                    }
-                    wait_readable(ports.wire.raw_fd(), STEP_WAIT_NS);
-                }
-                Ok(StartStep::Ready) => break,
+        if !self.prepared {
+            if !self.prepare(ports, cx)? {
+                return Ok(Start::Waiting);
             }
+            self.prepared = true;
+            if let Some(g) = &self.gate {
+                g.arrive();
+            }
+        }
+        if self.gate.as_ref().is_some_and(|g| !g.open()) {
+            // Its drive idles, aligned, until the others are.
+            self.read_frames(ports, cx)?;
+            return Ok(Start::Waiting);
         }
         // Samples queued meanwhile are stale: drop them and start the stream (k = 0) with
         // the next one, then enable the drive.

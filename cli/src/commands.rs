@@ -215,6 +215,10 @@ pub struct MonitorArgs {
     /// them. Below the loops' priorities, so it never delays them.
     #[arg(long, value_name = "P", value_parser = clap::value_parser!(u8).range(0..=99))]
     priority: Option<u8>,
+    /// The axis of a multi-axis stack to read (its index, 0 first): its states, setpoints
+    /// and status, judged and recorded as a one-axis run.
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    axis: u32,
 }
 
 /// An attached reader's SCHED_FIFO priority beside a realtime stack: the deployment's own
@@ -770,7 +774,7 @@ pub fn reset(a: ResetArgs) -> Result<()> {
 pub fn monitor(a: MonitorArgs) -> Result<()> {
     let given = a.scenario.given()?;
     let json = JsonOut::create(a.json.as_ref())?;
-    let attached = attach_reader(&a.instance, Role::Monitor.id(), given.as_ref())?;
+    let attached = attach_reader(&a.instance, Role::Monitor.id(), given.as_ref(), a.axis)?;
     a.apply_priority(attached.bus.mode())?;
     let s = attached.scenario.clone();
     let report = watch(attached, &a.instance, a.method, a.peer_timeout_s, None)?;
@@ -794,7 +798,7 @@ pub fn record(a: RecordArgs) -> Result<()> {
     let w = a.watch;
     let given = w.scenario.given()?;
     let json = JsonOut::create(w.json.as_ref())?;
-    let attached = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref())?;
+    let attached = attach_reader(&w.instance, Role::Monitor.id(), given.as_ref(), w.axis)?;
     w.apply_priority(attached.bus.mode())?;
     let s = attached.scenario.clone();
     let mut recording = Recording::create(&a.file, &s, chunks(a.uncompressed))?;
@@ -884,11 +888,14 @@ pub struct ScopeArgs {
     /// The stack's scenario (default: the one the stack announces).
     #[command(flatten)]
     scenario: ScenarioOpt,
+    /// The axis of a multi-axis stack to show (its index, 0 first).
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    axis: u32,
 }
 
 pub fn scope(a: ScopeArgs) -> Result<()> {
     let given = a.scenario.given()?;
-    stepdrive_monitor::record::scope::run_scope(&a.instance, given.as_ref())
+    stepdrive_monitor::record::scope::run_scope(&a.instance, given.as_ref(), a.axis)
 }
 
 #[derive(Args, Debug)]

@@ -5,7 +5,7 @@
 //! virtual time.
 
 use stepdrive_bridge::link::{EncoderCalibration, HeldLoad};
-use stepdrive_bridge::node::drive_addresses;
+use stepdrive_bridge::node::{drive_addresses, StartGate};
 use stepdrive_bridge::{BridgeNode, BridgePorts, BridgeSettings, DriveAddr};
 use stepdrive_control::identify::Bounds;
 use stepdrive_controller::current_loop_node::{CurrentLoopNode, CurrentLoopPorts};
@@ -186,7 +186,12 @@ fn assemble_axes<A: Assemble, B: PortFactory>(
                     AssembleError::DriveAddresses { axes, given },
                 ));
             }
-            let (n, p) = lanes_of(setup, bus, bridge_of)?;
+            // The drives are enabled together, once every one has aligned.
+            let gate = StartGate::new(axes);
+            let (n, p) = lanes_of(setup, bus, |lane, bus, axis| {
+                let (node, ports) = bridge_of(lane, bus, axis)?;
+                Ok((node.with_start_gate(gate.clone()), ports))
+            })?;
             a.node(n, p)
         }
         Role::Identify => Err(RunError::node(

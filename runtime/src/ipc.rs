@@ -26,6 +26,7 @@ use std::time::{Duration, Instant};
 use stepdrive_shared::axis::{AxisAck, AxisRequest};
 use stepdrive_shared::messages::{ResetRequest, StackScenario};
 use stepdrive_shared::scenario::Mode;
+use stepdrive_shared::scenario::MAX_AXES;
 use stepdrive_shared::services::{Message, ServiceNames, Topic};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{DriveCommand, DriveState, Scenario, TorqueSetpoint};
@@ -286,13 +287,15 @@ impl IpcBus {
         Ok((name, factory))
     }
 
+    /// One event for every axis (see [`ServiceNames::state_ready`]): a notifier per bridge
+    /// lane, a listener per current-loop (or identification) lane.
     fn state_ready(&self) -> Result<(String, EventFactory), PortError> {
-        let name = self.names.state_ready_of(self.axis);
+        let name = self.names.state_ready();
         let factory = self.service(&name, MessagingPattern::Event, |builder, stamp| {
             builder
                 .event()
-                .max_notifiers(1)
-                .max_listeners(2)
+                .max_notifiers(MAX_AXES)
+                .max_listeners(2 * MAX_AXES)
                 .event_id_max_value(0)
                 .open_or_create_with_attributes(stamp)
         })?;

@@ -25,6 +25,12 @@ pub trait Together: Node + Sized {
     fn after_lanes(_lanes: &mut [Self], _ports: &mut [Self::Ports]) -> Result<(), RunError> {
         Ok(())
     }
+
+    /// Whether one lane's [`Node::block`] wakes on every lane's input (the current loop's
+    /// state-ready event is one for all axes), so that several lanes waiting block on it.
+    /// False by default: a lane blocked on its own input (a drive's socket) would hold up
+    /// the others'.
+    const BLOCKS_FOR_ALL: bool = false;
 }
 
 /// One node per axis, as one node. See the module documentation.
@@ -340,8 +346,10 @@ impl<N: Together> Node for Lanes<N> {
         now_ns: u64,
         until_ns: u64,
     ) -> Result<bool, RunError> {
-        // One lane waiting blocks on its input. Several: none may block on its own (one
-        // drive's socket would hold up another's frames), so the runner naps between polls.
+        // One lane waiting blocks on its input, and so do several whose block wakes on any
+        // lane's ([`Together::BLOCKS_FOR_ALL`]). Otherwise none may block on its own (one
+        // drive's socket would hold up another's frames), so the runner backs off between
+        // polls.
         let mut waiting = self
             .lanes
             .iter()
@@ -350,6 +358,9 @@ impl<N: Together> Node for Lanes<N> {
             .map(|(n, _)| n);
         match (waiting.next(), waiting.next()) {
             (Some(n), None) => self.nodes[n].block(&mut ports[n], now_ns, until_ns),
+            (Some(n), Some(_)) if N::BLOCKS_FOR_ALL => {
+                self.nodes[n].block(&mut ports[n], now_ns, until_ns)
+            }
             _ => Ok(false),
         }
     }

@@ -284,16 +284,10 @@ impl ServiceNames {
         format!("{}/{}", self.instance, topic.path_of(axis))
     }
 
+    /// The bridge's state-ready event: one for every axis, so that a current loop serving
+    /// several drives sleeps on one event whichever drive's state comes first.
     pub fn state_ready(&self) -> String {
         format!("{}/{STATE_READY}", self.instance)
-    }
-
-    /// `axis`'s state-ready event (axis 0's is [`Self::state_ready`]).
-    pub fn state_ready_of(&self, axis: u32) -> String {
-        match axis {
-            0 => self.state_ready(),
-            n => format!("{}/axis/{n}/{STATE_READY}", self.instance),
-        }
     }
 
     /// The iceoryx2 node name of `role` in this instance.

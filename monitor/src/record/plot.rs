@@ -1596,17 +1596,40 @@ pub fn plot_file(path: &Path, dir: &Path) -> Result<Vec<PathBuf>, PlotError> {
     register_font();
     let scenario = rec.scenario();
     let mut written = Vec::new();
-    let mut all = figures(&rec, scenario.as_ref());
-    all.extend(program_figures(&rec));
-    for f in all {
+    // A multi-axis recording: every axis's figures, axis n's files named `<figure>-axis<n>`
+    // and every title naming its axis.
+    let several = !rec.axes.is_empty();
+    let axes = std::iter::once((0, &rec)).chain(rec.axes.iter().map(|(n, r)| (*n, r)));
+    let mut all = Vec::new();
+    for (n, axis) in axes {
+        let own = scenario
+            .as_ref()
+            .map(|s| s.for_axis(n as usize).unwrap_or(s));
+        let mut figs = figures(axis, own);
+        figs.extend(program_figures(axis));
+        for mut f in figs {
+            let file = match n {
+                0 => f.file.to_string(),
+                n => format!("{}-axis{n}", f.file),
+            };
+            if several {
+                let name = scenario
+                    .as_ref()
+                    .map_or_else(String::new, |s| format!(" ({})", s.axis_name(n as usize)));
+                f.title = format!("{} — axis {n}{name}", f.title);
+            }
+            all.push((file, f));
+        }
+    }
+    for (file, f) in all {
         let failed = |path: &Path| {
             let path = path.to_path_buf();
             move |message| PlotError::Draw { path, message }
         };
-        let svg = dir.join(format!("{}.svg", f.file));
+        let svg = dir.join(format!("{file}.svg"));
         draw_figure(SVGBackend::new(&svg, PNG_SIZE).into_drawing_area(), &f)
             .map_err(failed(&svg))?;
-        let png = dir.join(format!("{}.png", f.file));
+        let png = dir.join(format!("{file}.png"));
         draw_figure(BitMapBackend::new(&png, PNG_SIZE).into_drawing_area(), &f)
             .map_err(failed(&png))?;
         written.extend([svg, png]);

@@ -13,6 +13,11 @@
 //! methods from t = 0). Metadata: `scenario` (the scenario as TOML, so the file explains
 //! itself) and, when the file is finished, `recording` (samples written and lost per
 //! method).
+//!
+//! A multi-axis stack's axes each have their channels: axis 0 the names above, axis n
+//! (n ≥ 1) the same under `/<method>/axis/<n>/` (`/proposed/axis/2/state`, ...). The
+//! loops' statistics are per process, on axis 0's `stats`. [`Recorded::axes`] reads the
+//! other axes back, each as a recording of its own.
 
 use super::live::{Every, LiveView};
 use crate::report::setpoints::SetpointHistory;
@@ -422,6 +427,7 @@ fn schema(title: &str, fields: &[&str]) -> String {
 
 struct Channels {
     method: Method,
+    axis: u32,
     state: u16,
     stats: u16,
     fault: u16,
@@ -449,7 +455,16 @@ pub struct Recording {
     next_channel: u16,
     path: PathBuf,
     schemas: [u16; 9],
+    /// Every run's channels, a set per axis; the current run's are the last `tracks.len()`.
     channels: Vec<Channels>,
+    /// Each axis's reference and motor.
+    tracks: Vec<Track>,
+    sequence: u32,
+    buf: Vec<u8>,
+}
+
+/// What the recording derives an axis's records with.
+struct Track {
     /// θ_d at a sample's time: the scenario's profile when the axis runs it, else the
     /// last setpoint carried on along its ω_d and α_d.
     trajectory: Option<Trapezoid>,
@@ -459,8 +474,33 @@ pub struct Recording {
     /// (compute delay + 1) periods: how far ahead of its sample a command's references are.
     ref_lead_s: f64,
     period_s: f64,
-    sequence: u32,
-    buf: Vec<u8>,
+}
+
+impl Track {
+    fn of(s: &Scenario) -> Self {
+        Self {
+            trajectory: s.runs_profile().then(|| Trapezoid::new(&s.trajectory)),
+            setpoints: SetpointHistory::for_scenario(s),
+            n_r: f64::from(s.motor.rotor_teeth),
+            k_m: s.plant_motor().torque_constant_nm_per_a,
+            ref_lead_s: f64::from(s.rates.compute_delay_periods + 1) * s.sample_period_s(),
+            period_s: s.sample_period_s(),
+        }
+    }
+
+    /// The setpoint at time `t` (see `trajectory`): the last one taken at or before `t`
+    /// carried on to `t` (the oldest kept, if all are later); before the first setpoint,
+    /// the rotor's `theta` at rest.
+    fn reference_at(&self, t: f64, theta: f64) -> Reference {
+        if let Some(profile) = &self.trajectory {
+            return profile.at(t);
+        }
+        self.setpoints.at(t).unwrap_or(Reference {
+            theta,
+            omega: 0.0,
+            alpha: 0.0,
+        })
+    }
 }
 
 /// zstd's level for recordings: on a recording of the default run, level 1 compresses 3.9×
@@ -476,8 +516,12 @@ fn write_error(path: &Path) -> impl Fn(mcap::McapError) -> RecordError + Copy + 
     }
 }
 
-fn topic(method: Method, kind: &str) -> String {
-    format!("/{}/{kind}", method.as_str())
+/// Axis 0's channels keep the one-axis names; axis n's are under `axis/<n>/`.
+fn topic(method: Method, axis: u32, kind: &str) -> String {
+    match axis {
+        0 => format!("/{}/{kind}", method.as_str()),
+        n => format!("/{}/axis/{n}/{kind}", method.as_str()),
+    }
 }
 
 /// How a recording's chunks are written.
@@ -553,12 +597,9 @@ impl Recording {
             path: path.to_path_buf(),
             schemas,
             channels: Vec::new(),
-            trajectory: s.runs_profile().then(|| Trapezoid::new(&s.trajectory)),
-            setpoints: SetpointHistory::for_scenario(s),
-            n_r: f64::from(s.motor.rotor_teeth),
-            k_m: s.plant_motor().torque_constant_nm_per_a,
-            ref_lead_s: f64::from(s.rates.compute_delay_periods + 1) * s.sample_period_s(),
-            period_s: s.sample_period_s(),
+            tracks: (0..s.axis_count())
+                .map(|n| Track::of(s.for_axis(n).unwrap_or(s)))
+                .collect(),
             sequence: 0,
             buf: Vec::with_capacity(512),
         }
@@ -573,19 +614,33 @@ impl Recording {
         &self.path
     }
 
-    /// The channels of `method`'s run; what follows is recorded on them.
+    /// The channels of `method`'s run, every axis's; what follows is recorded on them.
     pub fn begin(&mut self, method: Method) -> Result<(), RecordError> {
-        self.setpoints.clear();
-        let state = self.channel(0, method, "state", Every::Period)?;
-        let stats = self.channel(1, method, "stats", Every::Message)?;
-        let fault = self.channel(2, method, "fault", Every::Message)?;
-        let setpoint = self.channel(3, method, "setpoint", Every::Period)?;
-        let command = self.channel(5, method, "command", Every::Period)?;
-        let plan = self.channel(6, method, "plan", Every::Period)?;
-        let ack = self.channel(7, method, "axis/ack", Every::Message)?;
-        let status = self.channel(8, method, "axis/status", Every::Period)?;
+        for axis in 0..self.tracks.len() as u32 {
+            self.begin_axis(method, axis)?;
+        }
+        Ok(())
+    }
+
+    fn begin_axis(&mut self, method: Method, axis: u32) -> Result<(), RecordError> {
+        if let Some(t) = self.tracks.get_mut(axis as usize) {
+            t.setpoints.clear();
+        }
+        let stats = match axis {
+            // The loops' statistics are per process: axis 0's run has them.
+            0 => self.channel(1, method, axis, "stats", Every::Message)?,
+            _ => u16::MAX,
+        };
+        let state = self.channel(0, method, axis, "state", Every::Period)?;
+        let fault = self.channel(2, method, axis, "fault", Every::Message)?;
+        let setpoint = self.channel(3, method, axis, "setpoint", Every::Period)?;
+        let command = self.channel(5, method, axis, "command", Every::Period)?;
+        let plan = self.channel(6, method, axis, "plan", Every::Period)?;
+        let ack = self.channel(7, method, axis, "axis/ack", Every::Message)?;
+        let status = self.channel(8, method, axis, "axis/status", Every::Period)?;
         self.channels.push(Channels {
             method,
+            axis,
             state,
             stats,
             fault,
@@ -609,10 +664,11 @@ impl Recording {
         &mut self,
         schema: usize,
         method: Method,
+        axis: u32,
         kind: &str,
         every: Every,
     ) -> Result<u16, RecordError> {
-        let name = topic(method, kind);
+        let name = topic(method, axis, kind);
         let id = match self.writer.as_mut() {
             Some(w) => w
                 .add_channel(self.schemas[schema], &name, "json", &BTreeMap::new())
@@ -627,6 +683,26 @@ impl Recording {
             live.add_channel(id, &name, schema_name, text, every);
         }
         Ok(id)
+    }
+
+    /// The current run's channels of `axis` (none before [`Self::begin`], or for an axis
+    /// the scenario lacks).
+    fn current(&self, axis: u32) -> Option<&Channels> {
+        let n = self.tracks.len();
+        self.channels
+            .iter()
+            .skip(self.channels.len().saturating_sub(n))
+            .find(|c| c.axis == axis)
+    }
+
+    fn current_mut(&mut self, axis: u32) -> Option<&mut Channels> {
+        let n = self.tracks.len();
+        let skip = self.channels.len().saturating_sub(n);
+        self.channels.iter_mut().skip(skip).find(|c| c.axis == axis)
+    }
+
+    fn track(&self, axis: u32) -> Option<&Track> {
+        self.tracks.get(axis as usize)
     }
 
     fn put(&mut self, channel: u16, t: f64, json: &impl Serialize) -> Result<(), RecordError> {
@@ -654,15 +730,16 @@ impl Recording {
             .map_err(write_error(&self.path))
     }
 
-    /// One state sample of the current method's run.
-    pub fn state(&mut self, st: &DriveState) -> Result<(), RecordError> {
-        let Some(ch) = self.channels.last() else {
+    /// One state sample of `axis` in the current method's run.
+    pub fn state(&mut self, axis: u32, st: &DriveState) -> Result<(), RecordError> {
+        let (Some(ch), Some(track)) = (self.current(axis), self.track(axis)) else {
             return Ok(());
         };
         let (state_ch, fault_ch, last_fault) = (ch.state, ch.fault, ch.last_fault);
         let t = st.sample_time_s;
-        let r = self.reference_at(t, st.theta_rad);
-        let (i_d, i_q) = dq_currents(st.theta_rad, self.n_r, st.i_a_a, st.i_b_a);
+        let r = track.reference_at(t, st.theta_rad);
+        let (i_d, i_q) = dq_currents(st.theta_rad, track.n_r, st.i_a_a, st.i_b_a);
+        let k_m = track.k_m;
         let rec = StateRecord {
             t,
             seq: st.seq,
@@ -678,7 +755,7 @@ impl Recording {
             v_a: st.v_a_v,
             v_b: st.v_b_v,
             bus: st.bus_voltage_v,
-            torque: self.k_m * i_q,
+            torque: k_m * i_q,
             flags: st.flags,
             fault: st.fault,
         };
@@ -691,7 +768,7 @@ impl Recording {
             };
             self.put(fault_ch, t, &f)?;
         }
-        if let Some(ch) = self.channels.last_mut() {
+        if let Some(ch) = self.current_mut(axis) {
             ch.written += 1;
             ch.last_fault = st.fault;
             ch.last_t = t;
@@ -699,24 +776,12 @@ impl Recording {
         Ok(())
     }
 
-    /// The setpoint at time `t` (see `trajectory`): the last one taken at or before `t`
-    /// carried on to `t` (the oldest kept, if all are later); before the first setpoint, the
-    /// rotor's `theta` at rest.
-    fn reference_at(&self, t: f64, theta: f64) -> Reference {
-        if let Some(profile) = &self.trajectory {
-            return profile.at(t);
+    /// A setpoint of `axis` in the current method's run, at its sample's time.
+    pub fn setpoint(&mut self, axis: u32, sp: &TorqueSetpoint) -> Result<(), RecordError> {
+        if let Some(t) = self.tracks.get_mut(axis as usize) {
+            t.setpoints.push(sp);
         }
-        self.setpoints.at(t).unwrap_or(Reference {
-            theta,
-            omega: 0.0,
-            alpha: 0.0,
-        })
-    }
-
-    /// A setpoint of the current method's run, at its sample's time.
-    pub fn setpoint(&mut self, sp: &TorqueSetpoint) -> Result<(), RecordError> {
-        self.setpoints.push(sp);
-        let Some(ch) = self.channels.last() else {
+        let Some(ch) = self.current(axis) else {
             return Ok(());
         };
         let rec = SetpointRecord {
@@ -731,9 +796,9 @@ impl Recording {
         self.put(ch.setpoint, sp.sample_time_s, &rec)
     }
 
-    /// An axis command's answer, at the tick that took it.
-    pub fn ack(&mut self, a: &AxisAck) -> Result<(), RecordError> {
-        let Some(ch) = self.channels.last() else {
+    /// An answer to a command to `axis`, at the tick that took it.
+    pub fn ack(&mut self, axis: u32, a: &AxisAck) -> Result<(), RecordError> {
+        let Some(ch) = self.current(axis) else {
             return Ok(());
         };
         let r = &a.request;
@@ -759,9 +824,9 @@ impl Recording {
         self.put(ch.ack, a.t_s, &rec)
     }
 
-    /// The axis's status at a tick.
-    pub fn status(&mut self, st: &AxisStatus) -> Result<(), RecordError> {
-        let Some(ch) = self.channels.last() else {
+    /// `axis`'s status at a tick.
+    pub fn status(&mut self, axis: u32, st: &AxisStatus) -> Result<(), RecordError> {
+        let Some(ch) = self.current(axis) else {
             return Ok(());
         };
         let rec = StatusRecord {
@@ -787,14 +852,15 @@ impl Recording {
         self.put(ch.status, st.t_s, &rec)
     }
 
-    /// A command of the current method's run, at the time of the sample it answers.
-    pub fn command(&mut self, c: &DriveCommand) -> Result<(), RecordError> {
-        let Some(ch) = self.channels.last() else {
+    /// A command to `axis` in the current method's run, at the time of the sample it
+    /// answers.
+    pub fn command(&mut self, axis: u32, c: &DriveCommand) -> Result<(), RecordError> {
+        let (Some(ch), Some(track)) = (self.current(axis), self.track(axis)) else {
             return Ok(());
         };
         let rec = CommandRecord {
             t: c.sample_time_s,
-            t_ref: c.sample_time_s + self.ref_lead_s,
+            t_ref: c.sample_time_s + track.ref_lead_s,
             seq: c.seq,
             answers_seq: c.answers_seq,
             v_a: c.v_a_v,
@@ -805,13 +871,13 @@ impl Recording {
         self.put(ch.command, c.sample_time_s, &rec)
     }
 
-    /// A voltage plan of the current method's run (its first four entries), at the time of
-    /// the sample its command answers.
-    pub fn plan(&mut self, p: &DrivePlan) -> Result<(), RecordError> {
-        let Some(ch) = self.channels.last() else {
+    /// A voltage plan for `axis` in the current method's run (its first four entries), at
+    /// the time of the sample its command answers.
+    pub fn plan(&mut self, axis: u32, p: &DrivePlan) -> Result<(), RecordError> {
+        let (Some(ch), Some(track)) = (self.current(axis), self.track(axis)) else {
             return Ok(());
         };
-        let t = p.answers_seq as f64 * self.period_s;
+        let t = p.answers_seq as f64 * track.period_s;
         let e =
             |j: usize, phase: usize| p.entries().get(j).map_or(f64::NAN, |v| f64::from(v[phase]));
         let rec = PlanRecord {
@@ -831,16 +897,18 @@ impl Recording {
         self.put(ch.plan, t, &rec)
     }
 
-    /// The emulated drive's true rotor state over the current method's run.
+    /// The emulated drive's true rotor state over the current method's run (axis 0's).
     pub fn truth(&mut self, rows: &[TruthRow]) -> Result<(), RecordError> {
         let wrap = write_error(&self.path);
-        let (Some(ch), Some(w)) = (self.channels.last_mut(), self.writer.as_mut()) else {
+        let skip = self.channels.len().saturating_sub(self.tracks.len());
+        let ch = self.channels.iter_mut().skip(skip).find(|c| c.axis == 0);
+        let (Some(ch), Some(w)) = (ch, self.writer.as_mut()) else {
             return Ok(());
         };
         let channel = match ch.truth {
             Some(c) => c,
             None => {
-                let name = topic(ch.method, "truth");
+                let name = topic(ch.method, 0, "truth");
                 let c = w
                     .add_channel(self.schemas[4], &name, "json", &BTreeMap::new())
                     .map_err(wrap)?;
@@ -853,7 +921,10 @@ impl Recording {
                 t: r.t_s,
                 seq: r.k,
                 theta: r.theta_rad,
-                error: self.reference_at(r.t_s, r.theta_rad).theta - r.theta_rad,
+                error: self
+                    .track(0)
+                    .map_or(f64::NAN, |t| t.reference_at(r.t_s, r.theta_rad).theta)
+                    - r.theta_rad,
                 omega: r.omega_rad_s,
                 i_a: r.i_a_a,
                 i_b: r.i_b_a,
@@ -863,16 +934,16 @@ impl Recording {
         Ok(())
     }
 
-    /// Samples of the current run the monitor never saw.
-    pub fn lost(&mut self, n: u64) {
-        if let Some(ch) = self.channels.last_mut() {
+    /// Samples of `axis` in the current run the monitor never saw.
+    pub fn lost(&mut self, axis: u32, n: u64) {
+        if let Some(ch) = self.current_mut(axis) {
             ch.lost += n;
         }
     }
 
     /// A loop's statistics report, at the latest sample's time.
     pub fn stats(&mut self, r: &StatsReport) -> Result<(), RecordError> {
-        let Some(ch) = self.channels.last() else {
+        let Some(ch) = self.current(0) else {
             return Ok(());
         };
         let (channel, t) = (ch.stats, ch.last_t);
@@ -902,7 +973,10 @@ impl Recording {
         let wrap = write_error(&self.path);
         let mut counts = BTreeMap::new();
         for ch in &self.channels {
-            let m = ch.method.as_str();
+            let m = match ch.axis {
+                0 => ch.method.as_str().to_string(),
+                n => format!("{}.axis{n}", ch.method.as_str()),
+            };
             counts.insert(format!("{m}.samples_recorded"), ch.written.to_string());
             counts.insert(format!("{m}.samples_lost"), ch.lost.to_string());
         }
@@ -937,6 +1011,9 @@ pub struct Recorded {
     pub acks: Vec<(String, Vec<AckRecord>)>,
     pub statuses: Vec<(String, Vec<StatusRecord>)>,
     pub metadata: BTreeMap<String, BTreeMap<String, String>>,
+    /// A multi-axis recording's other axes, by index, each read as a recording of its own
+    /// (without metadata: the file's is axis 0's, above).
+    pub axes: BTreeMap<u32, Recorded>,
 }
 
 impl Recorded {
@@ -961,54 +1038,16 @@ impl Recorded {
             let Some((method, kind)) = topic.trim_start_matches('/').split_once('/') else {
                 continue;
             };
-            match kind {
-                "state" => push(
-                    &mut out.runs,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "stats" => push(
-                    &mut out.stats,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "fault" => push(
-                    &mut out.faults,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "setpoint" => push(
-                    &mut out.setpoints,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "plan" => push(
-                    &mut out.plans,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "command" => push(
-                    &mut out.commands,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "truth" => push(
-                    &mut out.truth,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "axis/ack" => push(
-                    &mut out.acks,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                "axis/status" => push(
-                    &mut out.statuses,
-                    method,
-                    serde_json::from_slice(&m.data).map_err(bad)?,
-                ),
-                _ => {}
-            }
+            // Another axis's: `axis/<n>/<kind>` (axis 0's own `axis/ack` is a kind).
+            let other = kind.strip_prefix("axis/").and_then(|rest| {
+                let (n, kind) = rest.split_once('/')?;
+                Some((n.parse::<u32>().ok()?, kind))
+            });
+            let (into, kind) = match other {
+                Some((n, kind)) if n > 0 => (out.axes.entry(n).or_default(), kind),
+                _ => (&mut out, kind),
+            };
+            into.take(method, kind, &m.data).map_err(bad)?;
         }
         let summary = mcap::Summary::read(&bytes).map_err(parse)?;
         if let Some(summary) = summary {
@@ -1018,6 +1057,23 @@ impl Recorded {
             }
         }
         Ok(out)
+    }
+
+    /// One message of `method`'s run on a channel of `kind` (unknown kinds are skipped).
+    fn take(&mut self, method: &str, kind: &str, data: &[u8]) -> Result<(), serde_json::Error> {
+        match kind {
+            "state" => push(&mut self.runs, method, serde_json::from_slice(data)?),
+            "stats" => push(&mut self.stats, method, serde_json::from_slice(data)?),
+            "fault" => push(&mut self.faults, method, serde_json::from_slice(data)?),
+            "setpoint" => push(&mut self.setpoints, method, serde_json::from_slice(data)?),
+            "plan" => push(&mut self.plans, method, serde_json::from_slice(data)?),
+            "command" => push(&mut self.commands, method, serde_json::from_slice(data)?),
+            "truth" => push(&mut self.truth, method, serde_json::from_slice(data)?),
+            "axis/ack" => push(&mut self.acks, method, serde_json::from_slice(data)?),
+            "axis/status" => push(&mut self.statuses, method, serde_json::from_slice(data)?),
+            _ => {}
+        }
+        Ok(())
     }
 
     /// The scenario the recording was made with.
@@ -1053,8 +1109,24 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         })
         .collect();
     let mut written = Vec::new();
+    export_axis(&rec, dir, "", &state_header, &mut written)?;
+    // Another axis's files: `axis<n>_<method>_<kind>.csv`.
+    for (n, axis) in &rec.axes {
+        export_axis(axis, dir, &format!("axis{n}_"), &state_header, &mut written)?;
+    }
+    Ok(written)
+}
+
+/// One axis's topics of an export, as [`export_csv`] says, their names led by `prefix`.
+fn export_axis(
+    rec: &Recorded,
+    dir: &Path,
+    prefix: &str,
+    state_header: &[String],
+    written: &mut Vec<(PathBuf, usize)>,
+) -> Result<(), RecordError> {
     for (method, states) in &rec.runs {
-        let p = dir.join(format!("{method}_state.csv"));
+        let p = dir.join(format!("{prefix}{method}_state.csv"));
         write_csv(&p, &state_header.join(","), states, |s| {
             format!(
                 "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
@@ -1080,7 +1152,7 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         written.push((p, states.len()));
     }
     for (method, stats) in &rec.stats {
-        let p = dir.join(format!("{method}_stats.csv"));
+        let p = dir.join(format!("{prefix}{method}_stats.csv"));
         let header = "t [s],role,cycles,misses,planned,overruns,lost,longest_miss_run";
         write_csv(&p, header, stats, |s| {
             format!(
@@ -1091,14 +1163,14 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         written.push((p, stats.len()));
     }
     for (method, faults) in &rec.faults {
-        let p = dir.join(format!("{method}_fault.csv"));
+        let p = dir.join(format!("{prefix}{method}_fault.csv"));
         write_csv(&p, "t [s],seq,fault", faults, |s| {
             format!("{},{},{}", s.t, s.seq, s.fault)
         })?;
         written.push((p, faults.len()));
     }
     for (method, setpoints) in &rec.setpoints {
-        let p = dir.join(format!("{method}_setpoint.csv"));
+        let p = dir.join(format!("{prefix}{method}_setpoint.csv"));
         let header = "t [s],seq,theta_d [rad],omega_d [rad/s],alpha_d [rad/s²],torque [N·m],load_estimate [N·m]";
         write_csv(&p, header, setpoints, |s| {
             format!(
@@ -1109,7 +1181,7 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         written.push((p, setpoints.len()));
     }
     for (method, commands) in &rec.commands {
-        let p = dir.join(format!("{method}_command.csv"));
+        let p = dir.join(format!("{prefix}{method}_command.csv"));
         let header = "t [s],t_ref [s],seq,answers_seq,v_a [V],v_b [V],i_a_ref [A],i_b_ref [A]";
         write_csv(&p, header, commands, |c| {
             format!(
@@ -1120,7 +1192,7 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         written.push((p, commands.len()));
     }
     for (method, plans) in &rec.plans {
-        let p = dir.join(format!("{method}_plan.csv"));
+        let p = dir.join(format!("{prefix}{method}_plan.csv"));
         let header = "t [s],command_seq,answers_seq,len,v_a_0 [V],v_b_0 [V],v_a_1 [V],v_b_1 [V],v_a_2 [V],v_b_2 [V],v_a_3 [V],v_b_3 [V]";
         write_csv(&p, header, plans, |r| {
             format!(
@@ -1142,7 +1214,7 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         written.push((p, plans.len()));
     }
     for (method, truth) in &rec.truth {
-        let p = dir.join(format!("{method}_truth.csv"));
+        let p = dir.join(format!("{prefix}{method}_truth.csv"));
         let header = "t [s],seq,theta [rad],error [rad],omega [rad/s],i_a [A],i_b [A]";
         write_csv(&p, header, truth, |s| {
             format!(
@@ -1153,7 +1225,7 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         written.push((p, truth.len()));
     }
     for (method, acks) in &rec.acks {
-        let p = dir.join(format!("{method}_axis_ack.csv"));
+        let p = dir.join(format!("{prefix}{method}_axis_ack.csv"));
         let header =
             "t [s],tick,kind,seq,client,target [rad],velocity [rad/s],flags,refusal,text,state";
         write_csv(&p, header, acks, |a| {
@@ -1175,7 +1247,7 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         written.push((p, acks.len()));
     }
     for (method, statuses) in &rec.statuses {
-        let p = dir.join(format!("{method}_axis_status.csv"));
+        let p = dir.join(format!("{prefix}{method}_axis_status.csv"));
         let header = "t [s],tick,state,statusword,mode,theta [rad],omega [rad/s],torque [N·m],\
                       following_error [rad],theta_d [rad],omega_d [rad/s],alpha_d [rad/s²],\
                       target [rad],fault,warning,move_id,last_seq,stream_time [s]";
@@ -1207,7 +1279,7 @@ pub fn export_csv(path: &Path, dir: &Path) -> Result<Vec<(PathBuf, usize)>, Reco
         })?;
         written.push((p, statuses.len()));
     }
-    Ok(written)
+    Ok(())
 }
 
 /// A text field for CSV: quoted, its quotes doubled.

@@ -316,17 +316,25 @@ const SILENT: Duration = Duration::from_secs(2);
 
 /// Attaches to `instance` (running `given`, or the scenario it announces) and shows it until
 /// `q`, Ctrl-C, or the stack's end.
-pub fn run_scope(instance: &str, given: Option<&Scenario>) -> Result<()> {
+/// `axis`: the axis of a multi-axis stack it shows.
+pub fn run_scope(instance: &str, given: Option<&Scenario>, axis: u32) -> Result<()> {
     use ratatui::crossterm::event::{self, Event, KeyCode, KeyEventKind, KeyModifiers};
     let crate::supervise::attach::Attached {
         mut bus,
         scenario,
         mut states,
-    } = crate::supervise::attach::attach_reader(instance, "scope", given)?;
+    } = crate::supervise::attach::attach_reader(instance, "scope", given, axis)?;
     let s = &scenario;
+    // The loops' statistics are per process, on axis 0's services.
+    bus.set_axis(0);
     let mut stats = bus.subscriber::<StatsReport>(4)?;
+    bus.set_axis(axis);
     let rate = s.rates.current_loop_hz;
-    let mut view = View::new(s, instance, bus.mode().as_str());
+    let label = match axis {
+        0 => instance.to_string(),
+        n => format!("{instance}, axis {n}"),
+    };
+    let mut view = View::new(s, &label, bus.mode().as_str());
     let mut setpoints = match view.wants_setpoints() {
         true => Some(bus.subscriber::<TorqueSetpoint>(stepdrive_shared::services::MONITOR_BUFFER)?),
         false => None,

@@ -236,13 +236,26 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
         }
     }
     for r in runs {
-        if r.moves.is_empty() {
+        // Every axis's moves; a multi-axis run's lines name their axis.
+        let several = !r.axes.is_empty();
+        let moves: Vec<_> = r
+            .moves
+            .iter()
+            .map(|m| (0, m))
+            .chain(
+                r.axes
+                    .iter()
+                    .flat_map(|a| a.report.moves.iter().map(move |m| (a.axis, m))),
+            )
+            .collect();
+        if moves.is_empty() {
             continue;
         }
         let _ = writeln!(
             out,
-            "\n{} moves:\n  {:>3} {:>10} {:>14} {:>20} {:>16} {:>20}",
+            "\n{} moves:\n  {}{:>3} {:>10} {:>14} {:>20} {:>16} {:>20}",
             r.method,
+            if several { " axis " } else { "" },
             "#",
             "start [s]",
             "target [rad]",
@@ -251,11 +264,20 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
             "settled 1e-4 [ms]"
         );
         let or_na = |v: Option<f64>, f: &dyn Fn(f64) -> String| v.map_or("n/a".into(), f);
-        for (i, m) in r.moves.iter().enumerate() {
+        let mut number = 0;
+        let mut last_axis = 0;
+        for (axis, m) in moves {
+            number = if axis == last_axis { number + 1 } else { 1 };
+            last_axis = axis;
             let _ = writeln!(
                 out,
-                "  {:>3} {:>10.4} {:>14.6} {:>20} {:>16} {:>20}",
-                i + 1,
+                "  {}{:>3} {:>10.4} {:>14.6} {:>20} {:>16} {:>20}",
+                if several {
+                    format!("{axis:>5} ")
+                } else {
+                    String::new()
+                },
+                number,
                 m.start_s,
                 m.target_rad,
                 match m.retargeted_at_s {

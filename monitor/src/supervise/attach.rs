@@ -100,7 +100,15 @@ pub struct Attached {
     pub states: Box<dyn Subscribe<DriveState>>,
 }
 
-pub fn attach_reader(instance: &str, role: &str, given: Option<&Scenario>) -> Result<Attached> {
+/// `axis`: the axis of a multi-axis stack it reads (0 for a one-axis stack): its states, and
+/// its own scenario in [`Attached::scenario`]; an index the stack lacks is refused, naming
+/// its axis count. The bus is left on that axis's services.
+pub fn attach_reader(
+    instance: &str,
+    role: &str,
+    given: Option<&Scenario>,
+    axis: u32,
+) -> Result<Attached> {
     let wait = Duration::from_secs(30);
     let deadline = Instant::now() + wait;
     tracing::info!(
@@ -109,7 +117,9 @@ pub fn attach_reader(instance: &str, role: &str, given: Option<&Scenario>) -> Re
     let mut bus = IpcBus::attach(instance, role, wait)?;
     // Subscribed at once, before waiting for the device: a realtime device publishes from
     // its first period, and every sample before this subscription is one the reader missed.
+    bus.set_axis(axis);
     let states = bus.subscriber::<DriveState>(MONITOR_BUFFER)?;
+    bus.set_axis(0);
     // The device announces before it publishes its first state (a launcher's monitor may
     // have created the stack's services before the device came up).
     let presence = bus.presence()?;
@@ -128,13 +138,23 @@ pub fn attach_reader(instance: &str, role: &str, given: Option<&Scenario>) -> Re
         }
         None => None,
     };
-    let attached = |bus, scenario| Attached {
-        bus,
-        scenario,
-        states,
+    let attached = |mut bus: IpcBus, scenario: Scenario| {
+        let count = scenario.axis_count();
+        let Some(own) = scenario.for_axis(axis as usize) else {
+            bail!(
+                "the stack on instance `{instance}` has {count} axis(es), 0..={}: there is no axis {axis}",
+                count - 1
+            );
+        };
+        bus.set_axis(axis);
+        Ok(Attached {
+            bus,
+            scenario: own.clone(),
+            states,
+        })
     };
     match (given, announced) {
-        (None, Some(theirs)) => Ok(attached(bus, theirs)),
+        (None, Some(theirs)) => attached(bus, theirs),
         (None, None) => bail!(
             "the stack on instance `{instance}` ({}) does not announce its scenario (a stack \
              of an older stepdrive): give it with --scenario",
@@ -142,7 +162,7 @@ pub fn attach_reader(instance: &str, role: &str, given: Option<&Scenario>) -> Re
         ),
         (Some(ours), theirs) => {
             if bus.stamp() == &Stamp::new(bus.mode(), ours) {
-                return Ok(attached(bus, ours.clone()));
+                return attached(bus, ours.clone());
             }
             let differ = match &theirs {
                 Some(t) => differing_fields(t, ours)
@@ -222,6 +242,9 @@ pub fn watch(
         recording.is_some(),
         !scenario.runs_profile(),
     )?;
+    // The loops' statistics are per process, on axis 0's services (the controls above are
+    // the attached axis's).
+    bus.set_axis(0);
     let feeds = Feeds {
         states,
         stats: bus.subscriber::<StatsReport>(4)?,

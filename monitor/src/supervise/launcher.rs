@@ -165,7 +165,7 @@ fn launch(
         axes.push(AxisFeed {
             axis,
             states: bus.subscriber::<DriveState>(MONITOR_BUFFER)?,
-            controls: Controls::open(&mut bus, mode, false, !own.runs_profile())?,
+            controls: Controls::open(&mut bus, mode, recording, !own.runs_profile())?,
         });
     }
     bus.set_axis(0);

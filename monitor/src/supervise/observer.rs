@@ -55,6 +55,8 @@ pub struct Observer<'r> {
     last_ns: u64,
     last_seen: bool,
     last_fault: u32,
+    /// The axis it watches: the one whose channels it records on.
+    axis: u32,
 }
 
 impl<'r> Observer<'r> {
@@ -71,7 +73,32 @@ impl<'r> Observer<'r> {
             last_ns: 0,
             last_seen: false,
             last_fault: 0,
+            axis: 0,
         }
+    }
+
+    /// Watches axis `axis` of a multi-axis stack (`s` is that axis's scenario).
+    pub fn on_axis(mut self, axis: u32) -> Self {
+        self.axis = axis;
+        self
+    }
+
+    /// Runs `f` on `other` (another axis's observer) with this observer's recording lent to
+    /// it, so that what `other` takes is recorded on its axis's channels of the one file.
+    /// A recording `other` gives up is given up here too.
+    pub fn lending<T>(
+        &mut self,
+        other: &mut Observer<'r>,
+        f: impl FnOnce(&mut Observer<'r>) -> T,
+    ) -> T {
+        other.recording = self.recording.take();
+        let out = f(other);
+        self.recording = other.recording.take();
+        if let Some(why) = other.recording_failed.take() {
+            self.recording = None;
+            self.recording_failed.get_or_insert(why);
+        }
+        out
     }
 
     /// Records what it takes into `recording`, on the channels of `method`, which begin now.
@@ -125,8 +152,9 @@ impl<'r> Observer<'r> {
                     ));
                 }
                 self.lost += gap;
+                let axis = self.axis;
                 self.record(|r| {
-                    r.lost(gap);
+                    r.lost(axis, gap);
                     Ok(())
                 });
             }
@@ -135,7 +163,8 @@ impl<'r> Observer<'r> {
         self.first_ns.get_or_insert(st.publish_time_ns);
         self.last_ns = st.publish_time_ns;
         self.metrics.push(st);
-        self.record(|r| r.state(st));
+        let axis = self.axis;
+        self.record(|r| r.state(axis, st));
         self.last_seen |= st.flags & state_flags::LAST != 0;
         self.last_fault = st.fault;
         Ok(())
@@ -143,27 +172,32 @@ impl<'r> Observer<'r> {
 
     pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
         self.metrics.setpoint(sp);
-        self.record(|r| r.setpoint(sp));
+        let axis = self.axis;
+        self.record(|r| r.setpoint(axis, sp));
     }
 
     /// An axis command's answer (a program's move starts its figures).
     pub fn ack(&mut self, ack: &AxisAck) {
         self.metrics.ack(ack);
-        self.record(|r| r.ack(ack));
+        let axis = self.axis;
+        self.record(|r| r.ack(axis, ack));
     }
 
     /// The axis's status (its first fault is the run's).
     pub fn status(&mut self, st: &AxisStatus) {
         self.metrics.status(st);
-        self.record(|r| r.status(st));
+        let axis = self.axis;
+        self.record(|r| r.status(axis, st));
     }
 
     pub fn command(&mut self, c: &DriveCommand) {
-        self.record(|r| r.command(c));
+        let axis = self.axis;
+        self.record(|r| r.command(axis, c));
     }
 
     pub fn plan(&mut self, p: &DrivePlan) {
-        self.record(|r| r.plan(p));
+        let axis = self.axis;
+        self.record(|r| r.plan(axis, p));
     }
 
     pub fn stats(&mut self, report: &StatsReport) {

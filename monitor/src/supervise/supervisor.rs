@@ -268,7 +268,8 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             .into_iter()
             .map(|feed| AxisWatch {
                 name: s.axis_name(feed.axis),
-                observer: Observer::new(s.for_axis(feed.axis).unwrap_or(s), mode),
+                observer: Observer::new(s.for_axis(feed.axis).unwrap_or(s), mode)
+                    .on_axis(feed.axis as u32),
                 feed,
                 heard: None,
             })
@@ -311,7 +312,8 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             loop {
                 if states.is_multiple_of(CONTROLS_EVERY) {
                     if let Some(c) = a.feed.controls.as_mut() {
-                        take_controls(c, &mut a.observer)?;
+                        self.observer
+                            .lending(&mut a.observer, |o| take_controls(c, o))?;
                     }
                 }
                 if a.observer.last_seen() {
@@ -323,7 +325,7 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 states += 1;
                 got = true;
                 a.heard = Some(Instant::now());
-                if let Err(mut stop) = a.observer.state(&st) {
+                if let Err(mut stop) = self.observer.lending(&mut a.observer, |o| o.state(&st)) {
                     stop.because = format!("axis {} ({}): {}", a.feed.axis, a.name, stop.because);
                     return Ok(Err(stop));
                 }
@@ -395,7 +397,8 @@ impl<'a, 'r> Supervisor<'a, 'r> {
     pub fn drain_controls(&mut self) -> Result<(), stepdrive_runtime::port::PortError> {
         for a in &mut self.axes {
             if let Some(c) = a.feed.controls.as_mut() {
-                take_controls(c, &mut a.observer)?;
+                self.observer
+                    .lending(&mut a.observer, |o| take_controls(c, o))?;
             }
         }
         match self.feeds.controls.as_mut() {

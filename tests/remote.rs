@@ -244,3 +244,71 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
     );
     assert!(processes_with(&inst).is_empty());
 }
+
+/// A multi-axis stack is served whole by its gateway (on loopback here): a remote client
+/// commands each axis by its index, each axis's status comes on its own key, and an index
+/// the stack lacks is refused by the gateway, naming the axis count.
+#[test]
+fn a_gateway_serves_every_axis_of_a_multi_axis_stack() {
+    let _turn = one_stack_at_a_time();
+    let dir = TempDir::new("remote-axes");
+    let inst = instance("remote-axes");
+    let scenario = dir.file(
+        "three.toml",
+        "name = \"three\"\n[[axis]]\nname = \"x\"\n[[axis]]\nname = \"y\"\n[[axis]]\nname = \"z\"\n",
+    );
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let mut args = vec![
+        "serve",
+        "--instance",
+        &inst,
+        "--scenario",
+        scenario.to_str().unwrap(),
+        "--gateway",
+        &endpoint,
+    ];
+    args.extend(ORDINARY_STACK);
+    let mut serve = spawn_run(&args);
+    let remote = |axis: &str, verb: &[&str]| {
+        let mut all = vec![
+            "axis",
+            "--instance",
+            &inst,
+            "--connect",
+            &endpoint,
+            "--axis",
+            axis,
+        ];
+        all.extend(verb);
+        stepdrive(&all)
+    };
+    if !wait_until(Duration::from_secs(30), || {
+        remote("2", &["status"]).status.success()
+    }) {
+        let last = text(&remote("2", &["status"]));
+        signal(serve.id(), libc::SIGINT);
+        let _ = wait_with_timeout(&mut serve, Duration::from_secs(30));
+        panic!(
+            "axis 2 did not answer through the gateway: {last}\nserve: {}",
+            stderr_of(&mut serve)
+        );
+    }
+    let on = remote("2", &["enable"]);
+    assert!(on.status.success(), "{}", text(&on));
+    assert_reached(&remote("2", &MOVE_1_RAD_WAITED));
+    for (axis, state) in [
+        ("2", "Operation enabled"),
+        ("0", "Switch on disabled"),
+        ("1", "Switch on disabled"),
+    ] {
+        let st = remote(axis, &["status"]);
+        assert!(text(&st).contains(state), "axis {axis}: {}", text(&st));
+    }
+    let unknown = remote("3", &["status"]);
+    assert!(!unknown.status.success(), "{}", text(&unknown));
+    assert!(text(&unknown).contains("no axis 3"), "{}", text(&unknown));
+
+    signal(serve.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    assert!(status.success(), "{}", stderr_of(&mut serve));
+}

@@ -1,4 +1,4 @@
-//! `stepdrive gateway`: the stack's axis on Zenoh, for clients on other hosts
+//! `stepdrive gateway`: the stack's axes on Zenoh, for clients on other hosts
 //! (docs/remote.md). Not a loop of the stack: an ordinary process beside it that is a client
 //! of the stack's iceoryx2 services on one side and a Zenoh peer on the other.
 //!
@@ -6,9 +6,14 @@
 //!   [`AxisRequest`] goes to the local command service and its [`AxisAck`] comes back as
 //!   the reply, so a remote command is validated and answered exactly as a local one. A
 //!   client over its rate limit is refused (`TooMany`) here, without reaching the axis.
-//! - status: the axis's newest [`AxisStatus`] on `stepdrive/<instance>/axis/0/status` at
-//!   the gateway's rate (100 Hz by default).
-//! - streams: points on `stepdrive/<instance>/axis/*/stream` go to the local stream topic.
+//! - status: each axis's newest [`AxisStatus`] on `stepdrive/<instance>/axis/<n>/status`
+//!   at the gateway's rate (100 Hz by default).
+//! - streams: points on `stepdrive/<instance>/axis/*/stream` go to the named axis's local
+//!   stream topic.
+//!
+//! A multi-axis stack (docs/axes.md) is served whole: every axis its command, status and
+//! stream keys, each to its own local services (the axis count from the stack's announced
+//! scenario). A command or point for an axis the stack lacks is refused (`UnknownAxis`).
 //! - leases: every remote client holds a liveliness token; when one goes (its session
 //!   closed, or its link silent for [`LEASE`](crate::remote::LEASE)) and the axis is still
 //!   in a stream or jog that client started, the gateway quick-stops the axis.
@@ -17,7 +22,7 @@ use crate::remote::{self, decode, encoding, Side};
 use std::collections::HashMap;
 use std::time::{Duration, Instant};
 use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
-use stepdrive_runtime::port::{PortError, Publish, Subscribe};
+use stepdrive_runtime::port::{PortError, PortFactory, Publish, Subscribe};
 use stepdrive_shared::axis::{
     AxisAck, AxisMode, AxisRequest, AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
 };
@@ -98,10 +103,19 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
         waited: o.attach_timeout,
         source,
     };
-    let bus = IpcBus::attach(&o.instance, "gateway", o.attach_timeout).map_err(no_stack)?;
-    let mut commands: CommandClient = bus.command_client().map_err(no_stack)?;
-    let mut status_in: IpcSubscriber<AxisStatus> = bus.subscriber_of::<AxisStatus>(16)?;
-    let mut points_out: IpcPublisher<AxisStreamPoint> = bus.publisher_of::<AxisStreamPoint>()?;
+    let mut bus = IpcBus::attach(&o.instance, "gateway", o.attach_timeout).map_err(no_stack)?;
+    let count = axis_count(&bus, o.attach_timeout);
+    let mut locals = Vec::with_capacity(count);
+    for axis in 0..count as u32 {
+        bus.set_axis(axis);
+        locals.push(Local {
+            commands: bus.command_client().map_err(no_stack)?,
+            status_in: bus.subscriber_of::<AxisStatus>(16)?,
+            points_out: bus.publisher_of::<AxisStreamPoint>()?,
+            newest: None,
+        });
+    }
+    bus.set_axis(0);
 
     let zerr = |what: &str, e: &dyn std::fmt::Display| GatewayError::Zenoh {
         endpoint: o.endpoint.clone(),
@@ -120,11 +134,15 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
         .declare_subscriber(any_axis(keys::STREAM))
         .wait()
         .map_err(|e| zerr("stream subscriber", &e))?;
-    let status_out = session
-        .declare_publisher(keys::axis_key(&o.instance, 0, keys::STATUS))
-        .encoding(encoding::<AxisStatus>())
-        .wait()
-        .map_err(|e| zerr("status publisher", &e))?;
+    let status_out = (0..count as u32)
+        .map(|axis| {
+            session
+                .declare_publisher(keys::axis_key(&o.instance, axis, keys::STATUS))
+                .encoding(encoding::<AxisStatus>())
+                .wait()
+                .map_err(|e| zerr("status publisher", &e))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
     let leases = session
         .liveliness()
         .declare_subscriber(keys::client_tokens(&o.instance))
@@ -132,7 +150,8 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
         .wait()
         .map_err(|e| zerr("liveliness subscriber", &e))?;
     tracing::info!(
-        "gateway for instance `{}` on {} ({}): commands, status at {} Hz, streams, leases of {:?}",
+        "gateway for instance `{}` ({count} axis(es)) on {} ({}): commands, status at {} Hz, \
+         streams, leases of {:?}",
         o.instance,
         o.endpoint,
         match o.side {
@@ -148,19 +167,20 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
     let burst = (o.max_commands_hz / 10.0).max(1.0);
     let status_period = Duration::from_secs_f64(1.0 / o.status_hz);
     let mut next_status = Instant::now();
-    let mut newest: Option<AxisStatus> = None;
     let mut last_status_at = Instant::now();
     let mut own_seq = u64::from(GATEWAY_CLIENT) << 32;
     let silent_limit = Duration::from_secs(5);
 
     while !stepdrive_runtime::poll::termination_requested() {
         let mut idle = true;
-        while let Some(s) = status_in.newest()? {
-            newest = Some(s);
-            last_status_at = Instant::now();
+        for local in &mut locals {
+            while let Some(s) = local.status_in.newest()? {
+                local.newest = Some(s);
+                last_status_at = Instant::now();
+            }
         }
         // Before the first status the stack is still starting: it has the attach time.
-        let limit = if newest.is_some() {
+        let limit = if locals.iter().any(|l| l.newest.is_some()) {
             silent_limit
         } else {
             silent_limit.max(o.attach_timeout)
@@ -173,12 +193,13 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
         }
         let now = Instant::now();
         if now >= next_status {
-            if let Some(s) = newest {
-                status_out
-                    .put(wire::bytes(&s).to_vec())
-                    .wait()
-                    .map_err(|e| zerr("status", &e))?;
-                sum.statuses += 1;
+            for (local, out) in locals.iter().zip(&status_out) {
+                if let Some(s) = local.newest {
+                    out.put(wire::bytes(&s).to_vec())
+                        .wait()
+                        .map_err(|e| zerr("status", &e))?;
+                    sum.statuses += 1;
+                }
             }
             // Paced from the schedule, not from now: the rate holds on average.
             next_status += status_period;
@@ -211,19 +232,25 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                 Instant::now(),
             );
             let keyed = keys::axis_of_key(query.key_expr().as_str());
-            let state = newest.map_or(0, |s| s.state);
-            let refused = refused_here(&request, keyed, limited, o.max_commands_hz, state);
+            let local = keyed.and_then(|n| locals.get_mut(n as usize));
+            let state = local.as_ref().and_then(|l| l.newest).map_or(0, |s| s.state);
+            let refused =
+                refused_here(&request, keyed, limited, o.max_commands_hz, state).or_else(|| {
+                    local
+                        .is_none()
+                        .then(|| unknown_axis(&request, count, state))
+                });
             let ack = if let Some(ack) = refused {
                 match ack.refusal == Refusal::TooMany as u32 {
                     true => sum.rate_limited += 1,
                     false => sum.malformed += 1,
                 }
                 ack
-            } else {
+            } else if let Some(local) = local {
                 sum.commands += 1;
                 let mut r = request;
                 r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
-                match commands.request(&r, LOCAL_ANSWER) {
+                match local.commands.request(&r, LOCAL_ANSWER) {
                     Ok(ack) => ack,
                     Err(e) => {
                         // The stack starting or stalled: this command fails, the gateway
@@ -232,6 +259,8 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                         continue;
                     }
                 }
+            } else {
+                unreachable!("a request for an axis the stack lacks is refused above")
             };
             query
                 .reply(query.key_expr().clone(), wire::bytes(&ack).to_vec())
@@ -252,9 +281,17 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                     );
                 }
                 Ok(mut p) => {
+                    let Some(local) = locals.get_mut(p.axis as usize) else {
+                        sum.malformed += 1;
+                        tracing::warn!(
+                            "a stream point for axis {} of a stack of {count}: dropped",
+                            p.axis
+                        );
+                        continue;
+                    };
                     // The stack's clock, for recorders: the client's is another host's.
                     p.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
-                    points_out.publish(&p)?;
+                    local.points_out.publish(&p)?;
                     sum.points += 1;
                 }
                 Err(e) => {
@@ -274,28 +311,36 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                 SampleKind::Delete => {
                     sum.leases_lost += 1;
                     buckets.remove(&client);
-                    let Some(s) = newest.filter(|s| started_motion(s, client)) else {
+                    // Every axis still in a stream or jog the client started stops.
+                    let mut stopped = false;
+                    for local in &mut locals {
+                        let Some(s) = local.newest.filter(|s| started_motion(s, client)) else {
+                            continue;
+                        };
+                        own_seq += 1;
+                        let stop = AxisRequest {
+                            axis: s.axis,
+                            kind: RequestKind::QuickStop as u32,
+                            seq: own_seq,
+                            client: GATEWAY_CLIENT,
+                            publish_time_ns: stepdrive_runtime::clock::monotonic_ns(),
+                            ..Default::default()
+                        };
+                        let ack = local.commands.request(&stop, LOCAL_ANSWER)?;
+                        sum.quick_stops += 1;
+                        stopped = true;
+                        tracing::warn!(
+                            "remote client {client} went away (session closed or lease of {:?} \
+                             expired) while its {} of axis {} ran: quick stop {}",
+                            remote::LEASE,
+                            AxisMode::from_u32(s.mode).map_or("motion", |m| m.name()),
+                            s.axis,
+                            if ack.taken() { "taken" } else { ack.text() }
+                        );
+                    }
+                    if !stopped {
                         tracing::info!("remote client {client} went away");
-                        continue;
-                    };
-                    own_seq += 1;
-                    let stop = AxisRequest {
-                        axis: s.axis,
-                        kind: RequestKind::QuickStop as u32,
-                        seq: own_seq,
-                        client: GATEWAY_CLIENT,
-                        publish_time_ns: stepdrive_runtime::clock::monotonic_ns(),
-                        ..Default::default()
-                    };
-                    let ack = commands.request(&stop, LOCAL_ANSWER)?;
-                    sum.quick_stops += 1;
-                    tracing::warn!(
-                        "remote client {client} went away (session closed or lease of {:?} \
-                         expired) while its {} ran: quick stop {}",
-                        remote::LEASE,
-                        AxisMode::from_u32(s.mode).map_or("motion", |m| m.name()),
-                        if ack.taken() { "taken" } else { ack.text() }
-                    );
+                    }
                 }
             }
         }
@@ -305,6 +350,58 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
     }
     drop(session);
     Ok(sum)
+}
+
+/// One axis's local side: its command client, status subscriber and stream publisher, and
+/// its newest status.
+struct Local {
+    commands: CommandClient,
+    status_in: IpcSubscriber<AxisStatus>,
+    points_out: IpcPublisher<AxisStreamPoint>,
+    newest: Option<AxisStatus>,
+}
+
+/// The stack's axis count, from the scenario it announces (a gateway started with its
+/// stack waits up to `wait` for the announcement; 1, with a warning, if none comes or it
+/// does not parse: axis 0 is served all the same).
+fn axis_count(bus: &IpcBus, wait: Duration) -> usize {
+    let deadline = Instant::now() + wait;
+    loop {
+        let announced = bus.stack_scenario().ok().flatten();
+        if let Some(a) = announced {
+            let parsed = a
+                .text()
+                .and_then(|t| stepdrive_shared::Scenario::from_toml_str(t).ok());
+            return parsed.map_or_else(
+                || {
+                    tracing::warn!("the stack's announced scenario does not parse: axis 0 only");
+                    1
+                },
+                |s| s.axis_count(),
+            );
+        }
+        if Instant::now() >= deadline || stepdrive_runtime::poll::termination_requested() {
+            tracing::warn!("the stack announced no scenario within {wait:?}: axis 0 only");
+            return 1;
+        }
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
+/// The refusal of a request for an axis the stack lacks (`state`: for the answer).
+fn unknown_axis(request: &AxisRequest, count: usize, state: u32) -> AxisAck {
+    let mut ack = AxisAck {
+        request: *request,
+        refusal: Refusal::UnknownAxis as u32,
+        state,
+        ..Default::default()
+    };
+    ack.set_text(&format!(
+        "the stack has {count} axis(es), 0..={}: there is no axis {}",
+        count - 1,
+        request.axis
+    ));
+    ack
 }
 
 /// Whether the axis is still in a stream or jog that `client`'s last command started: what

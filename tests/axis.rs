@@ -312,17 +312,7 @@ file = "{}"
         String::from_utf8_lossy(&out.stderr)
     );
     let csv_dir = dir.path("csv");
-    let export = stepdrive(&[
-        "export",
-        "--csv",
-        csv_dir.to_str().unwrap(),
-        recording.to_str().unwrap(),
-    ]);
-    assert!(
-        export.status.success(),
-        "{}",
-        String::from_utf8_lossy(&export.stderr)
-    );
+    export_csv(&recording, &csv_dir);
     let status = Csv::read(&csv_dir.join("proposed_axis_status.csv"));
     let (t_col, theta_col, played_col) = (
         status.col("t ["),
@@ -755,13 +745,7 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     signal(recorder.id(), libc::SIGINT);
     wait_with_timeout(&mut recorder, Duration::from_secs(30));
     let csv = dir.path("csv");
-    let exported = stepdrive(&[
-        "export",
-        "--csv",
-        csv.to_str().unwrap(),
-        mcap.to_str().unwrap(),
-    ]);
-    assert!(exported.status.success(), "{}", text(&exported));
+    export_csv(&mcap, &csv);
     let states = Csv::read(&csv.join("proposed_state.csv"));
     let theta = states.col("theta [");
     let last: f64 = states
@@ -863,13 +847,7 @@ fn a_three_axis_recording_holds_every_axis_and_exports_and_plots_each() {
     let samples = num(run_of(&doc, "proposed"), "samples");
 
     let csv = dir.path("csv");
-    let exported = stepdrive(&[
-        "export",
-        "--csv",
-        csv.to_str().unwrap(),
-        mcap.to_str().unwrap(),
-    ]);
-    assert!(exported.status.success(), "{}", text(&exported));
+    export_csv(&mcap, &csv);
     for (n, target) in targets.iter().enumerate() {
         let prefix = if n == 0 {
             String::new()

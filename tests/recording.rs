@@ -167,17 +167,7 @@ fn a_recorded_run_reads_back_with_every_sample_and_draws_and_exports() {
         .contains("eq. (7) bound"));
     // CSV: a header and one row per recorded sample.
     let csv = dir.path("csv");
-    let out = stepdrive(&[
-        "export",
-        mcap.to_str().unwrap(),
-        "--csv",
-        csv.to_str().unwrap(),
-    ]);
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    export_csv(&mcap, &csv);
     for (method, states) in &rec.runs {
         let text = std::fs::read_to_string(csv.join(format!("{method}_state.csv"))).expect("csv");
         let mut lines = text.lines();

@@ -161,11 +161,12 @@ impl CurrentLoopNode {
     }
 }
 
-/// Each axis's current loop is on its own in a multi-axis stack.
-/// Every lane's state-ready listener wakes on any drive's state: the event is one for all
-/// axes. Lanes that could not block (a bridge of two drives) kept the loop spinning and
-/// yielding at SCHED_FIFO for 2 ms at a time on the bridge's CPU, where a yield gives the
-/// lower-priority bridge nothing: it fell behind and both axes' commands with it.
+/// Each axis's current loop is on its own in a multi-axis stack, and every lane's
+/// state-ready listener wakes on any drive's state (the event is one for all axes), so
+/// lanes waiting together block on it. Lanes that could not block (a bridge of two drives)
+/// kept the loop spinning and yielding at SCHED_FIFO for 2 ms at a time on the bridge's
+/// CPU, where a yield gives the lower-priority bridge nothing: it fell behind, and both
+/// axes' commands with it.
 impl stepdrive_runtime::lanes::Together for CurrentLoopNode {
     const BLOCKS_FOR_ALL: bool = true;
 }

@@ -399,3 +399,78 @@ impl<N: Together> Node for Lanes<N> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::clock::VirtualClock;
+    use std::cell::Cell;
+    use std::rc::Rc;
+
+    /// An input-paced lane that never has its input and counts the blocks asked of it.
+    struct Waiting<const ALL: bool> {
+        blocks: Rc<Cell<u32>>,
+    }
+
+    impl<const ALL: bool> Node for Waiting<ALL> {
+        type Ports = ();
+        fn role(&self) -> Role {
+            Role::CurrentLoop
+        }
+        fn pace(&self) -> Pace {
+            Pace::Input
+        }
+        fn rate_hz(&self) -> f64 {
+            20_000.0
+        }
+        fn awaiting(&self) -> String {
+            String::new()
+        }
+        fn poll(&mut self, _: &mut (), _: &mut Cx) -> Result<Poll, RunError> {
+            Ok(Poll::Pending)
+        }
+        fn step(&mut self, _: &mut (), _: &mut Cx) -> Result<Flow, RunError> {
+            Ok(Flow::Continue)
+        }
+        fn block(&mut self, _: &mut (), _: u64, _: u64) -> Result<bool, RunError> {
+            self.blocks.set(self.blocks.get() + 1);
+            Ok(true)
+        }
+    }
+
+    impl<const ALL: bool> Together for Waiting<ALL> {
+        const BLOCKS_FOR_ALL: bool = ALL;
+    }
+
+    /// Whether `lanes` lanes, all waiting, block, and how many blocks were asked.
+    fn blocks<const ALL: bool>(lanes: usize) -> (bool, u32) {
+        let counted = Rc::new(Cell::new(0));
+        let nodes = (0..lanes)
+            .map(|_| Waiting::<ALL> {
+                blocks: counted.clone(),
+            })
+            .collect();
+        let mut l = Lanes::new(nodes, false);
+        let mut ports = vec![(); lanes];
+        let clock = VirtualClock::default();
+        let mut stats = StatsReport::default();
+        let mut cx = Cx::new(&clock, &mut stats);
+        assert_eq!(l.start(&mut ports, &mut cx).expect("starts"), Start::NOW);
+        assert_eq!(l.poll(&mut ports, &mut cx).expect("polls"), Poll::Pending);
+        let blocked = l.block(&mut ports, 0, 1_000).expect("blocks");
+        (blocked, counted.get())
+    }
+
+    #[test]
+    fn one_waiting_lane_blocks_on_its_input() {
+        assert_eq!(blocks::<false>(1), (true, 1));
+    }
+
+    #[test]
+    fn several_waiting_lanes_block_only_on_an_input_that_wakes_for_all() {
+        // A drive's socket would hold up the other drives' frames: the runner backs off.
+        assert_eq!(blocks::<false>(3), (false, 0));
+        // The current loop's state-ready event wakes for every axis: one block for all.
+        assert_eq!(blocks::<true>(3), (true, 1));
+    }
+}

@@ -579,6 +579,18 @@ pub fn assert_reached(mv: &Output) {
     assert!(text(mv).contains("reached"), "{}", text(mv));
 }
 
+/// `stepdrive export --csv DIR RECORDING`: every topic of `recording` as CSV files in `dir`.
+/// Fails the test if the export fails.
+pub fn export_csv(recording: &Path, dir: &Path) {
+    let out = stepdrive(&[
+        "export",
+        "--csv",
+        dir.to_str().expect("a UTF-8 path"),
+        recording.to_str().expect("a UTF-8 path"),
+    ]);
+    assert!(out.status.success(), "{}", text(&out));
+}
+
 /// An exported CSV file (`stepdrive export --csv`): its header and its rows' fields.
 pub struct Csv {
     header: Vec<String>,

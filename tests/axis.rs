@@ -908,7 +908,7 @@ fn a_drive_fault_on_one_axis_quick_stops_the_other_in_hardware_mode() {
     let scenario = dir.file(
         "two.toml",
         &format!(
-            "name = \"two-drives-fault\"\n[run]\nduration_s = 1.5\n{program}\
+            "name = \"two-drives-fault\"\n[run]\nduration_s = 3.0\n{program}\
              [[axis]]\nname = \"left\"\n[[axis]]\nname = \"right\"\n"
         ),
     );
@@ -921,8 +921,11 @@ fn a_drive_fault_on_one_axis_quick_stops_the_other_in_hardware_mode() {
         scenario.to_str().unwrap(),
         "--inject-axis",
         "1",
+        // Counted from the drive's first SAMPLE (its phase-B step), before the host's run
+        // starts: on a busy machine the start-up took 0.95 s of a 1.0 s count, and the
+        // fault came before the moves. 2 s leaves the moves a second at least.
         "--overcurrent-after",
-        "1.0",
+        "2.0",
     ]);
     let mut drives = spawn_logged(&args);
     let json = dir.path("two.json");

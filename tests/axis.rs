@@ -758,6 +758,68 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
         "axis 2 recorded ending at {last} rad"
     );
 
+    // A client's coordinated move: refused as a whole while one of its axes is disabled
+    // (the enabled axes do not move); taken by every axis on one tick once all are enabled,
+    // and every axis arrives.
+    let together = |to: &str| {
+        stepdrive(&[
+            "axis",
+            "--instance",
+            &inst,
+            "move-together",
+            "--to",
+            to,
+            "--wait",
+            "--timeout",
+            "10",
+        ])
+    };
+    assert!(axis("0", &["enable"]).status.success());
+    // Past axis 0's brake release (20 ms), so that axis 1 is the one cause.
+    std::thread::sleep(Duration::from_millis(100));
+    let refused = together("0.5,-0.5,0");
+    assert!(!refused.status.success(), "{}", text(&refused));
+    assert!(
+        text(&refused).contains("axis 1") && text(&refused).contains("Operation enabled"),
+        "{}",
+        text(&refused)
+    );
+    let theta_of = |n: &str| -> f64 {
+        let st = axis(n, &["status"]);
+        text(&st)
+            .lines()
+            .find_map(|l| l.strip_prefix("θ "))
+            .and_then(|v| v.trim().trim_end_matches(" rad").parse().ok())
+            .unwrap_or_else(|| panic!("axis {n}: no θ in {}", text(&st)))
+    };
+    assert!(
+        (theta_of("2") + 1.0).abs() < 1e-4,
+        "axis 2 moved on a refused coordinated move"
+    );
+    assert!(axis("1", &["enable"]).status.success());
+    std::thread::sleep(Duration::from_millis(100));
+    let moved = together("0.5,-0.5,0");
+    assert!(moved.status.success(), "{}", text(&moved));
+    let out = text(&moved);
+    let left: Vec<&str> = out
+        .lines()
+        .filter(|l| l.contains("coordinated move to"))
+        .filter_map(|l| l.split("at t = ").nth(1))
+        .collect();
+    assert_eq!(left.len(), 3, "{out}");
+    assert!(
+        left.iter().all(|t| *t == left[0]),
+        "the parts left on different ticks: {out}"
+    );
+    assert!(out.contains("all 3 axes reached their targets"), "{out}");
+    for (n, target) in [("0", 0.5), ("1", -0.5), ("2", 0.0)] {
+        let theta = theta_of(n);
+        assert!(
+            (theta - target).abs() < 1e-4,
+            "axis {n} at {theta} rad, not {target}"
+        );
+    }
+
     signal(serve.id(), libc::SIGINT);
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
     assert!(status.success(), "{}", stderr_of(&mut serve));

@@ -308,6 +308,36 @@ fn a_gateway_serves_every_axis_of_a_multi_axis_stack() {
     assert!(!unknown.status.success(), "{}", text(&unknown));
     assert!(text(&unknown).contains("no axis 3"), "{}", text(&unknown));
 
+    // A coordinated move through the gateway: its parts are forwarded without waiting for
+    // each other's answers, and leave on one tick.
+    for axis in ["0", "1"] {
+        assert!(remote(axis, &["enable"]).status.success());
+    }
+    std::thread::sleep(Duration::from_millis(100));
+    let together = remote(
+        "0",
+        &[
+            "move-together",
+            "--to",
+            "0.5,-0.5,0",
+            "--wait",
+            "--timeout",
+            "10",
+        ],
+    );
+    let out = text(&together);
+    assert!(together.status.success(), "{out}");
+    let left: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.split("taken (seq").nth(1))
+        .collect();
+    assert_eq!(left.len(), 3, "{out}");
+    assert!(
+        left.iter().all(|t| *t == left[0]),
+        "the parts left on different ticks: {out}"
+    );
+    assert!(out.contains("all 3 axes reached their targets"), "{out}");
+
     signal(serve.id(), libc::SIGINT);
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
     assert!(status.success(), "{}", stderr_of(&mut serve));

@@ -7,7 +7,9 @@ use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use stepdrive_client::{Axis, AxisMode, AxisState, AxisStatus, ClientError, Limits, RequestKind};
+use stepdrive_client::{
+    Axis, AxisMode, AxisState, AxisStatus, ClientError, Group, Limits, RequestKind,
+};
 use stepdrive_monitor::report::outcome::Outcome;
 use stepdrive_shared::axis::{parse_stream, request_flags, status_bits};
 use stepdrive_shared::services::DEFAULT_INSTANCE;
@@ -87,6 +89,28 @@ enum Verb {
         #[command(flatten)]
         limits: LimitArgs,
         /// Wait until the target is reached (exit 3 if the axis faults on the way).
+        #[arg(long)]
+        wait: bool,
+        /// Longest wait with --wait, s.
+        #[arg(long, default_value_t = 30.0)]
+        timeout: f64,
+    },
+    /// A coordinated move of several axes of a multi-axis stack: each to its target
+    /// (absolute, at its `[axis]` move limits), all leaving on one tick and arriving on one
+    /// tick; refused as a whole if any axis cannot take its part. (`--axis` is not used.)
+    MoveTogether {
+        /// The targets, rad, one per axis of --axes: `--to 1,-6,12`.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            allow_negative_numbers = true,
+            required = true
+        )]
+        to: Vec<f64>,
+        /// The axes, in the order of --to (default: 0, 1, … one per target).
+        #[arg(long, value_delimiter = ',')]
+        axes: Option<Vec<u32>>,
+        /// Wait until every axis has reached its target (exit 3 if one faults on the way).
         #[arg(long)]
         wait: bool,
         /// Longest wait with --wait, s.
@@ -220,6 +244,29 @@ fn describe(s: &AxisStatus) -> String {
 }
 
 pub fn axis(a: AxisArgs) -> Result<()> {
+    if let Verb::MoveTogether {
+        to,
+        axes,
+        wait,
+        timeout,
+    } = &a.verb
+    {
+        let axes = axes
+            .clone()
+            .unwrap_or_else(|| (0..to.len() as u32).collect());
+        // Parse errors before any connection.
+        let timeout = wait
+            .then(|| seconds(*timeout))
+            .transpose()
+            .map_err(anyhow::Error::msg)
+            .context("--timeout")?;
+        let group = match &a.connect {
+            Some(endpoint) => Group::connect_remote(endpoint, &a.instance, &axes),
+            None => Group::connect(&a.instance, &axes),
+        }
+        .map_err(failed)?;
+        return move_together(group, &axes, to, timeout);
+    }
     let mut axis = match &a.connect {
         Some(endpoint) => Axis::connect_remote(endpoint, &a.instance, a.axis),
         None => Axis::connect(&a.instance, a.axis),
@@ -293,6 +340,7 @@ pub fn axis(a: AxisArgs) -> Result<()> {
                 );
             }
         }
+        Verb::MoveTogether { .. } => unreachable!("handled before an axis is connected"),
         Verb::Jog { velocity, limits } => {
             axis.jog(velocity, limits.limits()).map_err(failed)?;
             println!("jogging at {velocity} rad/s");
@@ -347,6 +395,40 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             stream_rows(&mut axis, &rows, lead)?;
         }
     }
+    Ok(())
+}
+
+/// `axis move-together`: the group's parts, each answered on the tick the move left.
+/// `timeout`: wait that long for every axis to arrive (`None`: do not wait).
+fn move_together(
+    mut group: Group,
+    axes: &[u32],
+    targets: &[f64],
+    timeout: Option<Duration>,
+) -> Result<()> {
+    let mv = group.move_together(targets).map_err(failed)?;
+    for (axis, ack) in axes.iter().zip(&mv.acks) {
+        println!(
+            "axis {axis}: coordinated move to {:.6} rad taken (seq {}) at t = {:.4} s",
+            ack.request.target_rad, mv.seq, ack.t_s
+        );
+    }
+    let Some(timeout) = timeout else {
+        return Ok(());
+    };
+    let started = Instant::now();
+    let arrived = group.wait_arrived(&mv, timeout).map_err(failed)?;
+    for (axis, s) in axes.iter().zip(&arrived) {
+        println!(
+            "axis {axis}: target {:.6} rad reached: θ {:.6} rad, θ_d − θ {:.2e} rad, contour error peak {:.2e} rad",
+            s.target_rad, s.theta_rad, s.following_error_rad, s.contour_rad
+        );
+    }
+    println!(
+        "all {} axes reached their targets within {:.3} s",
+        axes.len(),
+        started.elapsed().as_secs_f64()
+    );
     Ok(())
 }
 

@@ -24,7 +24,8 @@ use std::time::{Duration, Instant};
 use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
 use stepdrive_runtime::port::{PortError, PortFactory, Publish, Subscribe};
 use stepdrive_shared::axis::{
-    AxisAck, AxisMode, AxisRequest, AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
+    request_flags, AxisAck, AxisMode, AxisRequest, AxisState, AxisStatus, AxisStreamPoint, Refusal,
+    RequestKind,
 };
 use stepdrive_shared::services::remote as keys;
 use stepdrive_shared::wire;
@@ -170,6 +171,8 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
     let mut last_status_at = Instant::now();
     let mut own_seq = u64::from(GATEWAY_CLIENT) << 32;
     let silent_limit = Duration::from_secs(5);
+    // Coordinated parts forwarded and not yet answered, with when each went.
+    let mut parts = Vec::new();
 
     while !stepdrive_runtime::poll::termination_requested() {
         let mut idle = true;
@@ -250,6 +253,17 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                 sum.commands += 1;
                 let mut r = request;
                 r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
+                if r.flags & request_flags::COORDINATED != 0 {
+                    // A coordinated part is answered once its partners, later queries,
+                    // have come: it must not hold them up.
+                    match local.commands.send(&r) {
+                        Ok(pending) => parts.push((query, pending, Instant::now())),
+                        Err(e) => {
+                            let _ = query.reply_err(e.to_string()).wait();
+                        }
+                    }
+                    continue;
+                }
                 match local.commands.request(&r, LOCAL_ANSWER) {
                     Ok(ack) => ack,
                     Err(e) => {
@@ -267,6 +281,32 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                 .encoding(encoding::<AxisAck>())
                 .wait()
                 .map_err(|e| zerr("command reply", &e))?;
+        }
+
+        let mut k = 0;
+        while k < parts.len() {
+            let (_, pending, sent) = &parts[k];
+            let reply = match pending.answer() {
+                Ok(Some(ack)) => Ok(ack),
+                Ok(None) if sent.elapsed() < LOCAL_ANSWER => {
+                    k += 1;
+                    continue;
+                }
+                Ok(None) => Err(pending.unanswered(LOCAL_ANSWER).to_string()),
+                Err(e) => Err(e.to_string()),
+            };
+            let (query, _, _) = parts.swap_remove(k);
+            idle = false;
+            match reply {
+                Ok(ack) => query
+                    .reply(query.key_expr().clone(), wire::bytes(&ack).to_vec())
+                    .encoding(encoding::<AxisAck>())
+                    .wait()
+                    .map_err(|e| zerr("command reply", &e))?,
+                Err(text) => {
+                    let _ = query.reply_err(text).wait();
+                }
+            }
         }
 
         while let Ok(Some(sample)) = points_in.try_recv() {
@@ -367,18 +407,13 @@ struct Local {
 fn axis_count(bus: &IpcBus, wait: Duration) -> usize {
     let deadline = Instant::now() + wait;
     loop {
-        let announced = bus.stack_scenario().ok().flatten();
-        if let Some(a) = announced {
-            let parsed = a
-                .text()
-                .and_then(|t| stepdrive_shared::Scenario::from_toml_str(t).ok());
-            return parsed.map_or_else(
-                || {
-                    tracing::warn!("the stack's announced scenario does not parse: axis 0 only");
-                    1
-                },
-                |s| s.axis_count(),
-            );
+        match bus.announced_scenario() {
+            Ok(Some(s)) => return s.axis_count(),
+            Ok(None) => {}
+            Err(e) => {
+                tracing::warn!("{e}: axis 0 only");
+                return 1;
+            }
         }
         if Instant::now() >= deadline || stepdrive_runtime::poll::termination_requested() {
             tracing::warn!("the stack announced no scenario within {wait:?}: axis 0 only");

@@ -28,10 +28,14 @@
 //! status topic (every tick, 2 kHz by default) and the stream topic. From another host,
 //! [`Axis::connect_remote`] talks to a `stepdrive gateway` over Zenoh with the same verbs
 //! (the status at the gateway's rate, 100 Hz by default; docs/remote.md). See the README's
-//! "Commanding the axis" and the CiA 402 table there.
+//! "Commanding the axis" and the CiA 402 table there. Several axes of a multi-axis stack
+//! move together, leaving and arriving on one tick, through a [`Group`].
 
 pub mod gateway;
+pub mod group;
 pub mod remote;
+
+pub use group::{Group, GroupMove};
 
 use std::time::{Duration, Instant};
 use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
@@ -41,7 +45,6 @@ pub use stepdrive_shared::axis::{
 };
 use stepdrive_shared::axis::{request_flags, AxisRequest, AxisStreamPoint};
 use stepdrive_shared::scenario::Mode;
-use stepdrive_shared::Scenario;
 
 /// What went wrong talking to an axis.
 #[derive(Debug, thiserror::Error)]
@@ -107,6 +110,9 @@ pub enum ClientError {
     /// What only the stack's own host can do (a command flood of the local service).
     #[error("{0} works on the stack's host only, not through a gateway")]
     LocalOnly(&'static str),
+    /// A group or a coordinated move that cannot be asked for (see [`Group`]).
+    #[error("{0}")]
+    BadGroup(String),
 }
 
 /// How long a request waits for its answer.
@@ -231,10 +237,15 @@ impl Link {
     }
 
     fn request(&mut self, r: &AxisRequest, timeout: Duration) -> Result<AxisAck, ClientError> {
-        match self {
-            Link::Local(l) => Ok(l.commands()?.request(r, timeout)?),
-            Link::Remote(l) => l.request(r, timeout),
-        }
+        self.send(r)?.wait(Instant::now() + timeout)
+    }
+
+    /// Sends `r` without waiting for its answer.
+    fn send(&mut self, r: &AxisRequest) -> Result<Pending, ClientError> {
+        Ok(match self {
+            Link::Local(l) => Pending::Local(l.commands()?.send(r)?),
+            Link::Remote(l) => Pending::Remote(l.send(r)?),
+        })
     }
 
     fn newest_status(&mut self) -> Result<Option<AxisStatus>, ClientError> {
@@ -262,6 +273,21 @@ impl Link {
                 Ok(())
             }
             Link::Remote(l) => l.publish_point(p),
+        }
+    }
+}
+
+/// A request sent and not yet answered.
+enum Pending {
+    Local(stepdrive_runtime::ipc::PendingAnswer),
+    Remote(remote::RemotePending),
+}
+
+impl Pending {
+    fn wait(self, deadline: Instant) -> Result<AxisAck, ClientError> {
+        match self {
+            Pending::Local(p) => Ok(p.wait(deadline)?),
+            Pending::Remote(p) => p.wait(deadline),
         }
     }
 }
@@ -313,10 +339,9 @@ impl Axis {
         // Each axis of a multi-axis stack has its own services; an axis the stack's
         // scenario does not have is refused at once (not after a wait for its server).
         let axes = bus
-            .stack_scenario()
+            .announced_scenario()
             .ok()
             .flatten()
-            .and_then(|b| b.text().and_then(|t| Scenario::from_toml_str(t).ok()))
             .map(|s| s.axis_count());
         if let Some(axes) = axes.filter(|&n| axis as usize >= n) {
             return Err(ClientError::UnknownAxis {

@@ -165,12 +165,9 @@ impl RemoteLink {
         &self.endpoint
     }
 
-    /// Sends `r` and waits up to `timeout` for the gateway's answer (the axis's ack).
-    pub(crate) fn request(
-        &mut self,
-        r: &AxisRequest,
-        timeout: Duration,
-    ) -> Result<AxisAck, ClientError> {
+    /// Sends `r` without waiting: the gateway's answer (the axis's ack) is the
+    /// [`RemotePending`]'s to wait for.
+    pub(crate) fn send(&mut self, r: &AxisRequest) -> Result<RemotePending, ClientError> {
         let replies: FifoChannelHandler<Reply> = self
             .querier
             .get()
@@ -178,25 +175,11 @@ impl RemoteLink {
             .encoding(encoding::<AxisRequest>())
             .wait()
             .map_err(|e| remote_error(&self.endpoint, "command", e))?;
-        let no_answer = || ClientError::Timeout {
-            what: format!(
-                "an answer from the gateway of instance `{}` at {}",
-                self.instance, self.endpoint
-            ),
-            timeout,
-        };
-        let reply = replies
-            .recv_timeout(timeout)
-            .map_err(|_| no_answer())?
-            .ok_or_else(no_answer)?;
-        match reply.into_result() {
-            Ok(sample) => decode::<AxisAck>(sample.payload())
-                .map_err(|e| remote_error(&self.endpoint, "the gateway's answer", e)),
-            Err(e) => {
-                let text = e.payload().try_to_string().unwrap_or_default().into_owned();
-                Err(remote_error(&self.endpoint, "the gateway refused", text))
-            }
-        }
+        Ok(RemotePending {
+            replies,
+            endpoint: self.endpoint.clone(),
+            instance: self.instance.clone(),
+        })
     }
 
     /// The newest status the gateway published since the last call, if any.
@@ -218,5 +201,39 @@ impl RemoteLink {
             .put(wire::bytes(p).to_vec())
             .wait()
             .map_err(|e| remote_error(&self.endpoint, "stream point", e))
+    }
+}
+
+/// A request sent to the gateway and not yet answered ([`RemoteLink::send`]).
+pub(crate) struct RemotePending {
+    replies: FifoChannelHandler<Reply>,
+    endpoint: String,
+    instance: String,
+}
+
+impl RemotePending {
+    /// Waits until `deadline` for the answer.
+    pub(crate) fn wait(self, deadline: std::time::Instant) -> Result<AxisAck, ClientError> {
+        let timeout = deadline.saturating_duration_since(std::time::Instant::now());
+        let no_answer = || ClientError::Timeout {
+            what: format!(
+                "an answer from the gateway of instance `{}` at {}",
+                self.instance, self.endpoint
+            ),
+            timeout,
+        };
+        let reply = self
+            .replies
+            .recv_timeout(timeout)
+            .map_err(|_| no_answer())?
+            .ok_or_else(no_answer)?;
+        match reply.into_result() {
+            Ok(sample) => decode::<AxisAck>(sample.payload())
+                .map_err(|e| remote_error(&self.endpoint, "the gateway's answer", e)),
+            Err(e) => {
+                let text = e.payload().try_to_string().unwrap_or_default().into_owned();
+                Err(remote_error(&self.endpoint, "the gateway refused", text))
+            }
+        }
     }
 }

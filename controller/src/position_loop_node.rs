@@ -8,6 +8,7 @@
 //! state) or from its own clock at the position rate, on the plant's deadline grid.
 
 use crate::program::Program;
+use stepdrive_control::axis::gather::{check_part, gather, missing, Part};
 use stepdrive_control::axis::group::{Axes, Coordinator, StopPolicy};
 use stepdrive_control::axis::{Axis, Measured};
 use stepdrive_control::position_loop::{measured, PositionLoop};
@@ -32,6 +33,9 @@ use stepdrive_shared::Scenario;
 const APPLIED_PER_TICK: usize = 8;
 /// A fault reset asks the device to reset at most this often, s.
 const RESET_EVERY_S: f64 = 0.1;
+/// How long a client's coordinated part waits for its partners, s (a client sends them
+/// back to back, within a millisecond).
+const PARTS_WAIT_S: f64 = 0.05;
 
 /// What the position loop reads and writes.
 pub struct PositionLoopPorts {
@@ -86,9 +90,18 @@ pub struct PositionLoopNode {
     /// When the device was last asked to reset, s.
     reset_asked_s: Option<f64>,
     ticks: u64,
+    /// The axes of its stack (a coordinated part names them).
+    axes: usize,
     /// A multi-axis stack: this axis's part of a coordinated move, due and not yet
     /// started (the lanes start it together at their next tick).
     coordinated: Option<AxisRequest>,
+    /// A client's coordinated part, waiting for its partners unanswered, and its answer
+    /// once the lanes have started (or refused) the move: sent after this lane's next
+    /// setpoint, the first to carry it out.
+    part: Option<(Part, AxisRequest)>,
+    part_answer: Option<AxisAck>,
+    /// Which of this tick's requests wait (their answers are not sent with the others').
+    deferred: [bool; COMMANDS_PER_CYCLE],
     /// A multi-axis stack's coordination, kept by axis 0's lane, and whether the lanes
     /// tick in this cycle.
     group: Option<Coordinator>,
@@ -132,7 +145,11 @@ impl PositionLoopNode {
             acks: [AxisAck::default(); COMMANDS_PER_CYCLE],
             reset_asked_s: None,
             ticks: 0,
+            axes: 1,
             coordinated: None,
+            part: None,
+            part_answer: None,
+            deferred: [false; COMMANDS_PER_CYCLE],
             group: None,
             group_ticks: false,
             contour_rad: f64::NAN,
@@ -141,6 +158,12 @@ impl PositionLoopNode {
                 GroupStop::Own => StopPolicy::Own,
             },
         })
+    }
+
+    /// One of a stack of `axes` (1 by default).
+    pub fn in_stack_of(mut self, axes: usize) -> Self {
+        self.axes = axes.max(1);
+        self
     }
 
     /// Whether `state` starts a tick: on the clock, any state the last tick did not use;
@@ -155,12 +178,6 @@ impl PositionLoopNode {
     /// Applies `request` to the axis at `state`, returning its answer.
     fn apply(&mut self, request: &AxisRequest, state: &DriveState) -> AxisAck {
         let m = measured(state);
-        let mut ack = AxisAck {
-            request: *request,
-            tick: self.ticks,
-            t_s: state.sample_time_s,
-            ..Default::default()
-        };
         let result = if request.axis != self.axis {
             Err((
                 Refusal::UnknownAxis,
@@ -175,6 +192,22 @@ impl PositionLoopNode {
                 .request(request, &m)
                 .map_err(|r| (r.refusal, r.text))
         };
+        self.answer_of(request, state.sample_time_s, result)
+    }
+
+    /// The answer to `request` at this tick (at time `t_s`): taken, or refused and why.
+    fn answer_of(
+        &mut self,
+        request: &AxisRequest,
+        t_s: f64,
+        result: Result<(), (Refusal, String)>,
+    ) -> AxisAck {
+        let mut ack = AxisAck {
+            request: *request,
+            tick: self.ticks,
+            t_s,
+            ..Default::default()
+        };
         if let Err((refusal, text)) = result {
             ack.refusal = refusal as u32;
             ack.set_text(&text);
@@ -187,6 +220,43 @@ impl PositionLoopNode {
         }
         ack.state = self.body.axis().state() as u32;
         ack
+    }
+
+    /// A client's coordinated part: checked, then kept to wait for its partners (`None`:
+    /// its answer comes when the lanes start the move), or answered now. A one-axis
+    /// stack's part of a move of its one axis is a plain move.
+    fn take_part(
+        &mut self,
+        request: &AxisRequest,
+        index: usize,
+        server: &mut AxisServer,
+        state: &DriveState,
+    ) -> Option<AxisAck> {
+        let t = state.sample_time_s;
+        let part = match check_part(request, self.axis, self.axes, t) {
+            Err(e) => return Some(self.answer_of(request, t, Err((e.refusal, e.text)))),
+            Ok(part) => part,
+        };
+        if self.axes == 1 {
+            let mut plain = *request;
+            plain.flags &= !(request_flags::COORDINATED | request_flags::GROUP_MASK);
+            let mut ack = self.apply(&plain, state);
+            ack.request = *request;
+            return Some(ack);
+        }
+        if let Some((waiting, _)) = self.part {
+            let text = format!(
+                "axis {}'s part of another coordinated move (client {}, seq {}) waits for its partners",
+                self.axis, waiting.client, waiting.seq
+            );
+            return Some(self.answer_of(request, t, Err((Refusal::Moving, text))));
+        }
+        if !server.defer(index) {
+            let text = "the command service cannot keep a part unanswered".to_string();
+            return Some(self.answer_of(request, t, Err((Refusal::WrongState, text))));
+        }
+        self.part = Some((part, *request));
+        None
     }
 
     /// One tick: the commands, the axis and (12), the setpoint, the answers, the status.
@@ -221,29 +291,30 @@ impl PositionLoopNode {
             // A point the axis refuses is counted in its status.
             let _ = self.body.axis().stream_point(p, &m);
         }
-        let n = match &mut ports.commands {
-            Some(server) => server.take(&mut self.requests)?,
-            None => 0,
-        };
-        for i in 0..n {
-            let request = self.requests[i];
-            self.acks[i] = if i < APPLIED_PER_TICK {
-                self.apply(&request, state)
-            } else {
-                let mut ack = AxisAck {
-                    request,
-                    refusal: Refusal::TooMany as u32,
-                    tick: self.ticks,
-                    t_s: state.sample_time_s,
-                    state: self.body.axis().state() as u32,
-                    ..Default::default()
+        let mut n = 0;
+        if let Some(server) = &mut ports.commands {
+            n = server.take(&mut self.requests)?;
+            for i in 0..n {
+                let request = self.requests[i];
+                self.deferred[i] = false;
+                self.acks[i] = if i >= APPLIED_PER_TICK {
+                    let text = format!(
+                        "more than {APPLIED_PER_TICK} commands in one tick ({} µs)",
+                        1_000_000 / self.rate_hz.max(1.0) as u64
+                    );
+                    self.answer_of(&request, state.sample_time_s, Err((Refusal::TooMany, text)))
+                } else if request.flags & request_flags::COORDINATED != 0 {
+                    match self.take_part(&request, i, server, state) {
+                        Some(ack) => ack,
+                        None => {
+                            self.deferred[i] = true;
+                            continue;
+                        }
+                    }
+                } else {
+                    self.apply(&request, state)
                 };
-                ack.set_text(&format!(
-                    "more than {APPLIED_PER_TICK} commands in one tick ({} µs)",
-                    1_000_000 / self.rate_hz.max(1.0) as u64
-                ));
-                ack
-            };
+            }
         }
         while let Some(p) = ports.stream.receive()? {
             let _ = self.body.axis().stream_point(&p, &m);
@@ -259,9 +330,20 @@ impl PositionLoopNode {
             if let Some(server) = &mut ports.commands {
                 server.answer(&self.acks[..n])?;
             }
-            for ack in &self.acks[..n] {
+            for (ack, _) in self.acks[..n]
+                .iter()
+                .zip(&self.deferred[..n])
+                .filter(|(_, deferred)| !**deferred)
+            {
                 ports.acks.publish(ack)?;
             }
+        }
+        if let Some(mut ack) = self.part_answer.take() {
+            ack.publish_time_ns = sp.publish_time_ns;
+            if let Some(server) = &mut ports.commands {
+                server.answer_deferred(&ack)?;
+            }
+            ports.acks.publish(&ack)?;
         }
         let mut status = self.body.status(state);
         status.axis = self.axis;
@@ -450,6 +532,7 @@ impl Together for PositionLoopNode {
             .group
             .take()
             .unwrap_or_else(|| Coordinator::new(1.0 / lanes[0].rate_hz, lanes[0].stop_policy));
+        start_client_parts(lanes, &mut group, &m[..n]);
         let mut targets = [(0usize, 0.0f64); MAX_LANES];
         let mut k = 0;
         for (i, lane) in lanes.iter().enumerate() {
@@ -472,6 +555,7 @@ impl Together for PositionLoopNode {
                 };
                 if result.is_ok() {
                     lane.contour_rad = 0.0;
+                    lane.body.axis().took_part(&request);
                 }
                 let mut ack = AxisAck {
                     request,
@@ -523,6 +607,63 @@ impl Together for PositionLoopNode {
         }
         lanes[0].group = Some(group);
         Ok(())
+    }
+}
+
+/// Clients' coordinated parts: a move whose parts are all in starts now (or is refused),
+/// a part that waited too long for its partners is refused; each lane answers its part
+/// after its next setpoint.
+fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m: &[Measured]) {
+    let mut parts = [None; MAX_LANES];
+    for (i, lane) in lanes.iter().enumerate().take(MAX_LANES) {
+        parts[i] = lane.part.map(|(p, _)| p);
+    }
+    let parts = &parts[..lanes.len().min(MAX_LANES)];
+    let g = gather(parts, m[0].t, PARTS_WAIT_S);
+    if g.start != 0 {
+        let mut targets = [(0usize, 0.0f64); MAX_LANES];
+        let mut k = 0;
+        for (i, lane) in lanes.iter().enumerate() {
+            if g.start & (1 << i) != 0 {
+                if let Some((_, r)) = lane.part {
+                    targets[k] = (i, r.target_rad);
+                    k += 1;
+                }
+            }
+        }
+        let result = group
+            .move_together(&mut LaneAxes(lanes), &targets[..k], m)
+            .map_err(|e| (e.refusal, e.text));
+        if let Err((_, text)) = &result {
+            tracing::warn!("a client's coordinated move refused: {text}");
+        }
+        for (i, lane) in lanes.iter_mut().enumerate() {
+            let in_move = g.start & (1 << i) != 0;
+            if result.is_ok() {
+                lane.contour_rad = if in_move { 0.0 } else { f64::NAN };
+            }
+            if let Some((_, r)) = lane.part.filter(|_| in_move) {
+                lane.part = None;
+                if result.is_ok() {
+                    lane.body.axis().took_part(&r);
+                }
+                lane.part_answer = Some(lane.answer_of(&r, m[i].t, result.clone()));
+            }
+        }
+    }
+    for (i, lane) in lanes.iter_mut().enumerate() {
+        if g.expired & (1 << i) == 0 {
+            continue;
+        }
+        if let Some((p, r)) = lane.part.take() {
+            let text = format!(
+                "axes {:?} sent no part of this coordinated move within {} ms",
+                missing(parts, &p),
+                PARTS_WAIT_S * 1e3
+            );
+            lane.part_answer =
+                Some(lane.answer_of(&r, m[i].t, Err((Refusal::GroupIncomplete, text))));
+        }
     }
 }
 

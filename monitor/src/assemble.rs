@@ -169,7 +169,11 @@ fn assemble_axes<A: Assemble, B: PortFactory>(
             a.node(n, p)
         }
         Role::PositionLoop => {
-            let (n, p) = lanes_of(setup, bus, position_loop)?;
+            let axes = setup.scenario.axis_count();
+            let (n, p) = lanes_of(setup, bus, |lane, bus, axis| {
+                let (node, ports) = position_loop(lane, bus, axis)?;
+                Ok((node.in_stack_of(axes), ports))
+            })?;
             a.node(n, p)
         }
         Role::Bridge => {

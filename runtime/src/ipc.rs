@@ -407,6 +407,7 @@ impl PortFactory for IpcBus {
         Ok(Some(Box::new(IpcCommandServer {
             server,
             held: Vec::with_capacity(COMMANDS_PER_CYCLE),
+            deferred: None,
             service,
             _factory: factory,
         })))
@@ -421,6 +422,17 @@ impl PortFactory for IpcBus {
             reset: self.topic::<ResetRequest>()?.1,
         }))
     }
+}
+
+/// A stack's announced scenario that cannot be read ([`IpcBus::announced_scenario`]).
+#[derive(Debug, thiserror::Error)]
+pub enum AnnouncedError {
+    #[error(transparent)]
+    Port(#[from] PortError),
+    #[error("the stack's announced scenario is not text")]
+    NotText,
+    #[error("the stack's announced scenario")]
+    Scenario(#[from] stepdrive_shared::scenario::ScenarioError),
 }
 
 /// Requests an axis's command server holds at most per cycle (more wait for the next).
@@ -438,7 +450,9 @@ type ActiveCommand = iceoryx2::active_request::ActiveRequest<Ipc, AxisRequest, (
 /// The axis command service's server side: requests taken are held until answered.
 pub struct IpcCommandServer {
     server: iceoryx2::port::server::Server<Ipc, AxisRequest, (), AxisAck, ()>,
-    held: Vec<ActiveCommand>,
+    /// The last take's requests; `None`: deferred.
+    held: Vec<Option<ActiveCommand>>,
+    deferred: Option<ActiveCommand>,
     service: String,
     _factory: CommandFactory,
 }
@@ -451,7 +465,7 @@ impl Serve<AxisRequest, AxisAck> for IpcCommandServer {
             match self.server.receive() {
                 Ok(Some(active)) => {
                     out[self.held.len()] = *active.payload();
-                    self.held.push(active);
+                    self.held.push(Some(active));
                 }
                 Ok(None) => break,
                 // A client that broke off mid-request, or one holding too many: its
@@ -472,12 +486,34 @@ impl Serve<AxisRequest, AxisAck> for IpcCommandServer {
 
     fn answer(&mut self, answers: &[AxisAck]) -> Result<(), PortError> {
         for (active, ack) in self.held.drain(..).zip(answers) {
-            // A client that is gone gets no answer; that is its business.
-            if let Err(e) = active.send_copy(*ack) {
-                tracing::debug!(service = %self.service, error = ?e, "command answer");
+            if let Some(active) = active {
+                send_answer(&self.service, active, ack);
             }
         }
         Ok(())
+    }
+
+    fn defer(&mut self, index: usize) -> bool {
+        if self.deferred.is_some() {
+            return false;
+        }
+        self.deferred = self.held.get_mut(index).and_then(Option::take);
+        self.deferred.is_some()
+    }
+
+    fn answer_deferred(&mut self, answer: &AxisAck) -> Result<bool, PortError> {
+        let Some(active) = self.deferred.take() else {
+            return Ok(false);
+        };
+        send_answer(&self.service, active, answer);
+        Ok(true)
+    }
+}
+
+fn send_answer(service: &str, active: ActiveCommand, ack: &AxisAck) {
+    // A client that is gone gets no answer; that is its business.
+    if let Err(e) = active.send_copy(*ack) {
+        tracing::debug!(service = %service, error = ?e, "command answer");
     }
 }
 
@@ -513,31 +549,73 @@ impl CommandClient {
         request: &AxisRequest,
         timeout: Duration,
     ) -> Result<AxisAck, PortError> {
-        let transfer = |operation: &'static str, source: BoxedError| PortError::Transfer {
-            service: self.service.clone(),
-            operation,
-            source,
-        };
+        self.send(request)?.wait(Instant::now() + timeout)
+    }
+
+    /// Sends `request` without waiting: its answer is the [`PendingAnswer`]'s to wait for
+    /// (the parts of a coordinated move are all sent before any is answered).
+    pub fn send(&mut self, request: &AxisRequest) -> Result<PendingAnswer, PortError> {
         let pending = self
             .client
             .send_copy(*request)
-            .map_err(|e| transfer("send", boxed(e)))?;
+            .map_err(|e| PortError::Transfer {
+                service: self.service.clone(),
+                operation: "send",
+                source: boxed(e),
+            })?;
         if let Some(bell) = &self.wake {
             bell.ring(None);
         }
-        let deadline = Instant::now() + timeout;
+        Ok(PendingAnswer {
+            pending,
+            kind: request.kind,
+            service: self.service.clone(),
+        })
+    }
+}
+
+/// A request sent and not yet answered ([`CommandClient::send`]).
+pub struct PendingAnswer {
+    pending: iceoryx2::pending_response::PendingResponse<Ipc, AxisRequest, (), AxisAck, ()>,
+    kind: u32,
+    service: String,
+}
+
+impl PendingAnswer {
+    /// The answer, if it has come.
+    pub fn answer(&self) -> Result<Option<AxisAck>, PortError> {
+        match self.pending.receive() {
+            Ok(answer) => Ok(answer.map(|a| *a.payload())),
+            Err(e) => Err(PortError::Transfer {
+                service: self.service.clone(),
+                operation: "receive",
+                source: boxed(e),
+            }),
+        }
+    }
+
+    /// Waits until `deadline` for the answer.
+    pub fn wait(self, deadline: Instant) -> Result<AxisAck, PortError> {
+        let started = Instant::now();
         loop {
-            match pending.receive() {
-                Ok(Some(answer)) => return Ok(*answer.payload()),
-                Ok(None) => {}
-                Err(e) => return Err(transfer("receive", boxed(e))),
+            if let Some(ack) = self.answer()? {
+                return Ok(ack);
             }
             if Instant::now() >= deadline || crate::poll::termination_requested() {
-                let kind = stepdrive_shared::axis::RequestKind::from_u32(request.kind)
-                    .map_or("a command", |k| k.name());
-                return Err(transfer("answer", Box::new(NoAnswer { kind, timeout })));
+                return Err(self.unanswered(deadline.saturating_duration_since(started)));
             }
             std::thread::sleep(Duration::from_micros(50));
+        }
+    }
+
+    /// The error of a request not answered within `timeout`.
+    pub fn unanswered(&self, timeout: Duration) -> PortError {
+        let kind = stepdrive_shared::axis::RequestKind::from_u32(self.kind)
+            .map_or("a command", |k| k.name());
+        PortError::Transfer {
+            service: self.service.clone(),
+            operation: "answer",
+            source: Box::new(NoAnswer { kind, timeout }),
         }
     }
 }
@@ -754,6 +832,16 @@ impl IpcBus {
             .create_with_attributes(&self.specifier().map_err(error)?)
             .map_err(|e| error(boxed(e)))?;
         Ok(ScenarioBoard { _board: board })
+    }
+
+    /// The scenario the stack on this instance announced, read: `Ok(None)` if it
+    /// announces none (yet).
+    pub fn announced_scenario(&self) -> Result<Option<Scenario>, AnnouncedError> {
+        let Some(announced) = self.stack_scenario()? else {
+            return Ok(None);
+        };
+        let text = announced.text().ok_or(AnnouncedError::NotText)?;
+        Ok(Some(Scenario::from_toml_str(text)?))
     }
 
     /// The scenario the stack on this instance announced, if its device announces one.

@@ -92,8 +92,15 @@ pub trait Serve<Req, Resp> {
     fn pending(&self) -> bool {
         true
     }
-    /// Answers the requests of the last [`Self::take`], in order.
+    /// Answers the requests of the last [`Self::take`], in order (a deferred one's answer
+    /// is skipped).
     fn answer(&mut self, answers: &[Resp]) -> Result<(), PortError>;
+    /// Keeps the `index`-th request of the last [`Self::take`] unanswered past it, to be
+    /// answered by [`Self::answer_deferred`] (an axis's part of a coordinated move waits
+    /// for its partners). One at a time: false, and nothing kept, while one is kept.
+    fn defer(&mut self, index: usize) -> bool;
+    /// Answers the request kept by [`Self::defer`]; false if none is kept.
+    fn answer_deferred(&mut self, answer: &Resp) -> Result<bool, PortError>;
 }
 
 /// Raises the "a state was published" event (hardware mode).

@@ -477,6 +477,22 @@ pub mod request_flags {
     /// Move (a multi-axis program's): one axis's part of a coordinated move, which every
     /// axis with such a step at the same time starts on one tick and ends on one tick.
     pub const COORDINATED: u32 = 1 << 6;
+    /// A client's coordinated part: bits 16-23 name every axis of its move (bit n: axis
+    /// n), this one among them. The parts wait for each other (each answered when the move
+    /// starts, or is refused, on one tick). A program's parts leave these bits 0: their
+    /// partners are the parts due at the same time.
+    pub const GROUP_SHIFT: u32 = 16;
+    pub const GROUP_MASK: u32 = 0xff << GROUP_SHIFT;
+
+    /// The axes of a coordinated part's move (bit n: axis n; 0: a program's part).
+    pub fn group(flags: u32) -> u32 {
+        (flags & GROUP_MASK) >> GROUP_SHIFT
+    }
+
+    /// `flags` with the coordinated bit and the group `axes` (bit per axis, 0 … 7).
+    pub fn with_group(flags: u32, axes: u32) -> u32 {
+        (flags & !GROUP_MASK) | COORDINATED | ((axes << GROUP_SHIFT) & GROUP_MASK)
+    }
 }
 
 /// Client → position loop, on the axis command service: one command, answered by an
@@ -531,10 +547,12 @@ pub enum Refusal {
     StreamOutOfOrder = 11,
     TooMany = 12,
     BufferFull = 13,
+    /// A coordinated part whose partners did not all come in time.
+    GroupIncomplete = 14,
 }
 
 impl Refusal {
-    pub const ALL: [Refusal; 14] = [
+    pub const ALL: [Refusal; 15] = [
         Refusal::None,
         Refusal::UnknownAxis,
         Refusal::UnknownCommand,
@@ -549,6 +567,7 @@ impl Refusal {
         Refusal::StreamOutOfOrder,
         Refusal::TooMany,
         Refusal::BufferFull,
+        Refusal::GroupIncomplete,
     ];
 
     pub fn from_u32(v: u32) -> Option<Self> {
@@ -571,6 +590,7 @@ impl Refusal {
             Refusal::StreamOutOfOrder => "stream time must increase",
             Refusal::TooMany => "too many commands in one tick",
             Refusal::BufferFull => "the stream's buffer is full",
+            Refusal::GroupIncomplete => "the coordinated move's other parts did not come",
         }
     }
 }

@@ -270,10 +270,18 @@ impl Coordinator {
         let k = run.count;
         let mut p = [0.0; MAX_AXES];
         let mut d = [0.0; MAX_AXES];
+        // On the wall clock the axes' newest states can be a sample apart (each axis's
+        // loops take theirs as it comes): each position is brought to the newest one's time
+        // at its measured speed, so that the contour is the rotors' at one instant.
+        let now = run.members[..k]
+            .iter()
+            .map(|&i| m[i].t)
+            .fold(f64::NEG_INFINITY, f64::max);
         for j in 0..k {
             let i = run.members[j];
             d[j] = run.to[j] - run.from[j];
-            p[j] = axes.axis_ref(i).position(&m[i]) - run.from[j];
+            let ahead = m[i].omega * (now - m[i].t);
+            p[j] = axes.axis_ref(i).position(&m[i]) + ahead - run.from[j];
         }
         let length2: f64 = d[..k].iter().map(|x| x * x).sum();
         let along: f64 = p[..k].iter().zip(&d[..k]).map(|(a, b)| a * b).sum();

@@ -12,6 +12,7 @@
 //! and gives (12) the setpoint it returns. No IPC, no clock, no allocation in a tick.
 
 pub mod coordinated;
+pub mod gather;
 pub mod group;
 pub mod otg;
 pub mod stream;
@@ -780,6 +781,13 @@ impl Axis {
 
     /// The group's move takes the axis towards `target` (checked by
     /// [`Self::coordinated_start`]) from the next tick on.
+    /// A coordinated move's part, started by the group: the last command in the status
+    /// (a client waits for its move by its sequence number).
+    pub fn took_part(&mut self, r: &AxisRequest) {
+        self.last_kind = r.kind;
+        self.last_seq = r.seq;
+    }
+
     fn enter_coordinated(&mut self, target: f64, m: &Measured) {
         self.take_over(m);
         self.queued = None;

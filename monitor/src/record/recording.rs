@@ -687,18 +687,20 @@ impl Recording {
 
     /// The current run's channels of `axis` (none before [`Self::begin`], or for an axis
     /// the scenario lacks).
+    /// Where the current run's channels start: they are the last, one per track.
+    fn run_start(&self) -> usize {
+        self.channels.len().saturating_sub(self.tracks.len())
+    }
+
     fn current(&self, axis: u32) -> Option<&Channels> {
-        let n = self.tracks.len();
-        self.channels
+        self.channels[self.run_start()..]
             .iter()
-            .skip(self.channels.len().saturating_sub(n))
             .find(|c| c.axis == axis)
     }
 
     fn current_mut(&mut self, axis: u32) -> Option<&mut Channels> {
-        let n = self.tracks.len();
-        let skip = self.channels.len().saturating_sub(n);
-        self.channels.iter_mut().skip(skip).find(|c| c.axis == axis)
+        let start = self.run_start();
+        self.channels[start..].iter_mut().find(|c| c.axis == axis)
     }
 
     fn track(&self, axis: u32) -> Option<&Track> {
@@ -900,8 +902,8 @@ impl Recording {
     /// The emulated drive's true rotor state over the current method's run (axis 0's).
     pub fn truth(&mut self, rows: &[TruthRow]) -> Result<(), RecordError> {
         let wrap = write_error(&self.path);
-        let skip = self.channels.len().saturating_sub(self.tracks.len());
-        let ch = self.channels.iter_mut().skip(skip).find(|c| c.axis == 0);
+        let start = self.run_start();
+        let ch = self.channels[start..].iter_mut().find(|c| c.axis == 0);
         let (Some(ch), Some(w)) = (ch, self.writer.as_mut()) else {
             return Ok(());
         };

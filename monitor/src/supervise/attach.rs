@@ -11,7 +11,7 @@ use crate::report::metrics::RunReport;
 use crate::report::outcome::{fault_names, Outcome, LATCHED};
 use crate::supervise::observer::Observer;
 use crate::supervise::supervisor::{Controls, Ending, Feeds, Supervisor, Until};
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::clock::monotonic_ns;
 use stepdrive_runtime::ipc::{IpcBus, Stamp};
@@ -129,15 +129,7 @@ pub fn attach_reader(
         }
         std::thread::sleep(Duration::from_millis(10));
     }
-    let announced = match bus.stack_scenario()? {
-        Some(a) => {
-            let text = a
-                .text()
-                .context("the stack's announced scenario is not text")?;
-            Some(Scenario::from_toml_str(text).context("the stack's announced scenario")?)
-        }
-        None => None,
-    };
+    let announced = bus.announced_scenario()?;
     let attached = |mut bus: IpcBus, scenario: Scenario| {
         let count = scenario.axis_count();
         let Some(own) = scenario.for_axis(axis as usize) else {

@@ -1,0 +1,179 @@
+//! Several axes of one stack moved as one machine: a coordinated move, in which every axis
+//! leaves on the same position-loop tick and arrives on the same tick (the slowest axis,
+//! within its move limits, sets the duration; the others are stretched within theirs).
+//!
+//! ```no_run
+//! use stepdrive_client::Group;
+//! use std::time::Duration;
+//!
+//! # fn main() -> Result<(), stepdrive_client::ClientError> {
+//! let mut xyz = Group::connect("stepdrive", &[0, 1, 2])?;
+//! xyz.enable()?;
+//! let mv = xyz.move_together(&[1.0, -6.0, 12.0])?;
+//! println!("all three left at t = {:.4} s", mv.acks[0].t_s);
+//! let arrived = xyz.wait_arrived(&mv, Duration::from_secs(10))?;
+//! println!("peak contour error {:.2e} rad", arrived[0].contour_rad);
+//! # Ok(())
+//! # }
+//! ```
+//!
+//! The move goes as one request per axis, each on its axis's command service and each
+//! naming every axis of the move. The stack's position loop keeps each part unanswered
+//! until all have come (50 ms at most), then starts the move and answers every part on one
+//! tick, or refuses every part with one reason (an axis not enabled, a target outside its
+//! soft limits, a coordinated move already running). Through a gateway too
+//! ([`Group::connect_remote`]): it forwards the parts without waiting for their answers.
+
+use crate::{Axis, ClientError, Move, REQUEST_TIMEOUT};
+use std::time::{Duration, Instant};
+use stepdrive_shared::axis::request_flags;
+pub use stepdrive_shared::axis::{AxisAck, AxisStatus, Refusal, RequestKind};
+
+/// The most axes a stack has, and a coordinated move moves.
+pub const MAX_AXES: usize = stepdrive_shared::scenario::MAX_AXES;
+
+/// Some axes of one served stack (see the module documentation).
+pub struct Group {
+    /// In the order given to [`Group::connect`].
+    axes: Vec<Axis>,
+    indices: Vec<u32>,
+}
+
+/// A coordinated move that was taken: every part's answer, in the group's order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GroupMove {
+    /// The sequence number every part carries (each axis's status `last_seq` while it is
+    /// its newest command).
+    pub seq: u64,
+    pub acks: Vec<AxisAck>,
+}
+
+impl Group {
+    /// Connects to axes `indices` (each once, 1 … 8 of them) of the stack on `instance`, as
+    /// [`Axis::connect`] does each.
+    pub fn connect(instance: &str, indices: &[u32]) -> Result<Self, ClientError> {
+        Self::of(indices, |i| Axis::connect(instance, i))
+    }
+
+    /// The same through the `stepdrive gateway` at `endpoint`, as
+    /// [`Axis::connect_remote`] does each axis.
+    pub fn connect_remote(
+        endpoint: &str,
+        instance: &str,
+        indices: &[u32],
+    ) -> Result<Self, ClientError> {
+        Self::of(indices, |i| Axis::connect_remote(endpoint, instance, i))
+    }
+
+    fn of(
+        indices: &[u32],
+        connect: impl Fn(u32) -> Result<Axis, ClientError>,
+    ) -> Result<Self, ClientError> {
+        if indices.is_empty() || indices.len() > MAX_AXES {
+            return Err(ClientError::BadGroup(format!(
+                "a group has 1 … {MAX_AXES} axes, not {}",
+                indices.len()
+            )));
+        }
+        for (k, i) in indices.iter().enumerate() {
+            if indices[..k].contains(i) {
+                return Err(ClientError::BadGroup(format!("axis {i} is named twice")));
+            }
+        }
+        let axes = indices
+            .iter()
+            .map(|&i| connect(i))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Self {
+            axes,
+            indices: indices.to_vec(),
+        })
+    }
+
+    /// The group's axes' indices in the stack, in the group's order.
+    pub fn indices(&self) -> &[u32] {
+        &self.indices
+    }
+
+    /// The group's `k`-th axis, to command on its own.
+    pub fn axis(&mut self, k: usize) -> Option<&mut Axis> {
+        self.axes.get_mut(k)
+    }
+
+    /// Enables every axis of the group, one after the other.
+    pub fn enable(&mut self) -> Result<(), ClientError> {
+        for axis in &mut self.axes {
+            axis.enable()?;
+        }
+        Ok(())
+    }
+
+    /// Moves every axis to its target (`targets[k]` for the group's `k`-th axis, rad,
+    /// absolute) at its move limits (`[axis] move_*`), all leaving on one tick and arriving
+    /// on one tick. Refused as a whole, with nothing applied to any axis, if any axis
+    /// cannot take its part.
+    pub fn move_together(&mut self, targets: &[f64]) -> Result<GroupMove, ClientError> {
+        if targets.len() != self.axes.len() {
+            return Err(ClientError::BadGroup(format!(
+                "a coordinated move of {} axes takes {} targets, not {}",
+                self.axes.len(),
+                self.axes.len(),
+                targets.len()
+            )));
+        }
+        let group = self.indices.iter().fold(0u32, |g, &i| g | (1 << i));
+        // One sequence number for every part: the stack matches them by it.
+        let seq = self.axes.iter().map(|a| a.next_seq).max().unwrap_or(0) + 1;
+        let mut sent = Vec::with_capacity(self.axes.len());
+        for (axis, &target) in self.axes.iter_mut().zip(targets) {
+            axis.next_seq = seq;
+            let mut r = axis.request(RequestKind::Move);
+            r.seq = seq;
+            r.target_rad = target;
+            r.flags = request_flags::with_group(r.flags, group);
+            r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
+            sent.push(axis.link.send(&r)?);
+        }
+        let deadline = Instant::now() + REQUEST_TIMEOUT;
+        let mut acks = Vec::with_capacity(sent.len());
+        for pending in sent {
+            acks.push(pending.wait(deadline)?);
+        }
+        if let Some((k, ack)) = acks.iter().enumerate().find(|(_, a)| !a.taken()) {
+            // The stack's reason names the axis when the axis is the cause.
+            let reason = if ack.text().starts_with("axis ") {
+                ack.text().to_string()
+            } else {
+                format!("axis {}'s part: {}", self.indices[k], ack.text())
+            };
+            return Err(ClientError::Refused {
+                kind: "coordinated move",
+                refusal: Refusal::from_u32(ack.refusal).unwrap_or(Refusal::UnknownCommand),
+                reason,
+            });
+        }
+        Ok(GroupMove { seq, acks })
+    }
+
+    /// Waits until every axis of `mv` has reached its target; fails if one faults or
+    /// another command takes one over. Each axis's status at its arrival, in the group's
+    /// order.
+    pub fn wait_arrived(
+        &mut self,
+        mv: &GroupMove,
+        timeout: Duration,
+    ) -> Result<Vec<AxisStatus>, ClientError> {
+        let deadline = Instant::now() + timeout;
+        self.axes
+            .iter_mut()
+            .zip(&mv.acks)
+            .map(|(axis, ack)| {
+                let part = Move {
+                    seq: mv.seq,
+                    ack: *ack,
+                };
+                axis.wait_target_reached(&part, deadline.saturating_duration_since(Instant::now()))
+            })
+            .collect()
+    }
+}

@@ -820,6 +820,45 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
         );
     }
 
+    // A stream of the three axes: one origin, so every axis's stack time less the stream
+    // time it plays is one figure; each ends where its path does.
+    let mut rows = String::from("t,x,y,z\n");
+    for k in 0..=1000 {
+        let t = k as f64 * 1e-3;
+        // From rest to rest: 0 … 1 … 0.
+        let s = 0.5 * (1.0 - (std::f64::consts::TAU * t).cos());
+        rows += &format!("{t},{},{},{}\n", 0.5 + 0.2 * s, -0.5 - 0.3 * s, 0.1 * s);
+    }
+    let file = dir.file("xyz.csv", &rows);
+    let streamed = stepdrive(&[
+        "axis",
+        "--instance",
+        &inst,
+        "stream-together",
+        file.to_str().unwrap(),
+        "--priority",
+        "0",
+    ]);
+    let out = text(&streamed);
+    assert!(streamed.status.success(), "{out}");
+    let clocks: Vec<&str> = out
+        .lines()
+        .filter_map(|l| l.split("stream time played ").nth(1))
+        .collect();
+    assert_eq!(clocks.len(), 3, "{out}");
+    assert!(
+        clocks.iter().all(|c| *c == clocks[0]),
+        "the axes play different stream times: {out}"
+    );
+    std::thread::sleep(Duration::from_millis(300));
+    for (n, end) in [("0", 0.5), ("1", -0.5), ("2", 0.0)] {
+        let theta = theta_of(n);
+        assert!(
+            (theta - end).abs() < 1e-3,
+            "axis {n} ended at {theta} rad, not {end}"
+        );
+    }
+
     signal(serve.id(), libc::SIGINT);
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
     assert!(status.success(), "{}", stderr_of(&mut serve));

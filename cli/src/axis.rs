@@ -11,7 +11,7 @@ use stepdrive_client::{
     Axis, AxisMode, AxisState, AxisStatus, ClientError, Group, Limits, RequestKind,
 };
 use stepdrive_monitor::report::outcome::Outcome;
-use stepdrive_shared::axis::{parse_stream, request_flags, status_bits};
+use stepdrive_shared::axis::{parse_stream, parse_stream_of_axes, request_flags, status_bits};
 use stepdrive_shared::services::DEFAULT_INSTANCE;
 
 #[derive(Args, Debug)]
@@ -145,6 +145,23 @@ enum Verb {
               value_parser = clap::value_parser!(u8).range(0..=99))]
         priority: u8,
     },
+    /// Cyclic synchronous position on several axes of a multi-axis stack: stream a CSV file
+    /// of `t, θ_0, θ_1, …` rows (one position per axis of --axes), every axis started on
+    /// one tick and played from one origin, so that one stream time is one instant on every
+    /// axis. Refused as a whole if any axis cannot stream. (`--axis` is not used.)
+    StreamTogether {
+        file: PathBuf,
+        /// The axes, in the order of the file's θ columns (default: 0, 1, … one per column).
+        #[arg(long, value_delimiter = ',')]
+        axes: Option<Vec<u32>>,
+        /// How far behind its points every axis plays the stream, s (default: each axis's).
+        #[arg(long)]
+        lead: Option<f64>,
+        /// SCHED_FIFO priority of this client, 0 for ordinary (as `stream`'s).
+        #[arg(long, value_name = "P", default_value_t = stepdrive_client::STREAM_PRIORITY,
+              value_parser = clap::value_parser!(u8).range(0..=99))]
+        priority: u8,
+    },
     /// Flood the axis with commands, never waiting for answers (a measurement of what a
     /// runaway client costs the stack): status requests, or with --move relative moves of
     /// ±1 µrad (the axis enabled). Prints what became of them; compare the loops' deadline
@@ -267,6 +284,29 @@ pub fn axis(a: AxisArgs) -> Result<()> {
         .map_err(failed)?;
         return move_together(group, &axes, to, timeout);
     }
+    if let Verb::StreamTogether {
+        file,
+        axes,
+        lead,
+        priority,
+    } = &a.verb
+    {
+        let text = std::fs::read_to_string(file)
+            .with_context(|| format!("cannot read the stream file {}", file.display()))?;
+        let axes = match axes {
+            Some(a) => a.clone(),
+            None => (0..theta_columns(&text) as u32).collect(),
+        };
+        let rows = parse_stream_of_axes(&text, axes.len())
+            .with_context(|| format!("{}", file.display()))?;
+        stepdrive_client::realtime_priority(*priority).map_err(failed)?;
+        let group = match &a.connect {
+            Some(endpoint) => Group::connect_remote(endpoint, &a.instance, &axes),
+            None => Group::connect(&a.instance, &axes),
+        }
+        .map_err(failed)?;
+        return stream_together(group, &rows, *lead);
+    }
     let mut axis = match &a.connect {
         Some(endpoint) => Axis::connect_remote(endpoint, &a.instance, a.axis),
         None => Axis::connect(&a.instance, a.axis),
@@ -340,7 +380,9 @@ pub fn axis(a: AxisArgs) -> Result<()> {
                 );
             }
         }
-        Verb::MoveTogether { .. } => unreachable!("handled before an axis is connected"),
+        Verb::MoveTogether { .. } | Verb::StreamTogether { .. } => {
+            unreachable!("handled before an axis is connected")
+        }
         Verb::Jog { velocity, limits } => {
             axis.jog(velocity, limits.limits()).map_err(failed)?;
             println!("jogging at {velocity} rad/s");
@@ -467,11 +509,57 @@ fn stream_rows(
             .map_err(failed)?;
     }
     let sent = stream.sent();
+    stream.played_out().map_err(failed)?;
     stream.end().map_err(failed)?;
     println!(
         "{sent} points streamed in {:.3} s",
         started.elapsed().as_secs_f64()
     );
+    Ok(())
+}
+
+/// The θ columns of a stream file of several axes: its first row of numbers' fields less
+/// the time (0 if it has none; the parser then says what is wrong).
+fn theta_columns(text: &str) -> usize {
+    text.lines()
+        .map(|l| l.split('#').next().unwrap_or("").trim())
+        .filter(|l| !l.is_empty())
+        .find(|l| l.split(',').all(|f| f.trim().parse::<f64>().is_ok()))
+        .map_or(0, |l| l.split(',').count().saturating_sub(1))
+}
+
+/// `axis stream-together`: every row's positions, paced as one stream; then each axis's
+/// stream clock (its time less the stream time it plays: one origin, one figure).
+fn stream_together(mut group: Group, rows: &[Vec<f64>], lead: Option<f64>) -> Result<()> {
+    let indices = group.indices().to_vec();
+    let mut stream = group.stream(lead).map_err(failed)?;
+    let started = Instant::now();
+    for row in rows {
+        stream.pace(row[0]).map_err(failed)?;
+        if stepdrive_runtime::poll::termination_requested() {
+            anyhow::bail!("interrupted: the stream stopped; the axes quick-stop");
+        }
+        stream.push(row[0], &row[1..]).map_err(failed)?;
+    }
+    stream.played_out().map_err(failed)?;
+    let offsets: Vec<Option<f64>> = stream
+        .last_statuses()
+        .iter()
+        .map(|s| s.map(|s| s.t_s - s.stream_time_s))
+        .collect();
+    stream.end().map_err(failed)?;
+    println!(
+        "{} points on {} axes streamed in {:.3} s",
+        rows.len(),
+        indices.len(),
+        started.elapsed().as_secs_f64()
+    );
+    for (axis, offset) in indices.iter().zip(offsets) {
+        match offset {
+            Some(o) => println!("axis {axis}: stack time − stream time played {o:.6} s"),
+            None => println!("axis {axis}: no status read while streaming"),
+        }
+    }
     Ok(())
 }
 

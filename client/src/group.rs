@@ -1,6 +1,8 @@
 //! Several axes of one stack moved as one machine: a coordinated move, in which every axis
 //! leaves on the same position-loop tick and arrives on the same tick (the slowest axis,
-//! within its move limits, sets the duration; the others are stretched within theirs).
+//! within its move limits, sets the duration; the others are stretched within theirs), and
+//! a stream of several axes, in which one stream time is one instant on every axis
+//! ([`Group::stream`]).
 //!
 //! ```no_run
 //! use stepdrive_client::Group;
@@ -24,9 +26,9 @@
 //! soft limits, a coordinated move already running). Through a gateway too
 //! ([`Group::connect_remote`]): it forwards the parts without waiting for their answers.
 
-use crate::{Axis, ClientError, Move, REQUEST_TIMEOUT};
+use crate::{Axis, ClientError, Move, Stream, REQUEST_TIMEOUT};
 use std::time::{Duration, Instant};
-use stepdrive_shared::axis::request_flags;
+use stepdrive_shared::axis::{request_flags, AxisRequest};
 pub use stepdrive_shared::axis::{AxisAck, AxisStatus, Refusal, RequestKind};
 
 /// The most axes a stack has, and a coordinated move moves.
@@ -121,15 +123,64 @@ impl Group {
                 targets.len()
             )));
         }
+        let (seq, acks) = self.send_parts("coordinated move", |r, k| {
+            r.kind = RequestKind::Move as u32;
+            r.target_rad = targets[k];
+        })?;
+        Ok(GroupMove { seq, acks })
+    }
+
+    /// Starts a stream on every axis of the group, all on one tick and all played from one
+    /// origin, so that one stream time is one instant on every axis: each axis plays stream
+    /// time `t` at the same tick, `lead` s (default: each axis's `[axis] stream_lead_s`, or
+    /// through a gateway [`crate::remote::REMOTE_STREAM_LEAD_S`]) after the tick by which
+    /// every axis had its first point. Refused as a whole if any axis cannot stream (not
+    /// enabled, a lead out of range).
+    pub fn stream(&mut self, lead: Option<f64>) -> Result<GroupStream<'_>, ClientError> {
+        for axis in &mut self.axes {
+            axis.link.open_stream()?;
+        }
+        let remote = self.axes.iter().any(|a| a.endpoint().is_some());
+        let lead = lead.or(remote.then_some(crate::remote::REMOTE_STREAM_LEAD_S));
+        let (seq, acks) = self.send_parts("stream of several axes", |r, _| {
+            r.kind = RequestKind::StreamStart as u32;
+            if let Some(l) = lead {
+                r.lead_s = l;
+                r.flags |= request_flags::HAS_LEAD;
+            }
+        })?;
+        let streams = self
+            .axes
+            .iter_mut()
+            .zip(&acks)
+            .map(|(axis, ack)| Stream {
+                axis,
+                id: seq,
+                start_tick: ack.tick,
+                next: 0,
+                last_t: None,
+                seen: None,
+            })
+            .collect();
+        Ok(GroupStream { streams })
+    }
+
+    /// Sends one part to every axis of the group (`part` fills axis `k`'s request), all
+    /// with one sequence number, and waits for every answer; any part refused is an error.
+    fn send_parts(
+        &mut self,
+        what: &'static str,
+        part: impl Fn(&mut AxisRequest, usize),
+    ) -> Result<(u64, Vec<AxisAck>), ClientError> {
         let group = self.indices.iter().fold(0u32, |g, &i| g | (1 << i));
         // One sequence number for every part: the stack matches them by it.
         let seq = self.axes.iter().map(|a| a.next_seq).max().unwrap_or(0) + 1;
         let mut sent = Vec::with_capacity(self.axes.len());
-        for (axis, &target) in self.axes.iter_mut().zip(targets) {
+        for (k, axis) in self.axes.iter_mut().enumerate() {
             axis.next_seq = seq;
             let mut r = axis.request(RequestKind::Move);
             r.seq = seq;
-            r.target_rad = target;
+            part(&mut r, k);
             r.flags = request_flags::with_group(r.flags, group);
             r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
             sent.push(axis.link.send(&r)?);
@@ -147,12 +198,12 @@ impl Group {
                 format!("axis {}'s part: {}", self.indices[k], ack.text())
             };
             return Err(ClientError::Refused {
-                kind: "coordinated move",
+                kind: what,
                 refusal: Refusal::from_u32(ack.refusal).unwrap_or(Refusal::UnknownCommand),
                 reason,
             });
         }
-        Ok(GroupMove { seq, acks })
+        Ok((seq, acks))
     }
 
     /// Waits until every axis of `mv` has reached its target; fails if one faults or
@@ -175,5 +226,69 @@ impl Group {
                 axis.wait_target_reached(&part, deadline.saturating_duration_since(Instant::now()))
             })
             .collect()
+    }
+}
+
+/// A stream of several axes in progress ([`Group::stream`]): one stream time, a position
+/// for each axis.
+pub struct GroupStream<'a> {
+    streams: Vec<Stream<'a>>,
+}
+
+impl GroupStream<'_> {
+    /// Sends the points at stream time `t` s: `thetas[k]` rad for the group's `k`-th axis.
+    /// Time must increase and every value be finite: otherwise nothing is sent.
+    pub fn push(&mut self, t: f64, thetas: &[f64]) -> Result<(), ClientError> {
+        if thetas.len() != self.streams.len() {
+            return Err(ClientError::BadGroup(format!(
+                "a stream of {} axes takes {} positions a point, not {}",
+                self.streams.len(),
+                self.streams.len(),
+                thetas.len()
+            )));
+        }
+        if !thetas.iter().all(|v| v.is_finite()) {
+            return Err(ClientError::BadPoint {
+                t,
+                why: "not finite",
+            });
+        }
+        for (stream, &theta) in self.streams.iter_mut().zip(thetas) {
+            stream.push(t, theta, None, None)?;
+        }
+        Ok(())
+    }
+
+    /// Waits until every axis is ready for the point at stream time `t` ([`Stream::pace`]).
+    pub fn pace(&mut self, t: f64) -> Result<(), ClientError> {
+        for stream in &mut self.streams {
+            stream.pace(t)?;
+        }
+        Ok(())
+    }
+
+    /// [`Self::pace`], then [`Self::push`].
+    pub fn push_paced(&mut self, t: f64, thetas: &[f64]) -> Result<(), ClientError> {
+        self.pace(t)?;
+        self.push(t, thetas)
+    }
+
+    /// Each axis's newest status read while pacing, in the group's order.
+    pub fn last_statuses(&self) -> Vec<Option<&AxisStatus>> {
+        self.streams.iter().map(|s| s.last_status()).collect()
+    }
+
+    /// Waits until every axis has played every point sent ([`Stream::played_out`]).
+    pub fn played_out(&mut self) -> Result<(), ClientError> {
+        for stream in &mut self.streams {
+            stream.played_out()?;
+        }
+        Ok(())
+    }
+
+    /// Ends every axis's stream at once: each decelerates to rest and holds (call
+    /// [`Self::played_out`] first to have the whole path played).
+    pub fn end(self) -> Result<Vec<AxisAck>, ClientError> {
+        self.streams.into_iter().map(|s| s.end()).collect()
     }
 }

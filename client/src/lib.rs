@@ -35,7 +35,7 @@ pub mod gateway;
 pub mod group;
 pub mod remote;
 
-pub use group::{Group, GroupMove};
+pub use group::{Group, GroupMove, GroupStream};
 
 use std::time::{Duration, Instant};
 use stepdrive_runtime::ipc::{CommandClient, IpcBus, IpcPublisher, IpcSubscriber};
@@ -698,6 +698,26 @@ impl Stream<'_> {
         if self.next == 0 {
             return Ok(());
         }
+        self.wait_until(t, |s| t <= s.stream_time_s + s.stream_lead_s)
+    }
+
+    /// Waits until the axis has played every point sent (its stream time past the last
+    /// point's): a stream ended before that is cut a lead short of its end.
+    pub fn played_out(&mut self) -> Result<(), ClientError> {
+        let Some(last) = self.last_t else {
+            return Ok(());
+        };
+        self.wait_until(last, |s| s.stream_time_s >= last)
+    }
+
+    /// Waits until the stream's newest status is `ready`: fails if the axis faults or
+    /// leaves the stream, or its stream time stands still for the client's timeout (`t`:
+    /// the stream time waited for, for the message).
+    fn wait_until(
+        &mut self,
+        t: f64,
+        ready: impl Fn(&AxisStatus) -> bool,
+    ) -> Result<(), ClientError> {
         let mut moved = (f64::NAN, Instant::now());
         loop {
             // Statuses of ticks before the stream's start say nothing of it.
@@ -719,7 +739,7 @@ impl Stream<'_> {
                         mode: AxisMode::from_u32(s.mode).map_or("?", |m| m.name()),
                     });
                 }
-                if t <= s.stream_time_s + s.stream_lead_s {
+                if ready(&s) {
                     return Ok(());
                 }
                 if s.stream_time_s.is_finite() && s.stream_time_s != moved.0 {

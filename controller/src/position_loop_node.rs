@@ -20,7 +20,7 @@ use stepdrive_runtime::port::{AxisServer, PortError, PortFactory, Presence, Publ
 use stepdrive_runtime::RunError;
 use stepdrive_shared::axis::request_flags;
 use stepdrive_shared::axis::{
-    AxisAck, AxisRequest, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
+    AxisAck, AxisRequest, AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
 };
 use stepdrive_shared::messages::{state_flags, DriveState, ResetRequest, TorqueSetpoint};
 use stepdrive_shared::scenario::{GroupStop, Mode};
@@ -92,6 +92,8 @@ pub struct PositionLoopNode {
     ticks: u64,
     /// The axes of its stack (a coordinated part names them).
     axes: usize,
+    /// Axis 0's lane: the axes of a stream of several axes whose origin is not yet set.
+    stream_group: u32,
     /// A multi-axis stack: this axis's part of a coordinated move, due and not yet
     /// started (the lanes start it together at their next tick).
     coordinated: Option<AxisRequest>,
@@ -146,6 +148,7 @@ impl PositionLoopNode {
             reset_asked_s: None,
             ticks: 0,
             axes: 1,
+            stream_group: 0,
             coordinated: None,
             part: None,
             part_answer: None,
@@ -533,6 +536,7 @@ impl Together for PositionLoopNode {
             .take()
             .unwrap_or_else(|| Coordinator::new(1.0 / lanes[0].rate_hz, lanes[0].stop_policy));
         start_client_parts(lanes, &mut group, &m[..n]);
+        align_stream_origins(lanes, &m[..n]);
         let mut targets = [(0usize, 0.0f64); MAX_LANES];
         let mut k = 0;
         for (i, lane) in lanes.iter().enumerate() {
@@ -620,7 +624,28 @@ fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m
     }
     let parts = &parts[..lanes.len().min(MAX_LANES)];
     let g = gather(parts, m[0].t, PARTS_WAIT_S);
-    if g.start != 0 {
+    let streams = parts
+        .iter()
+        .flatten()
+        .any(|p| g.start & p.group != 0 && p.kind == RequestKind::StreamStart as u32);
+    // Every part is answered with the cycle's time: on the wall clock the lanes' newest
+    // samples can be one apart, and the parts started in one cycle all the same.
+    let t = (0..parts.len())
+        .filter(|i| g.start & (1 << i) != 0)
+        .map(|i| m[i].t)
+        .fold(f64::NEG_INFINITY, f64::max);
+    if g.start != 0 && streams {
+        let result = start_streams(lanes, g.start, m);
+        if let Err((_, text)) = &result {
+            tracing::warn!("a client's stream of several axes refused: {text}");
+        }
+        for (i, lane) in lanes.iter_mut().enumerate() {
+            if let Some((_, r)) = lane.part.filter(|_| g.start & (1 << i) != 0) {
+                lane.part = None;
+                lane.part_answer = Some(lane.answer_of(&r, t, result.clone()));
+            }
+        }
+    } else if g.start != 0 {
         let mut targets = [(0usize, 0.0f64); MAX_LANES];
         let mut k = 0;
         for (i, lane) in lanes.iter().enumerate() {
@@ -647,7 +672,7 @@ fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m
                 if result.is_ok() {
                     lane.body.axis().took_part(&r);
                 }
-                lane.part_answer = Some(lane.answer_of(&r, m[i].t, result.clone()));
+                lane.part_answer = Some(lane.answer_of(&r, t, result.clone()));
             }
         }
     }
@@ -665,6 +690,82 @@ fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m
                 Some(lane.answer_of(&r, m[i].t, Err((Refusal::GroupIncomplete, text))));
         }
     }
+}
+
+/// A client's stream of several axes: every axis of `axes` starts its stream on this tick,
+/// or none does (an axis not enabled, a lead out of range).
+fn start_streams(
+    lanes: &mut [PositionLoopNode],
+    axes: u32,
+    m: &[Measured],
+) -> Result<(), (Refusal, String)> {
+    let members = || (0..lanes.len()).filter(move |i| axes & (1 << i) != 0);
+    for i in members() {
+        let lane = &lanes[i];
+        if lane.body.axis_ref().state() != AxisState::OperationEnabled {
+            return Err((
+                Refusal::NotEnabled,
+                format!(
+                    "axis {i}: the axis is not in Operation enabled (a stream of several axes \
+                     starts on every one of them or none)"
+                ),
+            ));
+        }
+        if let Some((_, r)) = lane.part {
+            let given = r.flags & request_flags::HAS_LEAD != 0;
+            if given && !(r.lead_s.is_finite() && (0.0..=10.0).contains(&r.lead_s)) {
+                return Err((
+                    Refusal::NotFinite,
+                    format!("axis {i}: lead {} s must be within 0 … 10 s", r.lead_s),
+                ));
+            }
+        }
+    }
+    for i in members() {
+        let lane = &mut lanes[i];
+        if let Some((_, r)) = lane.part {
+            lane.body
+                .axis()
+                .request(&r, &m[i])
+                .map_err(|e| (e.refusal, format!("axis {i}: {}", e.text)))?;
+            lane.body.axis().stream_in_group();
+        }
+    }
+    lanes[0].stream_group = axes;
+    Ok(())
+}
+
+/// A stream of several axes plays from one origin: once every axis of it has its first
+/// point, each plays stream time `first` (the earliest of their first points) a lead after
+/// this tick, so that one stream time is one instant on every axis. An axis that left the
+/// stream before releases the others to their own first points.
+fn align_stream_origins(lanes: &mut [PositionLoopNode], m: &[Measured]) {
+    let axes = lanes[0].stream_group;
+    if axes == 0 {
+        return;
+    }
+    let members = || (0..lanes.len()).filter(move |i| axes & (1 << i) != 0);
+    let left = members().any(|i| !lanes[i].body.axis_ref().stream_awaits_origin());
+    let mut first = f64::INFINITY;
+    for i in members() {
+        match lanes[i].body.axis_ref().stream_first_point() {
+            Some(t) => first = first.min(t),
+            None if !left => return,
+            None => {}
+        }
+    }
+    for i in members() {
+        let axis = lanes[i].body.axis();
+        match axis.stream_first_point() {
+            Some(own) if left => axis.start_stream_at(m[i].t, own),
+            Some(_) => axis.start_stream_at(m[i].t, first),
+            None => axis.stream_alone(),
+        }
+    }
+    if left {
+        tracing::warn!("an axis left the stream of axes {axes:#b} before it began: the others play from their own first points");
+    }
+    lanes[0].stream_group = 0;
 }
 
 /// The most lanes a position loop serves (`stepdrive_shared::scenario::MAX_AXES`).

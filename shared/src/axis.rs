@@ -873,15 +873,42 @@ pub enum StreamFileError {
 /// skipped, and a first line that is not numbers taken as a header. Time must increase and
 /// every value be finite: a file that breaks that is refused whole, naming the line.
 pub fn parse_stream(text: &str) -> Result<Vec<StreamRow>, StreamFileError> {
-    let mut rows: Vec<StreamRow> = Vec::new();
+    let rows = numeric_rows(text, 2..=4, "a row is t, θ[, ω[, τ_ff]]")?;
+    Ok(rows
+        .iter()
+        .map(|values| StreamRow {
+            t_s: values[0],
+            theta_rad: values[1],
+            omega_rad_s: values.get(2).copied(),
+            torque_ff_nm: values.get(3).copied(),
+        })
+        .collect())
+}
+
+/// Parses a stream file of several axes: CSV rows of `t, θ_0, θ_1, …`, one position per
+/// axis (rad), under the rules of [`parse_stream`]. Each row: its time, then its positions.
+pub fn parse_stream_of_axes(text: &str, axes: usize) -> Result<Vec<Vec<f64>>, StreamFileError> {
+    let shape = format!("a row is t and one θ for each of the {axes} axes");
+    numeric_rows(text, axes + 1..=axes + 1, &shape)
+}
+
+/// CSV rows of numbers, `fields` of them each, the first a time that increases.
+fn numeric_rows(
+    text: &str,
+    fields: std::ops::RangeInclusive<usize>,
+    shape: &str,
+) -> Result<Vec<Vec<f64>>, StreamFileError> {
+    let mut rows: Vec<Vec<f64>> = Vec::new();
     for (i, raw) in text.lines().enumerate() {
         let line = i + 1;
         let content = raw.split('#').next().unwrap_or("").trim();
         if content.is_empty() {
             continue;
         }
-        let fields: Vec<&str> = content.split(',').map(str::trim).collect();
-        let values: Result<Vec<f64>, _> = fields.iter().map(|f| f.parse::<f64>()).collect();
+        let values: Result<Vec<f64>, _> = content
+            .split(',')
+            .map(|f| f.trim().parse::<f64>())
+            .collect();
         let values = match values {
             Ok(v) => v,
             Err(_) if rows.is_empty() && line == 1 => continue,
@@ -892,10 +919,10 @@ pub fn parse_stream(text: &str) -> Result<Vec<StreamRow>, StreamFileError> {
                 })
             }
         };
-        if !(2..=4).contains(&values.len()) {
+        if !fields.contains(&values.len()) {
             return Err(StreamFileError::Line {
                 line,
-                message: format!("{} fields; a row is t, θ[, ω[, τ_ff]]", values.len()),
+                message: format!("{} fields; {shape}", values.len()),
             });
         }
         if let Some(bad) = values.iter().find(|v| !v.is_finite()) {
@@ -904,19 +931,13 @@ pub fn parse_stream(text: &str) -> Result<Vec<StreamRow>, StreamFileError> {
                 message: format!("{bad} is not finite"),
             });
         }
-        let row = StreamRow {
-            t_s: values[0],
-            theta_rad: values[1],
-            omega_rad_s: values.get(2).copied(),
-            torque_ff_nm: values.get(3).copied(),
-        };
-        if let Some(last) = rows.last().filter(|l| row.t_s <= l.t_s) {
+        if let Some(last) = rows.last().filter(|l| values[0] <= l[0]) {
             return Err(StreamFileError::Line {
                 line,
-                message: format!("time must increase: {} s after {} s", row.t_s, last.t_s),
+                message: format!("time must increase: {} s after {} s", values[0], last[0]),
             });
         }
-        rows.push(row);
+        rows.push(values);
     }
     if rows.is_empty() {
         return Err(StreamFileError::Empty);
@@ -971,6 +992,21 @@ mod tests {
         let e = parse_stream("0,0\n0.001,NaN\n").expect_err("not finite");
         assert!(e.to_string().contains("line 2"), "{e}");
         assert_eq!(parse_stream("# nothing\n"), Err(StreamFileError::Empty));
+    }
+
+    #[test]
+    fn a_stream_of_several_axes_has_one_position_per_axis() {
+        let rows =
+            parse_stream_of_axes("t,x,y,z\n0, 0, 1, 2\n0.001, 0.1, 1.1, 2.1\n", 3).expect("parses");
+        assert_eq!(
+            rows,
+            vec![vec![0.0, 0.0, 1.0, 2.0], vec![0.001, 0.1, 1.1, 2.1]]
+        );
+        let e = parse_stream_of_axes("0, 0, 1\n", 3).expect_err("a column short");
+        assert!(
+            e.to_string().contains("line 1") && e.to_string().contains("3 axes"),
+            "{e}"
+        );
     }
 
     #[test]

@@ -1,5 +1,7 @@
 //! A client's coordinated move arrives in parts: one request on each axis's command
-//! service, each naming every axis of the move ([`request_flags::group`]). The parts come
+//! service, each naming every axis of the move ([`request_flags::group`]). So does a
+//! multi-axis stream's start: its axes start on one tick and play their points from one
+//! origin, so that one stream time is one instant on every axis. The parts come
 //! on different ticks (a client sends them one after the other), so each waits, unanswered,
 //! until its partners are in; then the move starts on one tick and every part is answered
 //! ([`super::group::Coordinator::move_together`]). A part whose partners do not all come
@@ -15,6 +17,8 @@ use stepdrive_shared::axis::{request_flags, AxisRequest, Refusal, RequestKind};
 /// One axis's part of a client's coordinated move, waiting for its partners.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Part {
+    /// A move or a stream start ([`RequestKind`]).
+    pub kind: u32,
     /// The axes of its move (bit n: axis n), its own among them.
     pub group: u32,
     /// The client and the sequence number every part of one move carries.
@@ -26,19 +30,24 @@ pub struct Part {
 
 impl Part {
     fn same_move(&self, other: &Part) -> bool {
-        self.group == other.group && self.client == other.client && self.seq == other.seq
+        self.kind == other.kind
+            && self.group == other.group
+            && self.client == other.client
+            && self.seq == other.seq
     }
 }
 
 /// Checks a coordinated part as it comes to axis `axis` of a stack of `axes`: a move to an
-/// absolute, finite target, at the axes' move limits, that changes at once, whose group
-/// holds this axis and no axis the stack lacks.
+/// absolute, finite target, at the axes' move limits, that changes at once, or a stream
+/// start (with its lead or the axis's), whose group holds this axis and no axis the stack
+/// lacks.
 pub fn check_part(r: &AxisRequest, axis: u32, axes: usize, t: f64) -> Result<Part, Refused> {
     let group = request_flags::group(r.flags);
-    if r.kind != RequestKind::Move as u32 {
+    let is_move = r.kind == RequestKind::Move as u32;
+    if !is_move && r.kind != RequestKind::StreamStart as u32 {
         return Err(refuse(
             Refusal::UnknownCommand,
-            "a coordinated part is a move (kind 9)",
+            "a coordinated part is a move (kind 9) or a stream start (kind 12)",
         ));
     }
     if group & (1 << axis) == 0 {
@@ -63,20 +72,21 @@ pub fn check_part(r: &AxisRequest, axis: u32, axes: usize, t: f64) -> Result<Par
         | request_flags::HAS_V
         | request_flags::HAS_A
         | request_flags::HAS_J;
-    if r.flags & unsupported != 0 {
+    if is_move && r.flags & unsupported != 0 {
         return Err(refuse(
             Refusal::UnknownCommand,
             "a coordinated part is an absolute move that changes at once, at the axis's move \
              limits ([axis] move_*): no relative, after-current or limit flags",
         ));
     }
-    if !r.target_rad.is_finite() {
+    if is_move && !r.target_rad.is_finite() {
         return Err(refuse(
             Refusal::NotFinite,
             format!("the target is {}", r.target_rad),
         ));
     }
     Ok(Part {
+        kind: r.kind,
         group,
         client: r.client,
         seq: r.seq,
@@ -219,6 +229,23 @@ mod tests {
             "{}",
             e.text
         );
+    }
+
+    #[test]
+    fn a_stream_start_is_a_part_and_does_not_complete_a_move() {
+        let start = AxisRequest {
+            kind: RequestKind::StreamStart as u32,
+            flags: part(1, 0b11, 4).flags | request_flags::HAS_LEAD,
+            lead_s: 0.02,
+            ..part(1, 0b11, 4)
+        };
+        let mut parts: [Option<Part>; 2] = [None; 2];
+        parts[0] = Some(check_part(&part(0, 0b11, 4), 0, 2, 0.0).expect("move part"));
+        parts[1] = Some(check_part(&start, 1, 2, 0.0).expect("stream part"));
+        assert_eq!(gather(&parts, 0.001, 0.05).start, 0);
+        parts[0] =
+            Some(check_part(&AxisRequest { axis: 0, ..start }, 0, 2, 0.0).expect("stream part"));
+        assert_eq!(gather(&parts, 0.001, 0.05).start, 0b11);
     }
 
     #[test]

@@ -94,6 +94,10 @@ pub struct Axis {
     stream_id: Option<u64>,
     stream_lead: f64,
     stream_origin: Option<(f64, f64)>,
+    /// A stream of several axes (a client's coordinated stream start): the origin is the
+    /// group's to set, once every axis of it has its first point, whose time is kept here.
+    origin_from_group: bool,
+    stream_first: Option<f64>,
     /// The state a stream is followed from (at the trajectory's time).
     followed: Reference,
     /// The jerk of the period that led to `followed`, rad/s³: what (12)'s torque moves on
@@ -146,6 +150,8 @@ impl Axis {
             stream_id: None,
             stream_lead: p.stream_lead_s,
             stream_origin: None,
+            origin_from_group: false,
+            stream_first: None,
             followed: at,
             followed_jerk: 0.0,
             refused_points: 0,
@@ -266,6 +272,50 @@ impl Axis {
         self.stream.clear();
         self.stream_id = None;
         self.stream_origin = None;
+        self.origin_from_group = false;
+        self.stream_first = None;
+    }
+
+    /// The running stream is one axis's of a multi-axis stream: its points are played from
+    /// the origin [`Self::start_stream_at`] gives, not from its own first point's arrival
+    /// (the axes' first points may arrive on different ticks).
+    pub fn stream_in_group(&mut self) {
+        self.origin_from_group = self.mode == AxisMode::CyclicPosition;
+    }
+
+    /// A multi-axis stream's axis waiting for its origin: its first point's stream time
+    /// once one has come.
+    pub fn stream_first_point(&self) -> Option<f64> {
+        (self.origin_from_group && self.stream_origin.is_none())
+            .then_some(self.stream_first)
+            .flatten()
+    }
+
+    /// Whether the axis is still in a multi-axis stream whose origin is not yet set.
+    pub fn stream_awaits_origin(&self) -> bool {
+        self.origin_from_group
+            && self.stream_origin.is_none()
+            && self.mode == AxisMode::CyclicPosition
+    }
+
+    /// A multi-axis stream's axis whose group broke up before it began: it plays from its
+    /// own first point (now, if one has come).
+    pub fn stream_alone(&mut self) {
+        if !self.stream_awaits_origin() {
+            return;
+        }
+        self.origin_from_group = false;
+        if let Some(first) = self.stream_first {
+            self.stream_origin = Some((self.t, first));
+        }
+    }
+
+    /// A multi-axis stream's origin: its stream time `first` is played a lead after axis
+    /// time `t` (every axis of the stream is given the same two).
+    pub fn start_stream_at(&mut self, t: f64, first: f64) {
+        if self.stream_awaits_origin() {
+            self.stream_origin = Some((t, first));
+        }
     }
 
     fn power_off(&mut self, to: AxisState) {
@@ -641,7 +691,11 @@ impl Axis {
                 .then_some(p.torque_ff_nm),
         };
         if self.stream_origin.is_none() && point.t.is_finite() {
-            self.stream_origin = Some((m.t, point.t));
+            if !self.origin_from_group {
+                self.stream_origin = Some((m.t, point.t));
+            } else if self.stream_first.is_none() {
+                self.stream_first = Some(point.t);
+            }
         }
         self.stream.push(point).map_err(|e| {
             let refusal = match e {
@@ -1087,6 +1141,68 @@ mod tests {
             omega: r.omega,
             ..Default::default()
         }
+    }
+
+    /// Two axes of one stream whose first points come 5 ms apart play one stream time at
+    /// every tick once the group gives them one origin; on its own the early one would play
+    /// 5 ms ahead.
+    #[test]
+    fn the_axes_of_a_stream_of_several_play_one_stream_time() {
+        let p = AxisParams::default();
+        let mut a = Axis::new(&p, T);
+        let mut b = Axis::new(&p, T);
+        let r = Reference::default();
+        for axis in [&mut a, &mut b] {
+            axis.request(&request(RequestKind::Enable, 1), &on(0.0, &r))
+                .expect("enable");
+            axis.request(&request(RequestKind::StreamStart, 2), &on(0.0, &r))
+                .expect("stream");
+            axis.stream_in_group();
+            assert!(axis.stream_awaits_origin());
+        }
+        let point = |k: u64| AxisStreamPoint {
+            stream: 2,
+            seq: k,
+            t_s: k as f64 * 1e-3,
+            theta_rad: 1e-3 * k as f64,
+            ..Default::default()
+        };
+        let mut played = (Vec::new(), Vec::new());
+        // Each rotor exactly on its setpoint.
+        let (mut ra, mut rb) = (r, r);
+        for tick in 0..400u64 {
+            let t = tick as f64 * T;
+            let (ma, mb) = (on(t, &ra), on(t, &rb));
+            // a's points from tick 0, b's from tick 10 (5 ms), each at 1 kHz from t_s = 0.
+            if tick % 2 == 0 {
+                a.stream_point(&point(tick / 2), &ma).expect("a's point");
+            }
+            if tick >= 10 && tick % 2 == 0 {
+                b.stream_point(&point((tick - 10) / 2), &mb)
+                    .expect("b's point");
+            }
+            if tick == 11 {
+                assert_eq!(a.stream_first_point(), Some(0.0));
+                assert_eq!(b.stream_first_point(), Some(0.0));
+                a.start_stream_at(t, 0.0);
+                b.start_stream_at(t, 0.0);
+            }
+            if tick < 11 {
+                assert_eq!(b.stream_first_point(), (tick >= 10).then_some(0.0));
+            }
+            ra = a.tick(&ma).reference;
+            rb = b.tick(&mb).reference;
+            played.0.push(a.status(&ma, 0.0).stream_time_s);
+            played.1.push(b.status(&mb, 0.0).stream_time_s);
+        }
+        let lead_ticks = (p.stream_lead_s / T).round() as usize;
+        let from = 11 + lead_ticks;
+        assert!(
+            played.0[..11].iter().all(|x| x.is_nan()),
+            "a played before its origin"
+        );
+        assert!(played.0[from..].iter().all(|x| x.is_finite()));
+        assert_eq!(played.0[from..], played.1[from..]);
     }
 
     /// A stream of 2 sin 2πt at 1 kHz, each point sent at its time: after 0.2 s the setpoint

@@ -576,7 +576,7 @@ impl Together for PositionLoopNode {
                 ports[i].acks.publish(&ack)?;
             }
         }
-        group.before_tick(&mut LaneAxes(lanes));
+        group.before_tick(&mut LaneAxes(lanes), &m[..n]);
         lanes[0].group = Some(group);
         Ok(())
     }

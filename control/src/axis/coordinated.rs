@@ -179,6 +179,11 @@ impl CoordinatedMove {
         self.periods as f64 * self.period_s
     }
 
+    /// The period it is stepped by, s.
+    pub fn period_s(&self) -> f64 {
+        self.period_s
+    }
+
     /// Periods in the move.
     pub fn periods(&self) -> u64 {
         self.periods

@@ -57,6 +57,9 @@ struct Running {
     count: usize,
     from: [f64; MAX_AXES],
     to: [f64; MAX_AXES],
+    /// The tick time the last state given was for: the move is stepped by the samples'
+    /// time, as an axis's own trajectory is, not by ticks counted.
+    given_for: f64,
 }
 
 /// A machine's axes by index, as the group's coordination reaches them: the group's own,
@@ -170,11 +173,13 @@ impl Coordinator {
                 format!("a coordinated move of axes {axes:?} is running: stop it or let it arrive"),
             ));
         }
+        let period = self.planner.period_s();
         let mut run = Running {
             members: [0; MAX_AXES],
             count: targets.len(),
             from: [0.0; MAX_AXES],
             to: [0.0; MAX_AXES],
+            given_for: 0.0,
         };
         let mut starts = [Reference::default(); MAX_AXES];
         let mut limits = [Limits {
@@ -215,6 +220,12 @@ impl Coordinator {
             limits[j] = move_limits(&axis.p);
         }
         let n = run.count;
+        // The first state goes out at this tick (the newest of the axes' samples).
+        let now = run.members[..n]
+            .iter()
+            .map(|&i| m[i].t)
+            .fold(f64::NEG_INFINITY, f64::max);
+        run.given_for = now - period;
         self.planner
             .plan(&starts[..n], &run.to[..n], &limits[..n])
             .map_err(|e| refuse(Refusal::WrongState, e.to_string()))?;
@@ -227,11 +238,17 @@ impl Coordinator {
         Ok(())
     }
 
-    /// Before the axes' own ticks: the running move's axes take their next states; a move
-    /// none of whose axes is still in it (each was commanded elsewhere, quick-stopped or
-    /// faulted) is over.
-    pub fn before_tick<A: Axes + ?Sized>(&mut self, axes: &mut A) {
-        let Some(run) = self.running else {
+    /// Before the axes' own ticks at their measured states `m`: the running move's axes
+    /// take their states for this tick; a move none of whose axes is still in it (each was
+    /// commanded elsewhere, quick-stopped or faulted) is over.
+    ///
+    /// The move is stepped to the newest sample's time, a period at a time (none if the
+    /// samples' time stood still, two if one tick's sample was skipped), as an axis's own
+    /// trajectory is: stepped once a tick instead, a tick whose sample stood still moved the
+    /// plan on without the rotors, and axes of different inertia and load took that step
+    /// differently.
+    pub fn before_tick<A: Axes + ?Sized>(&mut self, axes: &mut A, m: &[Measured]) {
+        let Some(mut run) = self.running else {
             return;
         };
         let members = &run.members[..run.count];
@@ -239,18 +256,32 @@ impl Coordinator {
             self.running = None;
             return;
         }
+        let period = self.planner.period_s();
+        let now = members
+            .iter()
+            .map(|&i| m[i].t)
+            .fold(f64::NEG_INFINITY, f64::max);
+        let steps = ((now - run.given_for) / period).round().clamp(0.0, 1000.0) as u64;
+        if steps == 0 {
+            return;
+        }
         // The move goes on for the axes still in it: one taken out (a command of its own,
         // policy Own) does not stop the others' move short.
-        let last = self.planner.step(&mut self.next, &mut self.jerks);
+        let mut last = false;
+        for _ in 0..steps {
+            last = self.planner.step(&mut self.next, &mut self.jerks);
+            run.given_for += period;
+            if last {
+                break;
+            }
+        }
         for (j, &i) in members.iter().enumerate() {
             let axis = axes.axis_mut(i);
             if axis.in_coordinated() {
-                axis.follow_coordinated(self.next[j], self.jerks[j], last);
+                axis.follow_coordinated(self.next[j], self.jerks[j], last, run.given_for);
             }
         }
-        if last {
-            self.running = None;
-        }
+        self.running = (!last).then_some(run);
     }
 
     /// After the axes' own ticks at their measured states `m`: the contour error, and the
@@ -410,7 +441,7 @@ impl AxisGroup {
             });
         }
         let axes = self.axes.as_mut_slice();
-        self.coordinator.before_tick(axes);
+        self.coordinator.before_tick(axes, m);
         for (i, axis) in axes.iter_mut().enumerate() {
             out[i] = axis.tick(&m[i]);
         }

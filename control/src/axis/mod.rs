@@ -126,7 +126,8 @@ pub struct Axis {
     /// A coordinated move of its group runs: the group gives each tick's state.
     coordinated: bool,
     /// The group's state for the next tick, and the jerk that led to it.
-    coordinated_next: Option<(Reference, f64)>,
+    /// and the axis time the state is meant for.
+    coordinated_next: Option<(Reference, f64, f64)>,
     coordinated_jerk: f64,
 }
 
@@ -859,8 +860,10 @@ impl Axis {
 
     /// The group's state for the next tick and the jerk that led to it; `last`: the move
     /// ends there, at rest on its target, and the generator holds it from then on.
-    fn follow_coordinated(&mut self, at: Reference, jerk: f64, last: bool) {
-        self.coordinated_next = Some((at, jerk));
+    /// `for_t`: the tick time the state is meant for (an axis whose sample is of another
+    /// instant takes the state there, along the same jerk).
+    fn follow_coordinated(&mut self, at: Reference, jerk: f64, last: bool, for_t: f64) {
+        self.coordinated_next = Some((at, jerk, for_t));
         if last {
             self.otg.set_limits(move_limits(&self.p));
             self.otg.restart(at);
@@ -930,10 +933,18 @@ impl Axis {
             AxisMode::Coordinated if self.coordinated || self.coordinated_next.is_some() => {
                 // The group steps its move every tick; a tick it did not (none so far) would
                 // stand where the last one left the axis.
-                let (at, jerk) = self
-                    .coordinated_next
-                    .take()
-                    .unwrap_or((self.reference, 0.0));
+                let (at, jerk, for_t) =
+                    self.coordinated_next
+                        .take()
+                        .unwrap_or((self.reference, 0.0, m.t));
+                // On the wall clock the axes' newest samples can be one apart: each takes
+                // the move where it is at its own sample's time.
+                let skew = m.t - for_t;
+                let at = if skew.abs() > 1e-9 {
+                    at.after_jerk(skew, jerk)
+                } else {
+                    at
+                };
                 self.otg_t = m.t;
                 self.coordinated_jerk = jerk;
                 at

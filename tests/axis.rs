@@ -775,8 +775,6 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
         ])
     };
     assert!(axis("0", &["enable"]).status.success());
-    // Past axis 0's brake release (20 ms), so that axis 1 is the one cause.
-    std::thread::sleep(Duration::from_millis(100));
     let refused = together("0.5,-0.5,0");
     assert!(!refused.status.success(), "{}", text(&refused));
     assert!(
@@ -796,8 +794,8 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
         (theta_of("2") + 1.0).abs() < 1e-4,
         "axis 2 moved on a refused coordinated move"
     );
+    // Right after an enable: the parts wait for the brake's release, then leave together.
     assert!(axis("1", &["enable"]).status.success());
-    std::thread::sleep(Duration::from_millis(100));
     let moved = together("0.5,-0.5,0");
     assert!(moved.status.success(), "{}", text(&moved));
     let out = text(&moved);

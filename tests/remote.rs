@@ -313,7 +313,6 @@ fn a_gateway_serves_every_axis_of_a_multi_axis_stack() {
     for axis in ["0", "1"] {
         assert!(remote(axis, &["enable"]).status.success());
     }
-    std::thread::sleep(Duration::from_millis(100));
     let together = remote(
         "0",
         &[

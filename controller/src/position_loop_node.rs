@@ -656,6 +656,10 @@ fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m
                 }
             }
         }
+        if Coordinator::brakes_hold(&LaneAxes(lanes), &targets[..k], m) {
+            // Enabled a moment ago: the parts wait for the brakes, then leave together.
+            return;
+        }
         let result = group
             .move_together(&mut LaneAxes(lanes), &targets[..k], m)
             .map_err(|e| (e.refusal, e.text));

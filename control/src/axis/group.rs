@@ -238,6 +238,23 @@ impl Coordinator {
         Ok(())
     }
 
+    /// Whether an enabled axis of `targets` still has its brake on at its measured time:
+    /// a coordinated move asked now would be refused, and a client's, whose parts came
+    /// together, waits for the release instead (at most `[axis] brake_release_s`).
+    pub fn brakes_hold<A: Axes + ?Sized>(
+        axes: &A,
+        targets: &[(usize, f64)],
+        m: &[Measured],
+    ) -> bool {
+        targets.iter().any(|&(i, _)| {
+            i < axes.count()
+                && m.get(i).is_some_and(|mi| {
+                    let axis = axes.axis_ref(i);
+                    axis.state() == AxisState::OperationEnabled && !axis.brake_released(mi.t)
+                })
+        })
+    }
+
     /// Before the axes' own ticks at their measured states `m`: the running move's axes
     /// take their states for this tick; a move none of whose axes is still in it (each was
     /// commanded elsewhere, quick-stopped or faulted) is over.

@@ -799,16 +799,7 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     let moved = together("0.5,-0.5,0");
     assert!(moved.status.success(), "{}", text(&moved));
     let out = text(&moved);
-    let left: Vec<&str> = out
-        .lines()
-        .filter(|l| l.contains("coordinated move to"))
-        .filter_map(|l| l.split("at t = ").nth(1))
-        .collect();
-    assert_eq!(left.len(), 3, "{out}");
-    assert!(
-        left.iter().all(|t| *t == left[0]),
-        "the parts left on different ticks: {out}"
-    );
+    assert_same_after(&out, " at t = ", 3, "the parts left on different ticks");
     assert!(out.contains("all 3 axes reached their targets"), "{out}");
     for (n, target) in [("0", 0.5), ("1", -0.5), ("2", 0.0)] {
         let theta = theta_of(n);
@@ -839,14 +830,11 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     ]);
     let out = text(&streamed);
     assert!(streamed.status.success(), "{out}");
-    let clocks: Vec<&str> = out
-        .lines()
-        .filter_map(|l| l.split("stream time played ").nth(1))
-        .collect();
-    assert_eq!(clocks.len(), 3, "{out}");
-    assert!(
-        clocks.iter().all(|c| *c == clocks[0]),
-        "the axes play different stream times: {out}"
+    assert_same_after(
+        &out,
+        "stream time played ",
+        3,
+        "the axes play different stream times",
     );
     std::thread::sleep(Duration::from_millis(300));
     for (n, end) in [("0", 0.5), ("1", -0.5), ("2", 0.0)] {

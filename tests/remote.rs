@@ -326,15 +326,7 @@ fn a_gateway_serves_every_axis_of_a_multi_axis_stack() {
     );
     let out = text(&together);
     assert!(together.status.success(), "{out}");
-    let left: Vec<&str> = out
-        .lines()
-        .filter_map(|l| l.split("taken (seq").nth(1))
-        .collect();
-    assert_eq!(left.len(), 3, "{out}");
-    assert!(
-        left.iter().all(|t| *t == left[0]),
-        "the parts left on different ticks: {out}"
-    );
+    assert_same_after(&out, "taken (seq", 3, "the parts left on different ticks");
     assert!(out.contains("all 3 axes reached their targets"), "{out}");
 
     signal(serve.id(), libc::SIGINT);

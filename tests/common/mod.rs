@@ -624,3 +624,11 @@ impl Csv {
         self.text.lines().skip(1).map(|l| l.split(',').collect())
     }
 }
+
+/// Asserts that `out` has `count` lines holding `marker` and that what follows the marker
+/// is the same on each (`what`: the property that says, for the message).
+pub fn assert_same_after(out: &str, marker: &str, count: usize, what: &str) {
+    let after: Vec<&str> = out.lines().filter_map(|l| l.split(marker).nth(1)).collect();
+    assert_eq!(after.len(), count, "{out}");
+    assert!(after.iter().all(|a| *a == after[0]), "{what}: {out}");
+}

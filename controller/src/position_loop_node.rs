@@ -92,6 +92,7 @@ pub struct PositionLoopNode {
     ticks: u64,
     /// The axes of its stack (a coordinated part names them).
     axes: usize,
+    mode: Mode,
     /// Axis 0's lane: the axes of a stream of several axes whose origin is not yet set.
     stream_group: u32,
     /// A multi-axis stack: this axis's part of a coordinated move, due and not yet
@@ -148,6 +149,7 @@ impl PositionLoopNode {
             reset_asked_s: None,
             ticks: 0,
             axes: 1,
+            mode,
             stream_group: 0,
             coordinated: None,
             part: None,
@@ -161,6 +163,16 @@ impl PositionLoopNode {
                 GroupStop::Own => StopPolicy::Own,
             },
         })
+    }
+
+    /// A multi-axis stack's coordination (kept by axis 0's lane). In hardware mode each
+    /// axis's samples come from its own drive's clock.
+    fn coordinator(&self) -> Coordinator {
+        let group = Coordinator::new(1.0 / self.rate_hz, self.stop_policy);
+        match self.mode {
+            Mode::Hardware => group.separate_clocks(),
+            Mode::Lockstep | Mode::Realtime => group,
+        }
     }
 
     /// One of a stack of `axes` (1 by default).
@@ -534,7 +546,7 @@ impl Together for PositionLoopNode {
         let mut group = lanes[0]
             .group
             .take()
-            .unwrap_or_else(|| Coordinator::new(1.0 / lanes[0].rate_hz, lanes[0].stop_policy));
+            .unwrap_or_else(|| lanes[0].coordinator());
         start_client_parts(lanes, &mut group, &m[..n]);
         align_stream_origins(lanes, &m[..n]);
         let mut targets = [(0usize, 0.0f64); MAX_LANES];

@@ -101,6 +101,9 @@ pub struct Coordinator {
     stopped_by: Option<usize>,
     /// The running (or last) move's peak contour error, rad.
     contour_peak: f64,
+    /// The axes' samples are of one clock (one simulated plant), so that their times
+    /// compare; drives each have their own ([`Self::separate_clocks`]).
+    one_clock: bool,
 }
 
 impl Coordinator {
@@ -115,7 +118,16 @@ impl Coordinator {
             stopping: 0,
             stopped_by: None,
             contour_peak: 0.0,
+            one_clock: true,
         }
+    }
+
+    /// Axes whose samples come from clocks of their own (a drive each): their times do not
+    /// compare, so a coordinated move is stepped once a tick and each axis takes its state
+    /// as it comes, and the contour error is of each axis's newest sample.
+    pub fn separate_clocks(mut self) -> Self {
+        self.one_clock = false;
+        self
     }
 
     pub fn policy(&self) -> StopPolicy {
@@ -278,7 +290,11 @@ impl Coordinator {
             .iter()
             .map(|&i| m[i].t)
             .fold(f64::NEG_INFINITY, f64::max);
-        let steps = ((now - run.given_for) / period).round().clamp(0.0, 1000.0) as u64;
+        let steps = if self.one_clock {
+            ((now - run.given_for) / period).round().clamp(0.0, 1000.0) as u64
+        } else {
+            1
+        };
         if steps == 0 {
             return;
         }
@@ -292,10 +308,16 @@ impl Coordinator {
                 break;
             }
         }
+        // Of separate clocks, each axis takes the state at its own sample, whatever its time.
+        let for_t = if self.one_clock {
+            run.given_for
+        } else {
+            f64::NAN
+        };
         for (j, &i) in members.iter().enumerate() {
             let axis = axes.axis_mut(i);
             if axis.in_coordinated() {
-                axis.follow_coordinated(self.next[j], self.jerks[j], last, run.given_for);
+                axis.follow_coordinated(self.next[j], self.jerks[j], last, for_t);
             }
         }
         self.running = (!last).then_some(run);
@@ -328,7 +350,11 @@ impl Coordinator {
         for j in 0..k {
             let i = run.members[j];
             d[j] = run.to[j] - run.from[j];
-            let ahead = m[i].omega * (now - m[i].t);
+            let ahead = if self.one_clock {
+                m[i].omega * (now - m[i].t)
+            } else {
+                0.0
+            };
             p[j] = axes.axis_ref(i).position(&m[i]) + ahead - run.from[j];
         }
         let length2: f64 = d[..k].iter().map(|x| x * x).sum();
@@ -706,6 +732,70 @@ mod tests {
         assert_eq!(
             g.axis(0).map(Axis::state),
             Some(AxisState::OperationEnabled)
+        );
+    }
+
+    /// Two axes of a coordinated move, axis 1's samples stamped `offset` s behind axis 0's
+    /// (drives each with its own clock, or one simulated plant's samples one apart): axis
+    /// 1's references over the whole move.
+    fn coordinated_references(group: Coordinator, offset: f64) -> Vec<Reference> {
+        let mut p = AxisParams::default();
+        p.brake_release_s = 0.0;
+        let mut axes = vec![Axis::new(&p, T), Axis::new(&p, T)];
+        let mut group = group;
+        let mut m = [Measured::default(); 2];
+        let at = |k: u64, m: &mut [Measured; 2]| {
+            m[0].t = 0.01 + k as f64 * T;
+            m[1].t = m[0].t - offset;
+        };
+        at(0, &mut m);
+        for (axis, mi) in axes.iter_mut().zip(&m) {
+            axis.request(&request(RequestKind::Enable), mi)
+                .expect("enable");
+        }
+        let mut out = Vec::new();
+        for k in 0..2000u64 {
+            at(k, &mut m);
+            if k == 1 {
+                group
+                    .move_together(axes.as_mut_slice(), &[(0, 2.0), (1, -3.0)], &m)
+                    .expect("planned");
+            }
+            group.before_tick(axes.as_mut_slice(), &m);
+            let sp: Vec<Setpoint> = axes.iter_mut().zip(&m).map(|(a, mi)| a.tick(mi)).collect();
+            group.after_tick(axes.as_mut_slice(), &m);
+            for (mi, s) in m.iter_mut().zip(&sp) {
+                mi.theta = s.reference.theta;
+                mi.omega = s.reference.omega;
+            }
+            out.push(sp[1].reference);
+        }
+        out
+    }
+
+    /// Of one clock, an axis whose sample is 50 µs behind takes the move 50 µs back (the
+    /// rotors at one instant on the line); of separate clocks, whose times do not compare,
+    /// an axis takes the move as it comes, whatever its clock says (a drive that started
+    /// 5 ms later moves exactly as one that did not).
+    #[test]
+    fn an_axis_takes_the_move_at_its_own_sample_only_when_the_clocks_are_one() {
+        let new = || Coordinator::new(T, StopPolicy::All);
+        let aligned = coordinated_references(new(), 0.0);
+        assert_eq!(
+            coordinated_references(new().separate_clocks(), 5e-3),
+            aligned
+        );
+        let behind = coordinated_references(new(), 50e-6);
+        let k = aligned
+            .iter()
+            .position(|r| r.omega.abs() > 1.0)
+            .expect("the move runs");
+        let back = aligned[k].theta - behind[k].theta;
+        let d = 50e-6;
+        let expected = aligned[k].omega * d - 0.5 * aligned[k].alpha * d * d;
+        assert!(
+            (back - expected).abs() < 1e-3 * expected.abs(),
+            "50 µs behind: {back} rad back, ωd − αd²/2 = {expected} rad"
         );
     }
 

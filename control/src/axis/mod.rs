@@ -861,7 +861,8 @@ impl Axis {
     /// The group's state for the next tick and the jerk that led to it; `last`: the move
     /// ends there, at rest on its target, and the generator holds it from then on.
     /// `for_t`: the tick time the state is meant for (an axis whose sample is of another
-    /// instant takes the state there, along the same jerk).
+    /// instant takes the state there, along the same jerk; NaN: at its own sample, its
+    /// clock not the group's).
     fn follow_coordinated(&mut self, at: Reference, jerk: f64, last: bool, for_t: f64) {
         self.coordinated_next = Some((at, jerk, for_t));
         if last {

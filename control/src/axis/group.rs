@@ -739,8 +739,10 @@ mod tests {
     /// (drives each with its own clock, or one simulated plant's samples one apart): axis
     /// 1's references over the whole move.
     fn coordinated_references(group: Coordinator, offset: f64) -> Vec<Reference> {
-        let mut p = AxisParams::default();
-        p.brake_release_s = 0.0;
+        let p = AxisParams {
+            brake_release_s: 0.0,
+            ..Default::default()
+        };
         let mut axes = vec![Axis::new(&p, T), Axis::new(&p, T)];
         let mut group = group;
         let mut m = [Measured::default(); 2];

@@ -78,6 +78,12 @@ impl Group {
             )));
         }
         for (k, i) in indices.iter().enumerate() {
+            if *i as usize >= MAX_AXES {
+                return Err(ClientError::BadGroup(format!(
+                    "no axis {i}: a stack has axes 0 … {}",
+                    MAX_AXES - 1
+                )));
+            }
             if indices[..k].contains(i) {
                 return Err(ClientError::BadGroup(format!("axis {i} is named twice")));
             }
@@ -177,9 +183,12 @@ impl Group {
         let seq = self.axes.iter().map(|a| a.next_seq).max().unwrap_or(0) + 1;
         let mut sent = Vec::with_capacity(self.axes.len());
         for (k, axis) in self.axes.iter_mut().enumerate() {
-            axis.next_seq = seq;
             let mut r = axis.request(RequestKind::Move);
+            axis.next_seq = seq;
+            // The stack matches the parts by client and sequence number: through a gateway
+            // each axis has its own client id, so the group's is the sequence number's.
             r.seq = seq;
+            r.client = (seq >> 32) as u32;
             part(&mut r, k);
             r.flags = request_flags::with_group(r.flags, group);
             r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();

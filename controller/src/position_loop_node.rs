@@ -549,43 +549,21 @@ impl Together for PositionLoopNode {
             .unwrap_or_else(|| lanes[0].coordinator());
         start_client_parts(lanes, &mut group, &m[..n]);
         align_stream_origins(lanes, &m[..n]);
-        let mut targets = [(0usize, 0.0f64); MAX_LANES];
-        let mut k = 0;
-        for (i, lane) in lanes.iter().enumerate() {
-            if let Some(r) = lane.coordinated {
-                targets[k] = (i, r.target_rad);
-                k += 1;
-            }
-        }
-        if k > 0 {
-            let result = group.move_together(&mut LaneAxes(lanes), &targets[..k], &m[..n]);
-            if let Err(e) = &result {
-                tracing::warn!("coordinated move refused: {}", e.text);
-            }
+        // The program's parts due (a program's parts have no group bits: their partners are
+        // the parts due at the same time).
+        let due = (0..lanes.len())
+            .filter(|&i| lanes[i].coordinated.is_some())
+            .fold(0u32, |g, i| g | (1 << i));
+        if due != 0 {
+            let (targets, k) = targets_of(lanes, due, |l| l.coordinated);
+            let result =
+                start_coordinated(lanes, &mut group, &targets[..k], &m[..n], |l| l.coordinated);
             for (i, lane) in lanes.iter_mut().enumerate() {
-                let Some(request) = lane.coordinated.take() else {
-                    if result.is_ok() {
-                        lane.contour_rad = f64::NAN;
-                    }
-                    continue;
-                };
-                if result.is_ok() {
-                    lane.contour_rad = 0.0;
-                    lane.body.axis().took_part(&request);
+                if let Some(request) = lane.coordinated.take() {
+                    let ack = lane.answer_of(&request, m[i].t, result.clone());
+                    lane.program.answered(&ack);
+                    ports[i].acks.publish(&ack)?;
                 }
-                let mut ack = AxisAck {
-                    request,
-                    tick: lane.ticks,
-                    t_s: m[i].t,
-                    state: lane.body.axis().state() as u32,
-                    ..Default::default()
-                };
-                if let Err(e) = &result {
-                    ack.refusal = e.refusal as u32;
-                    ack.set_text(&e.text);
-                }
-                lane.program.answered(&ack);
-                ports[i].acks.publish(&ack)?;
             }
         }
         group.before_tick(&mut LaneAxes(lanes), &m[..n]);
@@ -658,36 +636,16 @@ fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m
             }
         }
     } else if g.start != 0 {
-        let mut targets = [(0usize, 0.0f64); MAX_LANES];
-        let mut k = 0;
-        for (i, lane) in lanes.iter().enumerate() {
-            if g.start & (1 << i) != 0 {
-                if let Some((_, r)) = lane.part {
-                    targets[k] = (i, r.target_rad);
-                    k += 1;
-                }
-            }
-        }
+        let request_of = |l: &PositionLoopNode| l.part.map(|(_, r)| r);
+        let (targets, k) = targets_of(lanes, g.start, request_of);
         if Coordinator::brakes_hold(&LaneAxes(lanes), &targets[..k], m) {
             // Enabled a moment ago: the parts wait for the brakes, then leave together.
             return;
         }
-        let result = group
-            .move_together(&mut LaneAxes(lanes), &targets[..k], m)
-            .map_err(|e| (e.refusal, e.text));
-        if let Err((_, text)) = &result {
-            tracing::warn!("a client's coordinated move refused: {text}");
-        }
+        let result = start_coordinated(lanes, group, &targets[..k], m, request_of);
         for (i, lane) in lanes.iter_mut().enumerate() {
-            let in_move = g.start & (1 << i) != 0;
-            if result.is_ok() {
-                lane.contour_rad = if in_move { 0.0 } else { f64::NAN };
-            }
-            if let Some((_, r)) = lane.part.filter(|_| in_move) {
+            if let Some((_, r)) = lane.part.filter(|_| g.start & (1 << i) != 0) {
                 lane.part = None;
-                if result.is_ok() {
-                    lane.body.axis().took_part(&r);
-                }
                 lane.part_answer = Some(lane.answer_of(&r, t, result.clone()));
             }
         }
@@ -706,6 +664,52 @@ fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m
                 Some(lane.answer_of(&r, m[i].t, Err((Refusal::GroupIncomplete, text))));
         }
     }
+}
+
+/// The targets of the lanes in `members` (bit per lane) that hold a request
+/// (`request_of`), and how many.
+fn targets_of(
+    lanes: &[PositionLoopNode],
+    members: u32,
+    request_of: impl Fn(&PositionLoopNode) -> Option<AxisRequest>,
+) -> ([(usize, f64); MAX_LANES], usize) {
+    let mut targets = [(0usize, 0.0f64); MAX_LANES];
+    let mut k = 0;
+    for (i, lane) in lanes.iter().enumerate().take(MAX_LANES) {
+        if let Some(r) = request_of(lane).filter(|_| members & (1 << i) != 0) {
+            targets[k] = (i, r.target_rad);
+            k += 1;
+        }
+    }
+    (targets, k)
+}
+
+/// Starts a coordinated move of the lanes to `targets` on this tick, or refuses it as a
+/// whole. Started, each lane's contour error restarts (those not in the move have none)
+/// and its request (`request_of`) is its last command.
+fn start_coordinated(
+    lanes: &mut [PositionLoopNode],
+    group: &mut Coordinator,
+    targets: &[(usize, f64)],
+    m: &[Measured],
+    request_of: impl Fn(&PositionLoopNode) -> Option<AxisRequest>,
+) -> Result<(), (Refusal, String)> {
+    let result = group
+        .move_together(&mut LaneAxes(lanes), targets, m)
+        .map_err(|e| (e.refusal, e.text));
+    match &result {
+        Err((_, text)) => tracing::warn!("coordinated move refused: {text}"),
+        Ok(()) => {
+            for (i, lane) in lanes.iter_mut().enumerate() {
+                let in_move = targets.iter().any(|&(j, _)| j == i);
+                lane.contour_rad = if in_move { 0.0 } else { f64::NAN };
+                if let Some(r) = request_of(lane).filter(|_| in_move) {
+                    lane.body.axis().took_part(&r);
+                }
+            }
+        }
+    }
+    result
 }
 
 /// A client's stream of several axes: every axis of `axes` starts its stream on this tick,

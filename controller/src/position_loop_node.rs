@@ -20,7 +20,7 @@ use stepdrive_runtime::port::{AxisServer, PortError, PortFactory, Presence, Publ
 use stepdrive_runtime::RunError;
 use stepdrive_shared::axis::request_flags;
 use stepdrive_shared::axis::{
-    AxisAck, AxisRequest, AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
+    AxisAck, AxisRequest, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
 };
 use stepdrive_shared::messages::{state_flags, DriveState, ResetRequest, TorqueSetpoint};
 use stepdrive_shared::scenario::{GroupStop, Mode};
@@ -713,32 +713,21 @@ fn start_coordinated(
 }
 
 /// A client's stream of several axes: every axis of `axes` starts its stream on this tick,
-/// or none does (an axis not enabled, a lead out of range).
+/// or none does (an axis not enabled, a lead out of range: `Axis::stream_start`).
 fn start_streams(
     lanes: &mut [PositionLoopNode],
     axes: u32,
     m: &[Measured],
 ) -> Result<(), (Refusal, String)> {
     let members = || (0..lanes.len()).filter(move |i| axes & (1 << i) != 0);
+    // Every axis is asked before any starts.
     for i in members() {
-        let lane = &lanes[i];
-        if lane.body.axis_ref().state() != AxisState::OperationEnabled {
-            return Err((
-                Refusal::NotEnabled,
-                format!(
-                    "axis {i}: the axis is not in Operation enabled (a stream of several axes \
-                     starts on every one of them or none)"
-                ),
-            ));
-        }
-        if let Some((_, r)) = lane.part {
-            let given = r.flags & request_flags::HAS_LEAD != 0;
-            if given && !(r.lead_s.is_finite() && (0.0..=10.0).contains(&r.lead_s)) {
-                return Err((
-                    Refusal::NotFinite,
-                    format!("axis {i}: lead {} s must be within 0 … 10 s", r.lead_s),
-                ));
-            }
+        if let Some((_, r)) = lanes[i].part {
+            lanes[i]
+                .body
+                .axis_ref()
+                .stream_start(&r)
+                .map_err(|e| (e.refusal, format!("axis {i}: {}", e.text)))?;
         }
     }
     for i in members() {

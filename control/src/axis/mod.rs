@@ -412,6 +412,24 @@ impl Axis {
         Ok(())
     }
 
+    /// Whether the axis takes stream start `r`, nothing applied: its lead if so (a stream
+    /// of several axes starts on every axis or none, so each is asked first).
+    pub fn stream_start(&self, r: &AxisRequest) -> Result<f64, Refused> {
+        self.enabled("a stream")?;
+        let lead = if r.flags & request_flags::HAS_LEAD != 0 {
+            r.lead_s
+        } else {
+            self.p.stream_lead_s
+        };
+        if !(lead.is_finite() && (0.0..=10.0).contains(&lead)) {
+            return Err(refuse(
+                Refusal::NotFinite,
+                format!("lead {lead} s must be within 0 … 10 s"),
+            ));
+        }
+        Ok(lead)
+    }
+
     fn enabled(&self, what: &str) -> Result<(), Refused> {
         if self.state != AxisState::OperationEnabled {
             return Err(refuse(
@@ -599,18 +617,7 @@ impl Axis {
                 self.mode = AxisMode::Hold;
             }
             RequestKind::StreamStart => {
-                self.enabled("a stream")?;
-                let lead = if r.flags & request_flags::HAS_LEAD != 0 {
-                    r.lead_s
-                } else {
-                    self.p.stream_lead_s
-                };
-                if !(lead.is_finite() && (0.0..=10.0).contains(&lead)) {
-                    return Err(refuse(
-                        Refusal::NotFinite,
-                        format!("lead {lead} s must be within 0 … 10 s"),
-                    ));
-                }
+                let lead = self.stream_start(r)?;
                 self.take_over(m);
                 self.queued = None;
                 // The stream's own limits: the axis's, the envelope around whatever it asks.

@@ -122,6 +122,14 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
         endpoint: o.endpoint.clone(),
         message: format!("{what}: {e}"),
     };
+    // The answer to a command's query: the axis's acknowledgement.
+    let reply_ack = |query: &zenoh::query::Query, ack: &AxisAck| {
+        query
+            .reply(query.key_expr().clone(), wire::bytes(ack).to_vec())
+            .encoding(encoding::<AxisAck>())
+            .wait()
+            .map_err(|e| zerr("command reply", &e))
+    };
     let config = remote::config(&o.endpoint, o.side).map_err(|e| zerr("configuration", &e))?;
     let session = zenoh::open(config)
         .wait()
@@ -276,11 +284,7 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
             } else {
                 unreachable!("a request for an axis the stack lacks is refused above")
             };
-            query
-                .reply(query.key_expr().clone(), wire::bytes(&ack).to_vec())
-                .encoding(encoding::<AxisAck>())
-                .wait()
-                .map_err(|e| zerr("command reply", &e))?;
+            reply_ack(&query, &ack)?;
         }
 
         let mut k = 0;
@@ -298,11 +302,7 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
             let (query, _, _) = parts.swap_remove(k);
             idle = false;
             match reply {
-                Ok(ack) => query
-                    .reply(query.key_expr().clone(), wire::bytes(&ack).to_vec())
-                    .encoding(encoding::<AxisAck>())
-                    .wait()
-                    .map_err(|e| zerr("command reply", &e))?,
+                Ok(ack) => reply_ack(&query, &ack)?,
                 Err(text) => {
                     let _ = query.reply_err(text).wait();
                 }

@@ -9,7 +9,7 @@
 
 use crate::program::Program;
 use stepdrive_control::axis::gather::{check_part, gather, missing, Part};
-use stepdrive_control::axis::group::{Axes, Coordinator, StopPolicy};
+use stepdrive_control::axis::group::{newest_time, Axes, Coordinator, StopPolicy};
 use stepdrive_control::axis::{Axis, Measured};
 use stepdrive_control::position_loop::{measured, PositionLoop};
 use stepdrive_runtime::inbox::Inbox;
@@ -620,10 +620,7 @@ fn start_client_parts(lanes: &mut [PositionLoopNode], group: &mut Coordinator, m
         .any(|p| g.start & p.group != 0 && p.kind == RequestKind::StreamStart as u32);
     // Every part is answered with the cycle's time: on the wall clock the lanes' newest
     // samples can be one apart, and the parts started in one cycle all the same.
-    let t = (0..parts.len())
-        .filter(|i| g.start & (1 << i) != 0)
-        .map(|i| m[i].t)
-        .fold(f64::NEG_INFINITY, f64::max);
+    let t = newest_time((0..parts.len()).filter(|i| g.start & (1 << i) != 0), m);
     if g.start != 0 && streams {
         let result = start_streams(lanes, g.start, m);
         if let Err((_, text)) = &result {

@@ -233,11 +233,7 @@ impl Coordinator {
         }
         let n = run.count;
         // The first state goes out at this tick (the newest of the axes' samples).
-        let now = run.members[..n]
-            .iter()
-            .map(|&i| m[i].t)
-            .fold(f64::NEG_INFINITY, f64::max);
-        run.given_for = now - period;
+        run.given_for = newest_time(run.members[..n].iter().copied(), m) - period;
         self.planner
             .plan(&starts[..n], &run.to[..n], &limits[..n])
             .map_err(|e| refuse(Refusal::WrongState, e.to_string()))?;
@@ -286,10 +282,7 @@ impl Coordinator {
             return;
         }
         let period = self.planner.period_s();
-        let now = members
-            .iter()
-            .map(|&i| m[i].t)
-            .fold(f64::NEG_INFINITY, f64::max);
+        let now = newest_time(members.iter().copied(), m);
         let steps = if self.one_clock {
             ((now - run.given_for) / period).round().clamp(0.0, 1000.0) as u64
         } else {
@@ -343,10 +336,7 @@ impl Coordinator {
         // On the wall clock the axes' newest states can be a sample apart (each axis's
         // loops take theirs as it comes): each position is brought to the newest one's time
         // at its measured speed, so that the contour is the rotors' at one instant.
-        let now = run.members[..k]
-            .iter()
-            .map(|&i| m[i].t)
-            .fold(f64::NEG_INFINITY, f64::max);
+        let now = newest_time(run.members[..k].iter().copied(), m);
         for j in 0..k {
             let i = run.members[j];
             d[j] = run.to[j] - run.from[j];
@@ -392,6 +382,14 @@ impl Coordinator {
         }
         self.stopping = now;
     }
+}
+
+/// The newest of the `axes`' sample times (`m[i].t`): on the wall clock the axes' newest
+/// samples can be one apart.
+pub fn newest_time(axes: impl IntoIterator<Item = usize>, m: &[Measured]) -> f64 {
+    axes.into_iter()
+        .map(|i| m[i].t)
+        .fold(f64::NEG_INFINITY, f64::max)
 }
 
 fn unknown(i: usize, count: usize) -> Refused {

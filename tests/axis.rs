@@ -704,20 +704,7 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
             .success()),
         "the served stack did not answer"
     );
-    let enabled = axis("2", &["enable"]);
-    assert!(enabled.status.success(), "{}", text(&enabled));
-    let moved = axis("2", &MOVE_1_RAD_WAITED);
-    assert_reached(&moved);
-    for (n, state) in [
-        ("2", "Operation enabled"),
-        ("0", "Switch on disabled"),
-        ("1", "Switch on disabled"),
-    ] {
-        let st = axis(n, &["status"]);
-        assert!(text(&st).contains(state), "axis {n}: {}", text(&st));
-    }
-    let unknown = axis("3", &["status"]);
-    assert!(!unknown.status.success(), "{}", text(&unknown));
+    axis_2_alone_and_no_axis_3(axis);
 
     // A reader attaches to one axis: one the stack lacks is refused, naming the count; axis
     // 2's recording holds axis 2's next move.
@@ -796,11 +783,7 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     );
     // Right after an enable: the parts wait for the brake's release, then leave together.
     assert!(axis("1", &["enable"]).status.success());
-    let moved = together("0.5,-0.5,0");
-    assert!(moved.status.success(), "{}", text(&moved));
-    let out = text(&moved);
-    assert_same_after(&out, " at t = ", 3, "the parts left on different ticks");
-    assert!(out.contains("all 3 axes reached their targets"), "{out}");
+    assert_moved_together(&together("0.5,-0.5,0"), 3);
     for (n, target) in [("0", 0.5), ("1", -0.5), ("2", 0.0)] {
         let theta = theta_of(n);
         assert!(

@@ -293,19 +293,7 @@ fn a_gateway_serves_every_axis_of_a_multi_axis_stack() {
             stderr_of(&mut serve)
         );
     }
-    let on = remote("2", &["enable"]);
-    assert!(on.status.success(), "{}", text(&on));
-    assert_reached(&remote("2", &MOVE_1_RAD_WAITED));
-    for (axis, state) in [
-        ("2", "Operation enabled"),
-        ("0", "Switch on disabled"),
-        ("1", "Switch on disabled"),
-    ] {
-        let st = remote(axis, &["status"]);
-        assert!(text(&st).contains(state), "axis {axis}: {}", text(&st));
-    }
-    let unknown = remote("3", &["status"]);
-    assert!(!unknown.status.success(), "{}", text(&unknown));
+    let unknown = axis_2_alone_and_no_axis_3(remote);
     assert!(text(&unknown).contains("no axis 3"), "{}", text(&unknown));
 
     // A coordinated move through the gateway: its parts are forwarded without waiting for
@@ -324,10 +312,7 @@ fn a_gateway_serves_every_axis_of_a_multi_axis_stack() {
             "10",
         ],
     );
-    let out = text(&together);
-    assert!(together.status.success(), "{out}");
-    assert_same_after(&out, "taken (seq", 3, "the parts left on different ticks");
-    assert!(out.contains("all 3 axes reached their targets"), "{out}");
+    assert_moved_together(&together, 3);
 
     signal(serve.id(), libc::SIGINT);
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));

@@ -632,3 +632,40 @@ pub fn assert_same_after(out: &str, marker: &str, count: usize, what: &str) {
     assert_eq!(after.len(), count, "{out}");
     assert!(after.iter().all(|a| *a == after[0]), "{what}: {out}");
 }
+
+/// Axis 2 of a served three-axis stack enabled and moved by 1 rad through `axis` (a verb
+/// runner for axis n, on this host or through a gateway), axes 0 and 1 left disabled; the
+/// status of axis 3, which the stack lacks, refused (its output returned).
+pub fn axis_2_alone_and_no_axis_3(axis: impl Fn(&str, &[&str]) -> Output) -> Output {
+    let enabled = axis("2", &["enable"]);
+    assert!(enabled.status.success(), "{}", text(&enabled));
+    assert_reached(&axis("2", &MOVE_1_RAD_WAITED));
+    for (n, state) in [
+        ("2", "Operation enabled"),
+        ("0", "Switch on disabled"),
+        ("1", "Switch on disabled"),
+    ] {
+        let st = axis(n, &["status"]);
+        assert!(text(&st).contains(state), "axis {n}: {}", text(&st));
+    }
+    let unknown = axis("3", &["status"]);
+    assert!(!unknown.status.success(), "{}", text(&unknown));
+    unknown
+}
+
+/// `axis move-together --wait` of `axes` axes: every part taken with one sequence number
+/// at one time, and every axis at its target.
+pub fn assert_moved_together(moved: &Output, axes: usize) {
+    let out = text(moved);
+    assert!(moved.status.success(), "{out}");
+    assert_same_after(
+        &out,
+        "taken (seq",
+        axes,
+        "the parts left on different ticks",
+    );
+    assert!(
+        out.contains(&format!("all {axes} axes reached their targets")),
+        "{out}"
+    );
+}

@@ -92,7 +92,6 @@ pub struct PositionLoopNode {
     ticks: u64,
     /// The axes of its stack (a coordinated part names them).
     axes: usize,
-    mode: Mode,
     /// Axis 0's lane: the axes of a stream of several axes whose origin is not yet set.
     stream_group: u32,
     /// A multi-axis stack: this axis's part of a coordinated move, due and not yet
@@ -107,11 +106,12 @@ pub struct PositionLoopNode {
     deferred: [bool; COMMANDS_PER_CYCLE],
     /// A multi-axis stack's coordination, kept by axis 0's lane, and whether the lanes
     /// tick in this cycle.
-    group: Option<Coordinator>,
+    /// Boxed: the cycle takes it out of the lane and puts it back (a move of a pointer,
+    /// not of the coordinator's plans).
+    group: Option<Box<Coordinator>>,
     group_ticks: bool,
     /// Its newest coordinated move's peak contour error, rad (NaN: it has been in none).
     contour_rad: f64,
-    stop_policy: StopPolicy,
 }
 
 impl PositionLoopNode {
@@ -125,6 +125,10 @@ impl PositionLoopNode {
     pub fn new(s: &Scenario, axis: u32, mode: Mode, phase_ns: u64) -> Result<Self, RunError> {
         let period_ns = s.sample_period_ns();
         let ratio = s.rate_ratio();
+        let stop_policy = match s.group.stop {
+            GroupStop::All => StopPolicy::All,
+            GroupStop::Own => StopPolicy::Own,
+        };
         Ok(Self {
             axis,
             body: PositionLoop::new(s),
@@ -149,30 +153,19 @@ impl PositionLoopNode {
             reset_asked_s: None,
             ticks: 0,
             axes: 1,
-            mode,
             stream_group: 0,
             coordinated: None,
             part: None,
             part_answer: None,
             deferred: [false; COMMANDS_PER_CYCLE],
-            group: None,
+            group: Some(Box::new(coordinator(
+                s.rates.position_loop_hz,
+                stop_policy,
+                mode,
+            ))),
             group_ticks: false,
             contour_rad: f64::NAN,
-            stop_policy: match s.group.stop {
-                GroupStop::All => StopPolicy::All,
-                GroupStop::Own => StopPolicy::Own,
-            },
         })
-    }
-
-    /// A multi-axis stack's coordination (kept by axis 0's lane). In hardware mode each
-    /// axis's samples come from its own drive's clock.
-    fn coordinator(&self) -> Coordinator {
-        let group = Coordinator::new(1.0 / self.rate_hz, self.stop_policy);
-        match self.mode {
-            Mode::Hardware => group.separate_clocks(),
-            Mode::Lockstep | Mode::Realtime => group,
-        }
     }
 
     /// One of a stack of `axes` (1 by default).
@@ -543,10 +536,9 @@ impl Together for PositionLoopNode {
         let Some((m, n)) = lanes_measured(lanes).filter(|_| ticking) else {
             return Ok(());
         };
-        let mut group = lanes[0]
-            .group
-            .take()
-            .unwrap_or_else(|| lanes[0].coordinator());
+        let Some(mut group) = lanes[0].group.take() else {
+            return Ok(());
+        };
         start_client_parts(lanes, &mut group, &m[..n]);
         align_stream_origins(lanes, &m[..n]);
         // The program's parts due (a program's parts have no group bits: their partners are
@@ -601,6 +593,16 @@ impl Together for PositionLoopNode {
         }
         lanes[0].group = Some(group);
         Ok(())
+    }
+}
+
+/// A multi-axis stack's coordination (kept by axis 0's lane). In hardware mode each
+/// axis's samples come from its own drive's clock.
+fn coordinator(rate_hz: f64, policy: StopPolicy, mode: Mode) -> Coordinator {
+    let group = Coordinator::new(1.0 / rate_hz, policy);
+    match mode {
+        Mode::Hardware => group.separate_clocks(),
+        Mode::Lockstep | Mode::Realtime => group,
     }
 }
 

@@ -25,10 +25,11 @@ use stepdrive_shared::{Method, Scenario};
 /// sent, which is the plant's freshest.
 pub(crate) const PLAN_EVERY: u64 = 10;
 
-/// Whether the command answering `seq` is followed by a plan: every [`PLAN_EVERY`]-th, and
-/// the first after a gap (`last`: the sample answered before), the newest state being news.
-pub(crate) fn plans_after(seq: u64, last: Option<u64>) -> bool {
-    last.is_none_or(|l| seq != l + 1) || seq.is_multiple_of(PLAN_EVERY)
+/// Whether the command answering `seq` is followed by a plan: every [`PLAN_EVERY`]-th,
+/// `phase` samples after axis 0's, and the first after a gap (`last`: the sample answered
+/// before), the newest state being news.
+pub(crate) fn plans_after(seq: u64, last: Option<u64>, phase: u64) -> bool {
+    last.is_none_or(|l| seq != l + 1) || (seq + phase).is_multiple_of(PLAN_EVERY)
 }
 
 /// What the current loop reads and writes.
@@ -83,6 +84,10 @@ pub struct CurrentLoopNode {
     skipped: u64,
     last_seq: Option<u64>,
     due_ns: Option<u64>,
+    /// A plan follows this cycle's command ([`Node::after_answers`]).
+    plan_due: bool,
+    /// Samples by which its plans follow axis 0's ([`Self::for_axis`]).
+    plan_phase: u64,
     started: bool,
     /// When the last setpoint came, and how long it may be stale before this loop stops.
     setpoint_seen_ns: Option<u64>,
@@ -114,6 +119,8 @@ impl CurrentLoopNode {
             skipped: 0,
             last_seq: None,
             due_ns: None,
+            plan_due: false,
+            plan_phase: 0,
             started: false,
             setpoint_seen_ns: None,
             setpoint_timeout: None,
@@ -122,6 +129,13 @@ impl CurrentLoopNode {
             was_stale: false,
             outputs_on: false,
         }
+    }
+
+    /// Axis `axis` of a multi-axis loop plans `axis` samples after axis 0: a plan takes
+    /// ~10 µs, and the axes' plans in one period left the next sample's answers late.
+    pub fn for_axis(mut self, axis: u32) -> Self {
+        self.plan_phase = u64::from(axis) % PLAN_EVERY;
+        self
     }
 
     /// Stop (a silent peer) when no setpoint came for `timeout`.
@@ -220,6 +234,7 @@ impl Node for CurrentLoopNode {
                 };
                 // The state hop ends here, before the setpoints are read.
                 cx.taken_at(cx.now());
+
                 // Every state asks for an answer: one passed over is skipped.
                 self.skipped = self
                     .last_seq
@@ -297,17 +312,10 @@ impl Node for CurrentLoopNode {
         if state.deadline_ns > 0 && done > state.deadline_ns + self.answer_budget_ns {
             cx.stats.misses += 1;
         }
-        // After the command, so that planning never delays it; after a gap at once, the
-        // newest state being news.
-        if let Some(plans) = &mut ports.plans {
-            if switched || plans_after(state.seq, self.last_seq) {
-                let mut plan = *self.body.plan();
-                if plan.len > 0 {
-                    plan.publish_time_ns = cx.now();
-                    plans.publish(&plan)?;
-                }
-            }
-        }
+        // After the command (every axis's, in a multi-axis loop), so that planning never
+        // delays one; after a gap at once, the newest state being news.
+        self.plan_due = ports.plans.is_some()
+            && (switched || plans_after(state.seq, self.last_seq, self.plan_phase));
         self.last_seq = Some(state.seq);
         self.due_ns = (state.deadline_ns > 0).then(|| state.deadline_ns + self.period_ns);
         Ok(if state.flags & state_flags::LAST != 0 {
@@ -315,6 +323,18 @@ impl Node for CurrentLoopNode {
         } else {
             Flow::Continue
         })
+    }
+
+    fn after_answers(&mut self, ports: &mut CurrentLoopPorts, cx: &mut Cx) -> Result<(), RunError> {
+        if let Some(plans) = ports.plans.as_mut().filter(|_| self.plan_due) {
+            self.plan_due = false;
+            let mut plan = *self.body.plan();
+            if plan.len > 0 {
+                plan.publish_time_ns = cx.now();
+                plans.publish(&plan)?;
+            }
+        }
+        Ok(())
     }
 
     fn due_ns(&self) -> Option<u64> {
@@ -341,4 +361,35 @@ pub(crate) fn wait_state_ready(ready: &mut Option<Box<dyn Listen>>) -> Result<bo
     };
     ready.wait(std::time::Duration::from_millis(1))?;
     Ok(true)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_axis_plans_every_tenth_sample_and_no_two_axes_plan_after_one_sample() {
+        for axes in [2u64, 4, 8] {
+            let mut last = vec![Some(99u64); axes as usize];
+            let mut plans = 0;
+            for seq in 100..200 {
+                let planning: Vec<u64> = (0..axes)
+                    .filter(|&a| {
+                        let p = plans_after(seq, last[a as usize], a);
+                        last[a as usize] = Some(seq);
+                        p
+                    })
+                    .collect();
+                assert!(planning.len() <= 1, "sample {seq}: axes {planning:?} plan");
+                plans += planning.len() as u64;
+                if let [a] = planning[..] {
+                    assert_eq!((seq + a) % PLAN_EVERY, 0);
+                }
+            }
+            assert_eq!(plans, axes * 100 / PLAN_EVERY);
+        }
+        // After a gap every axis plans at once: the newest state is news.
+        assert!((0..4).all(|a| plans_after(205, Some(200), a)));
+        assert!(plans_after(0, None, 3));
+    }
 }

@@ -165,7 +165,9 @@ fn assemble_axes<A: Assemble, B: PortFactory>(
             a.node(n, p)
         }
         Role::CurrentLoop => {
-            let (n, p) = lanes_of(setup, bus, |s, b, _| current_loop(s, b))?;
+            let (n, p) = lanes_of(setup, bus, |s, b, axis| {
+                current_loop(s, b).map(|(n, p)| (n.for_axis(axis), p))
+            })?;
             a.node(n, p)
         }
         Role::PositionLoop => {

@@ -47,6 +47,8 @@ struct Lane {
     ready: bool,
     /// Its run's last sample handled (it takes no more cycles).
     finished: bool,
+    /// Stepped, its [`Node::after_answers`] not yet run.
+    owes: bool,
 }
 
 impl<N: Node> Lanes<N> {
@@ -63,6 +65,7 @@ impl<N: Node> Lanes<N> {
                     started: None,
                     ready: false,
                     finished: false,
+                    owes: false,
                 })
                 .collect(),
             nodes,
@@ -83,6 +86,18 @@ impl<N: Node> Lanes<N> {
             .zip(self.nodes.iter_mut())
             .zip(ports.iter_mut())
             .map(|((l, n), p)| (l, n, p))
+    }
+}
+
+impl<N: Node> Lanes<N> {
+    /// Runs the [`Node::after_answers`] the lanes owe.
+    fn pay_owed(&mut self, ports: &mut [N::Ports], cx: &mut Cx) -> Result<(), RunError> {
+        for (lane, node, p) in self.each(ports) {
+            if std::mem::take(&mut lane.owes) {
+                node.after_answers(p, &mut lane_cx(cx))?;
+            }
+        }
+        Ok(())
     }
 }
 
@@ -277,18 +292,29 @@ impl<N: Together> Node for Lanes<N> {
         if all {
             N::before_lanes(&mut self.nodes, ports)?;
         }
+        // A lane that steps again before every lane answered once owes its last cycle's
+        // work still: it goes first (one silent axis holds the others' for one cycle).
+        if self.lanes.iter().any(|l| l.owes && l.ready && !l.finished) {
+            self.pay_owed(ports, cx)?;
+        }
         let mut answered = None;
         for (lane, node, p) in self.each(ports) {
             if lane.finished || !lane.ready {
                 continue;
             }
             lane.ready = false;
+            lane.owes = true;
             let mut lcx = lane_cx(cx);
             let flow = node.step(p, &mut lcx)?;
             answered = lcx.answered_ns.or(answered);
             if flow == Flow::Last {
                 lane.finished = true;
             }
+        }
+        // Every axis's answer first (on the clock their inputs come one after another),
+        // then the work that follows them.
+        if self.lanes.iter().all(|l| l.owes || l.finished) {
+            self.pay_owed(ports, cx)?;
         }
         if all {
             N::after_lanes(&mut self.nodes, ports)?;
@@ -459,6 +485,86 @@ mod tests {
         assert_eq!(l.poll(&mut ports, &mut cx).expect("polls"), Poll::Pending);
         let blocked = l.block(&mut ports, 0, 1_000).expect("blocks");
         (blocked, counted.get())
+    }
+
+    /// An input-paced lane whose input is its bit in `inputs`; it logs its answers and
+    /// the work after them.
+    struct Answering {
+        axis: u32,
+        inputs: Rc<Cell<u32>>,
+        log: Rc<std::cell::RefCell<Vec<String>>>,
+    }
+
+    impl Node for Answering {
+        type Ports = ();
+        fn role(&self) -> Role {
+            Role::CurrentLoop
+        }
+        fn pace(&self) -> Pace {
+            Pace::Input
+        }
+        fn rate_hz(&self) -> f64 {
+            20_000.0
+        }
+        fn awaiting(&self) -> String {
+            String::new()
+        }
+        fn poll(&mut self, _: &mut (), _: &mut Cx) -> Result<Poll, RunError> {
+            let bit = 1 << self.axis;
+            if self.inputs.get() & bit == 0 {
+                return Ok(Poll::Pending);
+            }
+            self.inputs.set(self.inputs.get() & !bit);
+            Ok(Poll::READY)
+        }
+        fn step(&mut self, _: &mut (), _: &mut Cx) -> Result<Flow, RunError> {
+            self.log.borrow_mut().push(format!("answer {}", self.axis));
+            Ok(Flow::Continue)
+        }
+        fn after_answers(&mut self, _: &mut (), _: &mut Cx) -> Result<(), RunError> {
+            self.log.borrow_mut().push(format!("after {}", self.axis));
+            Ok(())
+        }
+    }
+
+    impl Together for Answering {}
+
+    #[test]
+    fn the_work_after_the_answers_waits_for_every_axis_answer_or_a_lane_that_steps_again() {
+        let inputs = Rc::new(Cell::new(0));
+        let log = Rc::new(std::cell::RefCell::new(Vec::new()));
+        let nodes = (0..3)
+            .map(|axis| Answering {
+                axis,
+                inputs: inputs.clone(),
+                log: log.clone(),
+            })
+            .collect();
+        let mut l = Lanes::new(nodes, false);
+        let mut ports = vec![(); 3];
+        let clock = VirtualClock::default();
+        let mut stats = StatsReport::default();
+        let mut cx = Cx::new(&clock, &mut stats);
+        assert_eq!(l.start(&mut ports, &mut cx).expect("starts"), Start::NOW);
+        let mut cycle = |bits: u32| {
+            inputs.set(bits);
+            assert!(matches!(
+                l.poll(&mut ports, &mut cx).expect("polls"),
+                Poll::Ready { .. }
+            ));
+            l.step(&mut ports, &mut cx).expect("steps");
+            log.borrow_mut().drain(..).collect::<Vec<_>>()
+        };
+        // On the clock the axes' inputs come one after another: the work after the
+        // answers waits for the last axis's answer.
+        assert_eq!(cycle(0b001), ["answer 0"]);
+        assert_eq!(
+            cycle(0b110),
+            ["answer 1", "answer 2", "after 0", "after 1", "after 2"]
+        );
+        // Axes 1 and 2 silent: axis 0's work is done before it answers again, never lost.
+        assert_eq!(cycle(0b001), ["answer 0"]);
+        assert_eq!(cycle(0b001), ["after 0", "answer 0"]);
     }
 
     #[test]

@@ -264,6 +264,7 @@ impl<N: Node> Runner<N> {
         cx.woke_ns = taken;
         let flow = self.node.step(&mut self.ports, &mut cx)?;
         let done = cx.answered_ns.unwrap_or_else(|| clock.now_ns());
+        self.node.after_answers(&mut self.ports, &mut cx)?;
         let stats = &mut *self.stats;
         if let Some(prev) = self.last_taken_ns.replace(taken) {
             stats.period.record(taken.saturating_sub(prev));
@@ -308,6 +309,7 @@ impl<N: Node> Runner<N> {
         };
         let flow = self.node.step(&mut self.ports, &mut cx)?;
         let done = cx.answered_ns.unwrap_or_else(|| clock.now_ns());
+        self.node.after_answers(&mut self.ports, &mut cx)?;
         self.recorder
             .record(&mut self.stats, tick.deadline_ns, tick.woke_ns, done);
         self.stats.lost += skipped;

@@ -2,7 +2,8 @@
 //! declaration's ([`stepdrive_shared::stack::Take`]) and the mode's, not the node's. In
 //! lockstep every message is taken in order and a gap is the publisher's protocol error; in
 //! realtime a reader takes every message that arrived (`Take::Every`) or only the newest
-//! (`Take::Newest`), and what it never saw is counted. So a node's `poll` reads the same in
+//! (`Take::Newest`), and what it never saw is counted (not by a newest-only reader whose
+//! queue holds one: every message overwrites the one before). So a node's `poll` reads the same in
 //! every mode.
 
 use crate::error::RunError;
@@ -67,6 +68,9 @@ pub struct Inbox<M> {
     take: Take,
     /// Lockstep: every message in order, nothing skipped.
     synchronous: bool,
+    /// Realtime, newest only, from a queue of one: each message overwrites the one before,
+    /// so what it never took it passed over, and nothing is counted.
+    one_deep: bool,
     last: Option<u64>,
 }
 
@@ -80,7 +84,9 @@ impl<M: Message + Keyed> Inbox<M> {
     ) -> Result<Self, PortError> {
         // An undeclared input is taken as every message: the safe reading of a stream.
         let take = node.take(M::TOPIC).unwrap_or(Take::Every);
-        Ok(Self::new(f.subscriber(depth)?, node.role, take, mode))
+        let mut inbox = Self::new(f.subscriber(depth)?, node.role, take, mode);
+        inbox.one_deep = depth == 1 && take == Take::Newest && !inbox.synchronous;
+        Ok(inbox)
     }
 
     pub fn new(port: Box<dyn Subscribe<M>>, reader: Role, take: Take, mode: Mode) -> Self {
@@ -89,6 +95,7 @@ impl<M: Message + Keyed> Inbox<M> {
             reader,
             take,
             synchronous: mode == Mode::Lockstep,
+            one_deep: false,
             last: None,
         }
     }
@@ -114,6 +121,9 @@ impl<M: Message + Keyed> Inbox<M> {
                 skipped += self.check(newer.key())?;
                 message = newer;
             }
+        }
+        if self.one_deep {
+            skipped = 0;
         }
         Ok(Some(Taken { message, skipped }))
     }
@@ -173,7 +183,7 @@ mod tests {
     use super::*;
     use crate::memory::MemoryBus;
     use crate::port::Publish;
-    use stepdrive_shared::stack::CURRENT_LOOP;
+    use stepdrive_shared::stack::{CURRENT_LOOP, POSITION_LOOP};
 
     fn state(seq: u64) -> DriveState {
         DriveState {
@@ -244,5 +254,33 @@ mod tests {
         let mut bus = MemoryBus::new(Mode::Realtime);
         let rx = Inbox::<DriveState>::open(&mut bus, &CURRENT_LOOP, Mode::Realtime, 4);
         assert_eq!(rx.expect("open").take, Take::Newest);
+    }
+
+    #[test]
+    fn a_newest_reader_with_a_queue_of_one_counts_nothing_it_passed_over() {
+        let mut bus = MemoryBus::new(Mode::Realtime);
+        let mut rx =
+            Inbox::<DriveState>::open(&mut bus, &POSITION_LOOP, Mode::Realtime, 1).expect("open");
+        let mut tx = bus.publisher::<DriveState>().expect("publisher");
+        for k in 0..10 {
+            tx.publish(&state(k)).expect("publish");
+        }
+        let t = rx.take().expect("ok").expect("a state");
+        assert_eq!((t.message.seq, t.skipped), (9, 0));
+        assert!(rx.take().expect("ok").is_none(), "the queue held one");
+        for k in 10..20 {
+            tx.publish(&state(k)).expect("publish");
+        }
+        let t = rx.take().expect("ok").expect("a state");
+        assert_eq!((t.message.seq, t.skipped), (19, 0));
+        // In lockstep the same reader still takes every message in order.
+        let mut bus = MemoryBus::new(Mode::Lockstep);
+        let mut rx =
+            Inbox::<DriveState>::open(&mut bus, &POSITION_LOOP, Mode::Lockstep, 4).expect("open");
+        let mut tx = bus.publisher::<DriveState>().expect("publisher");
+        for k in [3, 4] {
+            tx.publish(&state(k)).expect("publish");
+        }
+        assert_eq!(rx.take().expect("ok").map(|t| t.message.seq), Some(3));
     }
 }

@@ -88,7 +88,11 @@ impl<'a> Process<'a> {
         let spec = self.spec;
         let d = spec.deployment;
         let settings = Settings {
-            wait: d.wait(spec.role, spec.mode),
+            // A process started by hand waits as the same process started by `run`.
+            wait: d
+                .clone()
+                .for_axes(spec.scenario.axis_count())
+                .wait(spec.role, spec.mode),
             startup_timeout: d.startup_timeout(),
             peer_timeout: d.peer_timeout(),
             // In hardware mode the loop sleeps on the bridge's event, whose length it does

@@ -137,6 +137,7 @@ fn launch(
         let ports: Vec<String> = ports.iter().map(ToString::to_string).collect();
         d.drive.address = Some(ports.join(","));
     }
+    let d = d.for_axes(s.axis_count());
     let files = RunFiles::write(s, &d.resolved(mode), &opts.instance)?;
     let common = files.process_args(mode, &opts.instance);
 

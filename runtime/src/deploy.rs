@@ -111,7 +111,7 @@ pub struct Deployment {
 pub const DEFAULT_PRIORITY: u8 = 80;
 
 /// The most axes whose plant spins before its deadlines by default ([`Deployment::for_axes`]).
-pub const PLANT_SPINS_UP_TO_AXES: usize = 4;
+pub const PLANT_SPINS_UP_TO_AXES: usize = 2;
 
 impl Default for Deployment {
     fn default() -> Self {
@@ -345,10 +345,12 @@ impl Deployment {
 
     /// This deployment for a stack of `axes`: above [`PLANT_SPINS_UP_TO_AXES`] the plant
     /// sleeps to each deadline instead of spinning its last 25 µs, unless told otherwise.
-    /// The plant's compute grows ~2.4 µs an axis; with the spin, 8 axes left CPU 0 ~5 µs a
-    /// period, the monitor starved (UNOBSERVED, or "stuck") and 2-8 % of commands missed;
-    /// asleep, 0.05-0.09 % (docs/axes.md). Its samples then leave a timer wake-up late
-    /// (p50 16 µs here), which the spin avoids while there is CPU for it.
+    /// Its compute grows ~2.4 µs an axis, and with the spin CPU 0 had too little left for
+    /// the position loop's ticks and the monitor: 8 axes ended UNOBSERVED or "stuck" with
+    /// 2-8 % of commands missed, and at 3 and 4 axes, in interleaved 20 s pairs, asleep
+    /// missed 2-8 times fewer (4 axes: 0.04-0.19 % against 0.15-0.50 %). At 1 and 2 axes the
+    /// spin still wins (0.01-0.02 % against 0.01-0.06 %), and the samples leave on time
+    /// instead of a timer wake-up late (p50 16 µs here). docs/axes.md has the figures.
     pub fn for_axes(mut self, axes: usize) -> Self {
         if axes > PLANT_SPINS_UP_TO_AXES && self.plant.wait.is_none() {
             self.plant.wait = Some(WaitStrategy::Sleep);
@@ -472,21 +474,21 @@ mod tests {
     }
 
     #[test]
-    fn a_stack_of_more_than_four_axes_has_a_plant_that_sleeps_unless_told_otherwise() {
+    fn a_stack_of_more_than_two_axes_has_a_plant_that_sleeps_unless_told_otherwise() {
         let spin = WaitStrategy::Hybrid { margin_ns: 25_000 };
         let d = Deployment::default();
         assert_eq!(
-            d.clone().for_axes(4).wait(Role::Plant, Mode::Realtime),
+            d.clone().for_axes(2).wait(Role::Plant, Mode::Realtime),
             spin
         );
-        let eight = d.clone().for_axes(8);
-        assert_eq!(eight.wait(Role::Plant, Mode::Realtime), WaitStrategy::Sleep);
+        let three = d.clone().for_axes(3);
+        assert_eq!(three.wait(Role::Plant, Mode::Realtime), WaitStrategy::Sleep);
         assert_eq!(
-            eight.resolved(Mode::Realtime).plant.wait,
+            three.resolved(Mode::Realtime).plant.wait,
             Some(WaitStrategy::Sleep)
         );
         // Only the plant: the emulated drive stands for hardware of its own.
-        assert_eq!(eight.wait(Role::EmulatedDrive, Mode::Hardware), spin);
+        assert_eq!(three.wait(Role::EmulatedDrive, Mode::Hardware), spin);
         let mut told = d;
         told.plant.wait = Some(WaitStrategy::Spin);
         assert_eq!(

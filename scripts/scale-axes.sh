@@ -6,6 +6,7 @@
 # time the stack used per second of run; writes the runs' JSON and the table to OUT.
 #
 #   scripts/scale-axes.sh [SECONDS] [OUT] [AXIS COUNTS]      # defaults: 60 /tmp/scale-axes "1 2 4 8"
+#   TABLE_ONLY=1 scripts/scale-axes.sh 60 OUT                 # the table and figure of OUT's runs again
 #
 # A measurement, not a test: run it on an otherwise idle machine, nothing compiling.
 set -euo pipefail
@@ -15,6 +16,7 @@ counts="${3:-1 2 4 8}"
 exe="${STEPDRIVE_EXE:-$(dirname "$0")/../target/release/stepdrive}"
 mkdir -p "$out"
 for n in $counts; do
+  [ -n "${TABLE_ONLY:-}" ] && break
   scenario="$out/axes-$n.toml"
   echo "name = \"axes-$n\"" > "$scenario"
   # One axis: the plain file (today's path); more: one [[axis]] table each.
@@ -69,7 +71,8 @@ def panel(x0, title, unit, series, ymin):
     if not xs or not ys:
         return ""
     import math
-    lo, hi = math.log10(max(min(ys), ymin)), math.log10(max(ys) * 1.5)
+    # Head room: the legend sits in the top left, above the lines.
+    lo, hi = math.log10(max(min(ys), ymin)), math.log10(max(ys) * 12)
     hi = max(hi, lo + 1)
     X = lambda v: x0 + L + (math.log2(v) / max(math.log2(max(xs)), 1)) * (W - L - 20)
     Y = lambda v: 20 + (hi - math.log10(max(v, ymin))) / (hi - lo) * (H - B - 20)

@@ -301,7 +301,8 @@ pub struct StackArgs {
     pub rt: RtArgs,
     /// Realtime: wait strategy of the plant (default hybrid:25: sleeps to 25 µs before each
     /// deadline and spins the rest, so samples leave on time although a timer wake-up here
-    /// takes ~25 µs).
+    /// takes ~25 µs; from 3 axes, sleep: the spin would leave the other loops too little
+    /// of the plant's CPU).
     #[arg(long, value_name = "STRATEGY")]
     pub plant_wait: Option<WaitStrategy>,
     /// Realtime: wait strategy of the current loop (default hybrid:40: sleep to 40 µs

@@ -321,7 +321,8 @@ impl Deployment {
 
     /// How `process` waits in `mode`: its placement's strategy, or its default. The
     /// defaults: the plant and emulated drive `hybrid:25` (a timer wake-up can take most of
-    /// a 50 µs period, so they sleep to 25 µs before it and spin the rest); the current loop
+    /// a 50 µs period, so they sleep to 25 µs before it and spin the rest; a plant of three
+    /// or more axes sleeps, see [`Self::for_axes`]); the current loop
     /// `hybrid:40` against the next sample (a pure spin holds a whole CPU),
     /// `event` in hardware mode (asleep until the bridge raises state-ready); the position
     /// loop `sleep`; the bridge `hybrid:30` with a real-time priority (asleep until 30 µs

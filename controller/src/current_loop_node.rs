@@ -234,7 +234,6 @@ impl Node for CurrentLoopNode {
                 };
                 // The state hop ends here, before the setpoints are read.
                 cx.taken_at(cx.now());
-
                 // Every state asks for an answer: one passed over is skipped.
                 self.skipped = self
                     .last_seq

@@ -3,8 +3,8 @@
 //! lockstep every message is taken in order and a gap is the publisher's protocol error; in
 //! realtime a reader takes every message that arrived (`Take::Every`) or only the newest
 //! (`Take::Newest`), and what it never saw is counted (not by a newest-only reader whose
-//! queue holds one: every message overwrites the one before). So a node's `poll` reads the same in
-//! every mode.
+//! queue holds one: every message overwrites the one before). So a node's `poll` reads the
+//! same in every mode.
 
 use crate::error::RunError;
 use crate::port::{PortError, PortFactory, Subscribe};

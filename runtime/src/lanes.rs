@@ -87,9 +87,7 @@ impl<N: Node> Lanes<N> {
             .zip(ports.iter_mut())
             .map(|((l, n), p)| (l, n, p))
     }
-}
 
-impl<N: Node> Lanes<N> {
     /// Runs the [`Node::after_answers`] the lanes owe.
     fn pay_owed(&mut self, ports: &mut [N::Ports], cx: &mut Cx) -> Result<(), RunError> {
         for (lane, node, p) in self.each(ports) {

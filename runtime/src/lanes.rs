@@ -431,25 +431,32 @@ mod tests {
     use std::cell::Cell;
     use std::rc::Rc;
 
+    /// What every test lane is: an input-paced current loop at 20 kHz.
+    macro_rules! an_input_paced_lane {
+        () => {
+            type Ports = ();
+            fn role(&self) -> Role {
+                Role::CurrentLoop
+            }
+            fn pace(&self) -> Pace {
+                Pace::Input
+            }
+            fn rate_hz(&self) -> f64 {
+                20_000.0
+            }
+            fn awaiting(&self) -> String {
+                String::new()
+            }
+        };
+    }
+
     /// An input-paced lane that never has its input and counts the blocks asked of it.
     struct Waiting<const ALL: bool> {
         blocks: Rc<Cell<u32>>,
     }
 
     impl<const ALL: bool> Node for Waiting<ALL> {
-        type Ports = ();
-        fn role(&self) -> Role {
-            Role::CurrentLoop
-        }
-        fn pace(&self) -> Pace {
-            Pace::Input
-        }
-        fn rate_hz(&self) -> f64 {
-            20_000.0
-        }
-        fn awaiting(&self) -> String {
-            String::new()
-        }
+        an_input_paced_lane!();
         fn poll(&mut self, _: &mut (), _: &mut Cx) -> Result<Poll, RunError> {
             Ok(Poll::Pending)
         }
@@ -494,19 +501,7 @@ mod tests {
     }
 
     impl Node for Answering {
-        type Ports = ();
-        fn role(&self) -> Role {
-            Role::CurrentLoop
-        }
-        fn pace(&self) -> Pace {
-            Pace::Input
-        }
-        fn rate_hz(&self) -> f64 {
-            20_000.0
-        }
-        fn awaiting(&self) -> String {
-            String::new()
-        }
+        an_input_paced_lane!();
         fn poll(&mut self, _: &mut (), _: &mut Cx) -> Result<Poll, RunError> {
             let bit = 1 << self.axis;
             if self.inputs.get() & bit == 0 {

@@ -11,7 +11,9 @@ use stepdrive_client::{
     Axis, AxisMode, AxisState, AxisStatus, ClientError, Group, Limits, RequestKind,
 };
 use stepdrive_monitor::report::outcome::Outcome;
-use stepdrive_shared::axis::{parse_stream, parse_stream_of_axes, request_flags, status_bits};
+use stepdrive_shared::axis::{
+    parse_stream, parse_stream_of_axes, request_flags, status_bits, stream_theta_columns,
+};
 use stepdrive_shared::services::DEFAULT_INSTANCE;
 
 #[derive(Args, Debug)]
@@ -295,7 +297,7 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             .with_context(|| format!("cannot read the stream file {}", file.display()))?;
         let axes = match axes {
             Some(a) => a.clone(),
-            None => (0..theta_columns(&text) as u32).collect(),
+            None => (0..stream_theta_columns(&text) as u32).collect(),
         };
         let rows = parse_stream_of_axes(&text, axes.len())
             .with_context(|| format!("{}", file.display()))?;
@@ -516,16 +518,6 @@ fn stream_rows(
         started.elapsed().as_secs_f64()
     );
     Ok(())
-}
-
-/// The θ columns of a stream file of several axes: its first row of numbers' fields less
-/// the time (0 if it has none; the parser then says what is wrong).
-fn theta_columns(text: &str) -> usize {
-    text.lines()
-        .map(|l| l.split('#').next().unwrap_or("").trim())
-        .filter(|l| !l.is_empty())
-        .find(|l| l.split(',').all(|f| f.trim().parse::<f64>().is_ok()))
-        .map_or(0, |l| l.split(',').count().saturating_sub(1))
 }
 
 /// `axis stream-together`: every row's positions, paced as one stream; then each axis's

@@ -121,14 +121,12 @@ impl Group {
     /// on one tick. Refused as a whole, with nothing applied to any axis, if any axis
     /// cannot take its part.
     pub fn move_together(&mut self, targets: &[f64]) -> Result<GroupMove, ClientError> {
-        if targets.len() != self.axes.len() {
-            return Err(ClientError::BadGroup(format!(
-                "a coordinated move of {} axes takes {} targets, not {}",
-                self.axes.len(),
-                self.axes.len(),
-                targets.len()
-            )));
-        }
+        one_per_axis(
+            "a coordinated move",
+            "targets",
+            self.axes.len(),
+            targets.len(),
+        )?;
         let (seq, acks) = self.send_parts("coordinated move", |r, k| {
             r.kind = RequestKind::Move as u32;
             r.target_rad = targets[k];
@@ -238,6 +236,16 @@ impl Group {
     }
 }
 
+/// `given` values for `what` of `axes` axes: one per axis, or the error that says so.
+fn one_per_axis(what: &str, values: &str, axes: usize, given: usize) -> Result<(), ClientError> {
+    if given == axes {
+        return Ok(());
+    }
+    Err(ClientError::BadGroup(format!(
+        "{what} of {axes} axes takes {axes} {values}, not {given}"
+    )))
+}
+
 /// A stream of several axes in progress ([`Group::stream`]): one stream time, a position
 /// for each axis.
 pub struct GroupStream<'a> {
@@ -248,14 +256,12 @@ impl GroupStream<'_> {
     /// Sends the points at stream time `t` s: `thetas[k]` rad for the group's `k`-th axis.
     /// Time must increase and every value be finite: otherwise nothing is sent.
     pub fn push(&mut self, t: f64, thetas: &[f64]) -> Result<(), ClientError> {
-        if thetas.len() != self.streams.len() {
-            return Err(ClientError::BadGroup(format!(
-                "a stream of {} axes takes {} positions a point, not {}",
-                self.streams.len(),
-                self.streams.len(),
-                thetas.len()
-            )));
-        }
+        one_per_axis(
+            "a stream",
+            "positions a point",
+            self.streams.len(),
+            thetas.len(),
+        )?;
         if !thetas.iter().all(|v| v.is_finite()) {
             return Err(ClientError::BadPoint {
                 t,

@@ -892,6 +892,28 @@ pub fn parse_stream_of_axes(text: &str, axes: usize) -> Result<Vec<Vec<f64>>, St
     numeric_rows(text, axes + 1..=axes + 1, &shape)
 }
 
+/// The θ columns of a stream file of several axes: its first row of numbers' fields less
+/// the time (0 if it has none; [`parse_stream_of_axes`] then says what is wrong).
+pub fn stream_theta_columns(text: &str) -> usize {
+    text.lines()
+        .filter_map(numbers_of)
+        .find_map(|(_, values)| values.ok())
+        .map_or(0, |values| values.len().saturating_sub(1))
+}
+
+/// A stream file's line, its `#` comment left out, and it as numbers; `None` if nothing is
+/// left.
+fn numbers_of(raw: &str) -> Option<(&str, Result<Vec<f64>, std::num::ParseFloatError>)> {
+    let content = raw.split('#').next().unwrap_or("").trim();
+    (!content.is_empty()).then(|| {
+        let values = content
+            .split(',')
+            .map(|f| f.trim().parse::<f64>())
+            .collect();
+        (content, values)
+    })
+}
+
 /// CSV rows of numbers, `fields` of them each, the first a time that increases.
 fn numeric_rows(
     text: &str,
@@ -901,14 +923,9 @@ fn numeric_rows(
     let mut rows: Vec<Vec<f64>> = Vec::new();
     for (i, raw) in text.lines().enumerate() {
         let line = i + 1;
-        let content = raw.split('#').next().unwrap_or("").trim();
-        if content.is_empty() {
+        let Some((content, values)) = numbers_of(raw) else {
             continue;
-        }
-        let values: Result<Vec<f64>, _> = content
-            .split(',')
-            .map(|f| f.trim().parse::<f64>())
-            .collect();
+        };
         let values = match values {
             Ok(v) => v,
             Err(_) if rows.is_empty() && line == 1 => continue,
@@ -1002,6 +1019,8 @@ mod tests {
             rows,
             vec![vec![0.0, 0.0, 1.0, 2.0], vec![0.001, 0.1, 1.1, 2.1]]
         );
+        assert_eq!(stream_theta_columns("t,x,y,z\n# c\n0, 0, 1, 2 # x\n"), 3);
+        assert_eq!(stream_theta_columns("t,x\n"), 0);
         let e = parse_stream_of_axes("0, 0, 1\n", 3).expect_err("a column short");
         assert!(
             e.to_string().contains("line 1") && e.to_string().contains("3 axes"),

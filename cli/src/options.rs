@@ -174,7 +174,7 @@ pub struct PlacementArgs {
     /// Realtime: how this process waits: sleep (clock_nanosleep), spin, hybrid:<µs> (sleep to
     /// that margin before the deadline, then spin), or event (current loop, hardware mode:
     /// sleep until the bridge raises state-ready). Defaults (`stepdrive deploy`): plant and
-    /// emulated drive hybrid:25, current loop hybrid:40 (hardware: event), position loop
+    /// emulated drive hybrid:25, current loop hybrid:35 (hardware: event), position loop
     /// sleep, bridge hybrid:30 with a priority, else sleep.
     #[arg(long, value_name = "STRATEGY")]
     pub wait: Option<WaitStrategy>,
@@ -305,8 +305,11 @@ pub struct StackArgs {
     /// of the plant's CPU).
     #[arg(long, value_name = "STRATEGY")]
     pub plant_wait: Option<WaitStrategy>,
-    /// Realtime: wait strategy of the current loop (default hybrid:40: sleep to 40 µs
-    /// before the next sample's deadline, then poll; hardware mode: event).
+    /// Realtime: wait strategy of the current loop (default hybrid:35: sleep to 35 µs
+    /// before the next sample's deadline, then poll; hardware mode: event). A larger margin
+    /// leaves sleeps too short to give the CPU away, and an ordinary task on the current
+    /// loop's CPU is then run by the kernel's fair server for ~50 ms at a time, past the
+    /// watchdog.
     #[arg(long, value_name = "STRATEGY")]
     pub current_wait: Option<WaitStrategy>,
     /// Realtime: wait strategy of the position loop (default sleep).

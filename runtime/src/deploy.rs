@@ -113,6 +113,16 @@ pub const DEFAULT_PRIORITY: u8 = 80;
 /// The most axes whose plant spins before its deadlines by default ([`Deployment::for_axes`]).
 pub const PLANT_SPINS_UP_TO_AXES: usize = 2;
 
+/// The current loop's default hybrid margin: it sleeps to this long before the next sample
+/// and polls the rest. Why not 40 µs (the default until 2026-11-27): a 20 kHz loop done
+/// ~8 µs after its sample then asked for sleeps of ~2 µs, which return before the kernel
+/// switches away, so it held CPU 1 without a break; an ordinary task runnable there (a
+/// flooding client, `taskset -c 1 yes`) was starved until the kernel's fair server ran it
+/// ahead of SCHED_FIFO for ~50 ms, and the plant's watchdog latched COMMAND_TIMEOUT (8 runs
+/// of 9). At 35 µs the sleeps yield, ordinary tasks get their share between samples, and
+/// the same runs ended ok (12 of 12). docs/measurements.md has the figures.
+pub const CURRENT_LOOP_MARGIN_NS: u64 = 35_000;
+
 impl Default for Deployment {
     fn default() -> Self {
         let mut d = Self {
@@ -323,7 +333,7 @@ impl Deployment {
     /// defaults: the plant and emulated drive `hybrid:25` (a timer wake-up can take most of
     /// a 50 µs period, so they sleep to 25 µs before it and spin the rest; a plant of three
     /// or more axes sleeps, see [`Self::for_axes`]); the current loop
-    /// `hybrid:40` against the next sample (a pure spin holds a whole CPU),
+    /// `hybrid:35` against the next sample (see [`CURRENT_LOOP_MARGIN_NS`]),
     /// `event` in hardware mode (asleep until the bridge raises state-ready); the position
     /// loop `sleep`; the bridge `hybrid:30` with a real-time priority (asleep until 30 µs
     /// before the drive's frame is due, then polling its socket), `sleep` without (polling
@@ -335,7 +345,9 @@ impl Deployment {
         match process {
             Role::Plant | Role::EmulatedDrive => WaitStrategy::Hybrid { margin_ns: 25_000 },
             Role::CurrentLoop | Role::Identify if mode == Mode::Hardware => WaitStrategy::Event,
-            Role::CurrentLoop | Role::Identify => WaitStrategy::Hybrid { margin_ns: 40_000 },
+            Role::CurrentLoop | Role::Identify => WaitStrategy::Hybrid {
+                margin_ns: CURRENT_LOOP_MARGIN_NS,
+            },
             Role::PositionLoop | Role::Monitor | Role::Tool(_) => WaitStrategy::Sleep,
             Role::Bridge if self.bridge.priority.is_some() => {
                 WaitStrategy::Hybrid { margin_ns: 30_000 }
@@ -411,7 +423,7 @@ mod tests {
         );
         assert_eq!(
             d.wait(Role::CurrentLoop, Mode::Realtime),
-            WaitStrategy::Hybrid { margin_ns: 40_000 }
+            WaitStrategy::Hybrid { margin_ns: 35_000 }
         );
         assert_eq!(
             d.wait(Role::CurrentLoop, Mode::Hardware),

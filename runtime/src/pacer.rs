@@ -28,7 +28,11 @@ impl FromStr for WaitStrategy {
         match s {
             "sleep" => Ok(Self::Sleep),
             "spin" => Ok(Self::Spin),
-            "hybrid" => Ok(Self::Hybrid { margin_ns: 40_000 }),
+            // The current loop's margin: a larger one leaves sleeps too short to give the
+            // CPU away (crate::deploy::CURRENT_LOOP_MARGIN_NS).
+            "hybrid" => Ok(Self::Hybrid {
+                margin_ns: crate::deploy::CURRENT_LOOP_MARGIN_NS,
+            }),
             "event" => Ok(Self::Event),
             other => match other.strip_prefix("hybrid:") {
                 Some(us) => us
@@ -249,5 +253,14 @@ mod tests {
         );
         assert_eq!("event".parse(), Ok(WaitStrategy::Event));
         assert!("nap".parse::<WaitStrategy>().is_err());
+        // A bare `hybrid` is the current loop's default, whose margin leaves it sleeps
+        // long enough to give the CPU away.
+        assert_eq!(
+            "hybrid".parse(),
+            Ok(crate::deploy::Deployment::default().wait(
+                stepdrive_shared::stack::Role::CurrentLoop,
+                stepdrive_shared::scenario::Mode::Realtime
+            ))
+        );
     }
 }

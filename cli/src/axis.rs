@@ -178,6 +178,12 @@ enum Verb {
         /// Relative moves of 1 µrad instead of status requests.
         #[arg(long = "move")]
         moves: bool,
+        /// Poll between sends, burning a CPU as a runaway client does. Without it the flood
+        /// naps 100 µs whenever it is on schedule and sends what fell due in a burst: its
+        /// figures are then the command path's, not its own CPU's (an ordinary task that
+        /// keeps a CPU busy costs the loops as much whatever it does).
+        #[arg(long)]
+        spin: bool,
     },
     /// Measure command latency: COUNT small relative moves (±1 µrad, the axis enabled), each
     /// timed from its publication to the first setpoint that carries it out (the
@@ -404,13 +410,16 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             rate,
             seconds,
             moves,
+            spin,
         } => {
             let kind = if moves {
                 RequestKind::Move
             } else {
                 RequestKind::Status
             };
-            let f = axis.flood(kind, 1e-6, rate, seconds).map_err(failed)?;
+            let f = axis
+                .flood(kind, 1e-6, rate, seconds, spin)
+                .map_err(failed)?;
             println!(
                 "{} {} commands tried in {:.1} s ({rate} /s): {} taken, {} refused by the axis ({} of them more than one tick applies), {} refused to this client by the service (it holds 4 of a client's requests), {} unanswered at the end",
                 f.tried,

@@ -567,13 +567,15 @@ impl Axis {
     /// what a runaway client costs the stack, not a way to command it. Each request sent
     /// is answered (taken, or refused with a reason: more than the position loop applies
     /// in one tick) or refused to this client by the service (it holds a few of a
-    /// client's requests at once).
+    /// client's requests at once). `spin`: poll between sends, as a runaway client
+    /// burning a CPU does; otherwise nap between bursts, and measure the command path alone.
     pub fn flood(
         &mut self,
         kind: RequestKind,
         move_rad: f64,
         rate_hz: f64,
         duration: Duration,
+        spin: bool,
     ) -> Result<stepdrive_runtime::ipc::Flood, ClientError> {
         let Link::Local(local) = &mut self.link else {
             return Err(ClientError::LocalOnly("a command flood"));
@@ -596,6 +598,7 @@ impl Axis {
             },
             rate_hz,
             duration,
+            spin,
         );
         self.next_seq = seq;
         Ok(counts?)

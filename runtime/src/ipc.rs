@@ -637,17 +637,26 @@ pub struct Flood {
     pub unanswered: u64,
 }
 
+/// A flood that does not spin sleeps this long whenever it has sent what fell due: at
+/// 100 kHz, bursts of ~10-20 requests (an ordinary task's sleep overshoots by its timer
+/// slack).
+pub const FLOOD_NAP: Duration = Duration::from_micros(100);
+
 impl CommandClient {
     /// Sends copies of `template` (each with the seq `next_seq` gives) at `rate_hz` for
     /// `duration`, never waiting for an answer: what a runaway or hostile client does. The
     /// answers that come are counted; requests the service will not hold are counted as
-    /// refused to the client. Spins: the flood is meant to load the machine.
+    /// refused to the client. With `spin` it polls between sends, burning a CPU as a
+    /// runaway client does; without, it naps [`FLOOD_NAP`] whenever it is on schedule and
+    /// sends what fell due in a burst, so that what it measures is the command path and
+    /// not its own CPU (docs/axis.md has both).
     pub fn flood(
         &mut self,
         template: &AxisRequest,
         mut next_seq: impl FnMut() -> u64,
         rate_hz: f64,
         duration: Duration,
+        spin: bool,
     ) -> Result<Flood, PortError> {
         let mut counts = Flood::default();
         let mut pending = Vec::with_capacity(64);
@@ -718,7 +727,11 @@ impl CommandClient {
                 }
             }
             answers(&mut pending, &mut counts)?;
-            std::hint::spin_loop();
+            if spin {
+                std::hint::spin_loop();
+            } else {
+                std::thread::sleep(FLOOD_NAP);
+            }
         }
         // The last answers, for one position-loop period or two.
         let end = Instant::now() + Duration::from_millis(5);

@@ -908,19 +908,14 @@ fn an_ordinary_task_busy_on_the_current_loops_cpu_does_not_trip_the_watchdog() {
             pinned
         })
     };
-    let out = stepdrive(&[
-        "run",
-        "--mode",
-        "realtime",
-        "--method",
-        "proposed",
-        "--duration",
-        "5",
-        "--instance",
+    // The default scenario and deployment: what a user runs.
+    let scenario = dir.file("default.toml", "");
+    let realtime = ["--mode", "realtime", "--duration", "5", "--json"];
+    let out = run_proposed(
         &inst,
-        "--json",
-        json.to_str().unwrap(),
-    ]);
+        &scenario,
+        &[&realtime[..], &[json.to_str().unwrap()]].concat(),
+    );
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     assert!(
         hog.join().expect("the hog"),

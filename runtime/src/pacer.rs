@@ -253,7 +253,7 @@ mod tests {
         );
         assert_eq!("event".parse(), Ok(WaitStrategy::Event));
         assert!("nap".parse::<WaitStrategy>().is_err());
-        // A bare `hybrid` is the current loop's default, whose margin leaves it sleeps
+        // A bare `hybrid` is the current loop's default, whose margin leaves its sleeps
         // long enough to give the CPU away.
         assert_eq!(
             "hybrid".parse(),

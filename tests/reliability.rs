@@ -910,11 +910,11 @@ fn an_ordinary_task_busy_on_the_current_loops_cpu_does_not_trip_the_watchdog() {
     };
     // The default scenario and deployment: what a user runs.
     let scenario = dir.file("default.toml", "");
-    let realtime = ["--mode", "realtime", "--duration", "5", "--json"];
+    let json_path = json.to_str().unwrap();
     let out = run_proposed(
         &inst,
         &scenario,
-        &[&realtime[..], &[json.to_str().unwrap()]].concat(),
+        &["--mode", "realtime", "--duration", "5", "--json", json_path],
     );
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     assert!(

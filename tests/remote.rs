@@ -318,3 +318,95 @@ fn a_gateway_serves_every_axis_of_a_multi_axis_stack() {
     let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
     assert!(status.success(), "{}", stderr_of(&mut serve));
 }
+
+/// The CPUs every thread of process `pid` may run on (`Cpus_allowed_list`), one string per
+/// thread, or none once it is gone.
+fn threads_cpus(pid: u32) -> Vec<String> {
+    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else {
+        return Vec::new();
+    };
+    tasks
+        .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("status")).ok())
+        .filter_map(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("Cpus_allowed_list:"))
+                .map(|v| v.trim().to_string())
+        })
+        .collect()
+}
+
+/// The stack's helpers keep off the current loop's CPU (docs/design.md's deployment): with
+/// the loops pinned as by default (plant 0, current loop 1), every thread of `serve` (its
+/// monitor and the live view's) and of the gateway it starts (Zenoh's too) runs on the CPUs
+/// the loops leave, on two cores CPU 0 alone. Loops at ordinary priority: tests share the
+/// machine.
+#[test]
+fn the_gateway_and_the_live_view_keep_off_the_current_loops_cpu() {
+    // SAFETY: sysconf only reads a system constant.
+    let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_ONLN) }.max(1) as usize;
+    if n < 2 {
+        eprintln!("one CPU: nothing to keep off");
+        return;
+    }
+    let expected = match n {
+        2 => "0".to_string(),
+        3 => "2".to_string(),
+        _ => format!("2-{}", n - 1),
+    };
+    let _turn = one_stack_at_a_time();
+    let inst = instance("helpers");
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let mut serve = spawn_run(&[
+        "serve",
+        "--instance",
+        &inst,
+        "--gateway",
+        &endpoint,
+        "--foxglove",
+        "127.0.0.1:0",
+        "--priority",
+        "0",
+        "--cpus",
+        "0,1",
+    ]);
+    let answered = wait_until(Duration::from_secs(30), || {
+        stepdrive(&[
+            "axis",
+            "--instance",
+            &inst,
+            "--connect",
+            &endpoint,
+            "status",
+        ])
+        .status
+        .success()
+    });
+    let gateway = std::fs::read_dir("/proc")
+        .expect("/proc")
+        .filter_map(|e| e.ok()?.file_name().to_str()?.parse::<u32>().ok())
+        .find(|pid| {
+            std::fs::read(format!("/proc/{pid}/cmdline")).is_ok_and(|c| {
+                let c = String::from_utf8_lossy(&c).replace('\0', " ");
+                c.contains(" gateway ") && c.contains(&format!("--instance {inst} "))
+            })
+        });
+    let serve_threads = threads_cpus(serve.id());
+    let gateway_threads = gateway.map(threads_cpus).unwrap_or_default();
+    signal(serve.id(), libc::SIGINT);
+    let status = wait_with_timeout(&mut serve, Duration::from_secs(30));
+    let err = stderr_of(&mut serve);
+    assert!(answered, "no answer through the gateway\nserve: {err}");
+    assert!(status.success(), "{err}");
+    // The monitor's thread and the live view's at least; Zenoh's several.
+    assert!(
+        serve_threads.len() >= 2,
+        "serve's threads: {serve_threads:?}"
+    );
+    assert!(gateway_threads.len() >= 3, "gateway: {gateway_threads:?}");
+    for (who, cpus) in [("serve", &serve_threads), ("the gateway", &gateway_threads)] {
+        assert!(
+            cpus.iter().all(|c| *c == expected),
+            "{who}'s threads may run on {cpus:?}, expected {expected} on {n} CPUs"
+        );
+    }
+}

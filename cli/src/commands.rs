@@ -113,6 +113,13 @@ pub struct GatewayArgs {
     #[arg(long, value_name = "P", default_value_t = stepdrive_client::STREAM_PRIORITY,
           value_parser = clap::value_parser!(u8).range(0..=99))]
     priority: u8,
+    /// CPUs the gateway and Zenoh's threads run on, e.g. 0 or 0,2-3; `any` leaves them to
+    /// the scheduler. Default: the CPUs the stack's loops leave by the default deployment
+    /// (on two cores the plant's, never the current loop's: there the gateway's threads and
+    /// the network traffic they handle took the current loop's CPU from it two to four times
+    /// as often; docs/remote.md).
+    #[arg(long, value_name = "LIST|any")]
+    cpus: Option<crate::options::CpuList>,
 }
 
 /// A rate in Hz: finite, positive, at most 10 kHz.
@@ -248,6 +255,8 @@ impl MonitorArgs {
         stepdrive_runtime::rt::RtOptions {
             priority: Some(p),
             cpu: None,
+            // Off the current loop's CPU, as `run`'s own monitor (the default deployment's).
+            helper_cpus: Deployment::default().helper_cpus(),
             lock_memory: false,
             timer_slack_ns: None,
             require,
@@ -536,8 +545,20 @@ pub fn gateway(a: GatewayArgs) -> Result<()> {
             Side::Listen,
         ),
     };
-    // Before the session opens: Zenoh's threads inherit it.
-    stepdrive_client::realtime_priority(a.priority).context("--priority")?;
+    // Before the session opens: Zenoh's threads inherit both.
+    let cpus = a
+        .cpus
+        .map_or_else(|| Deployment::default().helper_cpus(), |c| c.0);
+    stepdrive_runtime::rt::RtOptions {
+        priority: (a.priority > 0).then_some(a.priority),
+        cpu: None,
+        helper_cpus: cpus,
+        lock_memory: false,
+        timer_slack_ns: None,
+        require: true,
+    }
+    .apply()
+    .map_err(|e| anyhow::anyhow!("--priority/--cpus: {}", e.describe()))?;
     let o = stepdrive_client::gateway::GatewayOptions {
         instance: a.instance,
         endpoint,
@@ -567,8 +588,9 @@ struct GatewayChild(std::process::Child);
 
 impl GatewayChild {
     /// `priority`: the gateway's SCHED_FIFO priority; 0 when the stack's loops run at
-    /// ordinary priority, so that the gateway never goes before them.
-    fn start(endpoint: &str, instance: &str, priority: u8) -> Result<Self> {
+    /// ordinary priority, so that the gateway never goes before them. `cpus`: the stack's
+    /// helper CPUs (empty: any).
+    fn start(endpoint: &str, instance: &str, priority: u8, cpus: &[usize]) -> Result<Self> {
         if !endpoint.starts_with("tcp/") {
             anyhow::bail!("--gateway {endpoint}: give tcp/HOST:PORT");
         }
@@ -578,9 +600,13 @@ impl GatewayChild {
             .with_context(|| format!("--gateway {endpoint}: cannot listen there"))?;
         let exe = std::env::current_exe().context("the stepdrive executable")?;
         let priority = priority.to_string();
+        let cpus = match cpus {
+            [] => "any".to_string(),
+            cpus => stepdrive_runtime::rt::cpu_list(cpus),
+        };
         let mut child = std::process::Command::new(exe)
             .args(["gateway", "--instance", instance, "--listen", endpoint])
-            .args(["--priority", &priority])
+            .args(["--priority", &priority, "--cpus", &cpus])
             .stdin(std::process::Stdio::null())
             .spawn()
             .context("starting the gateway")?;
@@ -621,6 +647,11 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         anyhow::bail!("--duration is for `run`: a served stack runs until Ctrl-C");
     }
     s.run.until_stopped = true;
+    let mode = match a.mode {
+        ServeMode::Realtime => Mode::Realtime,
+        ServeMode::Hardware => Mode::Hardware,
+    };
+    let deployment = a.stack.deployment(mode)?;
     let mut live = a.live.start()?.map(|view| Recording::live_only(view, &s));
     let _gateway = a
         .gateway
@@ -630,14 +661,14 @@ pub fn serve(a: ServeArgs) -> Result<()> {
                 Some(0) => 0,
                 _ => stepdrive_client::STREAM_PRIORITY,
             };
-            GatewayChild::start(endpoint, &a.stack.instance, priority)
+            GatewayChild::start(
+                endpoint,
+                &a.stack.instance,
+                priority,
+                &deployment.helper_cpus(),
+            )
         })
         .transpose()?;
-    let mode = match a.mode {
-        ServeMode::Realtime => Mode::Realtime,
-        ServeMode::Hardware => Mode::Hardware,
-    };
-    let deployment = a.stack.deployment(mode)?;
     check_drive_count(&s, &deployment)?;
     let _throttling = throttling_guard(&a.stack, &deployment, mode)?;
     let opts = LaunchOptions {

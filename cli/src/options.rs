@@ -83,6 +83,42 @@ impl std::str::FromStr for Cpus {
     }
 }
 
+/// `--cpus` of a helper (the gateway): a list of CPUs (`0`, `0,2-3`), or `any` (none
+/// pinned). Each must exist on this machine.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CpuList(pub Vec<usize>);
+
+impl std::str::FromStr for CpuList {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        if s == "any" {
+            return Ok(CpuList(Vec::new()));
+        }
+        let bad = || format!("`{s}` is not a CPU list (e.g. 0 or 0,2-3) or any");
+        // SAFETY: sysconf only reads a system constant.
+        let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_CONF) }.max(1) as usize;
+        let mut cpus = Vec::new();
+        for part in s.split(',') {
+            let (a, b) = part.split_once('-').unwrap_or((part, part));
+            let a: usize = a.trim().parse().map_err(|_| bad())?;
+            let b: usize = b.trim().parse().map_err(|_| bad())?;
+            if a > b {
+                return Err(bad());
+            }
+            if b >= n {
+                return Err(format!(
+                    "CPU {b} does not exist (this machine has CPUs 0-{})",
+                    n - 1
+                ));
+            }
+            cpus.extend(a..=b);
+        }
+        cpus.sort_unstable();
+        cpus.dedup();
+        Ok(CpuList(cpus))
+    }
+}
+
 #[derive(Args, Debug, Clone)]
 pub struct ScenarioOpt {
     /// Scenario TOML file (motor, load, drive, gains, rates, trajectory, metrics); absent
@@ -478,7 +514,25 @@ pub fn check_drive_count(s: &Scenario, d: &Deployment) -> Result<()> {
 
 #[cfg(test)]
 mod tests {
-    use super::number_within;
+    use super::{number_within, CpuList};
+
+    #[test]
+    fn a_cpu_list_is_cpus_and_ranges_that_exist_or_any() {
+        let list = |s: &str| s.parse::<CpuList>().map(|c| c.0);
+        assert_eq!(list("0"), Ok(vec![0]));
+        assert_eq!(list("any"), Ok(vec![]));
+        // SAFETY: sysconf only reads a system constant.
+        let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_CONF) }.max(1) as usize;
+        if n >= 2 {
+            assert_eq!(list("1,0-1"), Ok(vec![0, 1]));
+        }
+        let e = list(&n.to_string()).expect_err("a CPU past the last");
+        assert!(e.contains("does not exist"), "{e}");
+        for bad in ["", "x", "1-0", "0,", "-1", "0-"] {
+            let e = list(bad).expect_err(bad);
+            assert!(e.contains("is not a CPU list"), "{bad}: {e}");
+        }
+    }
 
     #[test]
     fn a_number_outside_its_range_or_not_a_number_is_refused_naming_the_range() {

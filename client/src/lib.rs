@@ -136,6 +136,7 @@ pub fn realtime_priority(priority: u8) -> Result<(), ClientError> {
     stepdrive_runtime::rt::RtOptions {
         priority: Some(priority),
         cpu: None,
+        helper_cpus: Vec::new(),
         lock_memory: false,
         timer_slack_ns: None,
         require: true,

@@ -391,15 +391,60 @@ impl Deployment {
         d
     }
 
+    /// The CPUs the stack's helpers run on (the monitor with its live view, the gateway, an
+    /// attached reader): of those this process may use, the ones no loop is pinned to, or
+    /// where the loops take them all (two cores), all but the current loop's and the
+    /// bridge's. Empty when no loop is pinned. Why: beside everything attached (the gateway,
+    /// a remote watcher, the live view and its client), helpers left to the scheduler ran
+    /// their socket calls on the current loop's CPU in its sleeps, where this kernel
+    /// (preempt=none) does not preempt them; the loop's CPU was then taken from it for
+    /// ≥ 20 µs 687-1090 times in 10 s against 260-505 alone; kept off it, 165-459 against
+    /// 155-505 (docs/remote.md).
+    pub fn helper_cpus(&self) -> Vec<usize> {
+        self.helper_cpus_among(&crate::rt::allowed_cpus())
+    }
+
+    fn helper_cpus_among(&self, allowed: &[usize]) -> Vec<usize> {
+        let loops = [
+            &self.plant,
+            &self.current_loop,
+            &self.position_loop,
+            &self.bridge,
+            &self.emulated_drive,
+        ];
+        if loops.iter().all(|p| p.cpu.is_none()) {
+            return Vec::new();
+        }
+        let off = |taken: &[&Placement]| -> Vec<usize> {
+            allowed
+                .iter()
+                .copied()
+                .filter(|&c| !taken.iter().any(|p| p.cpu == Some(c)))
+                .collect()
+        };
+        let free = off(&loops);
+        if free.is_empty() {
+            off(&[&self.current_loop, &self.bridge])
+        } else {
+            free
+        }
+    }
+
     /// The real-time settings `process` applies to itself in `mode` (none in lockstep).
     pub fn rt(&self, process: Role, mode: Mode) -> RtOptions {
         if mode == Mode::Lockstep {
             return RtOptions::default();
         }
         let p = self.placement(process);
+        let helper_cpus = if process == Role::Monitor && p.cpu.is_none() {
+            self.helper_cpus()
+        } else {
+            Vec::new()
+        };
         RtOptions {
             priority: p.priority.filter(|&v| v > 0),
             cpu: p.cpu,
+            helper_cpus,
             // The monitor only wants its priority: it allocates as it records.
             lock_memory: self.lock_memory && process != Role::Monitor,
             timer_slack_ns: (process != Role::Monitor).then_some(self.timer_slack_ns),
@@ -457,6 +502,36 @@ mod tests {
             WaitStrategy::Spin
         );
         assert_eq!(partial.plant, d.plant);
+    }
+
+    #[test]
+    fn helpers_keep_off_the_loops_cpus_and_always_off_the_current_loops() {
+        let d = Deployment::default();
+        // Two cores: the loops take both; helpers share the plant's, never the current loop's.
+        assert_eq!(d.helper_cpus_among(&[0, 1]), vec![0]);
+        // More cores: the ones no loop uses.
+        assert_eq!(d.helper_cpus_among(&[0, 1, 2, 3]), vec![2, 3]);
+        // A process confined (taskset) to the current loop's CPU has nowhere to go.
+        assert!(d.helper_cpus_among(&[1]).is_empty());
+        let mut moved = d.clone();
+        moved.set_cpus(Some((2, 3)));
+        assert_eq!(moved.helper_cpus_among(&[0, 1, 2, 3]), vec![0, 1]);
+        assert_eq!(moved.helper_cpus_among(&[2, 3]), vec![2]);
+        // Nothing pinned: nothing to keep off.
+        let mut free = d.clone();
+        free.set_cpus(None);
+        assert!(free.helper_cpus_among(&[0, 1]).is_empty());
+        assert!(free
+            .rt(Role::Monitor, Mode::Realtime)
+            .helper_cpus
+            .is_empty());
+        // Only the monitor is a helper, and only outside lockstep.
+        assert!(d.rt(Role::Plant, Mode::Realtime).helper_cpus.is_empty());
+        assert!(d.rt(Role::Monitor, Mode::Lockstep).helper_cpus.is_empty());
+        let mut placed = d.clone();
+        placed.monitor.cpu = Some(1);
+        let rt = placed.rt(Role::Monitor, Mode::Realtime);
+        assert_eq!((rt.cpu, rt.helper_cpus.is_empty()), (Some(1), true));
     }
 
     #[test]

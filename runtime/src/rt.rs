@@ -10,6 +10,11 @@ pub struct RtOptions {
     pub priority: Option<u8>,
     /// Pin to this CPU.
     pub cpu: Option<usize>,
+    /// A helper of the stack (`cpu` unset): every thread of the process on these CPUs, so
+    /// that neither it nor the network traffic it handles lands on a loop's CPU (see
+    /// `Deployment::helper_cpus`). Empty: its affinity is left alone.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub helper_cpus: Vec<usize>,
     /// mlockall(MCL_CURRENT | MCL_FUTURE) and prefault 512 KiB of stack.
     pub lock_memory: bool,
     /// prctl(PR_SET_TIMERSLACK) in ns (the kernel default is 50 µs, a whole period here).
@@ -35,9 +40,9 @@ pub enum RtError {
         #[source]
         source: std::io::Error,
     },
-    #[error("cannot pin to CPU {cpu}")]
+    #[error("cannot pin to CPU {cpus}")]
     Affinity {
-        cpu: usize,
+        cpus: String,
         #[source]
         source: std::io::Error,
     },
@@ -136,7 +141,24 @@ impl RtOptions {
         if let Some(cpu) = self.cpu {
             match pin_to_cpu(cpu) {
                 Ok(()) => applied.pinned = true,
-                Err(source) => refuse(self.require, RtError::Affinity { cpu, source })?,
+                Err(source) => refuse(
+                    self.require,
+                    RtError::Affinity {
+                        cpus: cpu.to_string(),
+                        source,
+                    },
+                )?,
+            }
+        } else if !self.helper_cpus.is_empty() {
+            match pin_process_to(&self.helper_cpus) {
+                Ok(()) => applied.pinned = true,
+                Err(source) => refuse(
+                    self.require,
+                    RtError::Affinity {
+                        cpus: cpu_list(&self.helper_cpus),
+                        source,
+                    },
+                )?,
             }
         }
         Ok(applied)
@@ -191,18 +213,69 @@ impl Drop for RtThrottlingOff {
 
 /// Pins the calling thread to one CPU.
 pub fn pin_to_cpu(cpu: usize) -> std::io::Result<()> {
-    if cpu >= 8 * std::mem::size_of::<libc::cpu_set_t>() {
+    set_affinity(0, &[cpu])
+}
+
+/// Pins every thread of the calling process to `cpus`. Threads started before this (a
+/// live view's, a runtime's) are moved too; those started after inherit it.
+pub fn pin_process_to(cpus: &[usize]) -> std::io::Result<()> {
+    for entry in std::fs::read_dir("/proc/self/task")? {
+        let Some(tid) = entry?
+            .file_name()
+            .to_str()
+            .and_then(|s| s.parse::<libc::pid_t>().ok())
+        else {
+            continue;
+        };
+        match set_affinity(tid, cpus) {
+            // A thread that ended since the directory was read.
+            Err(e) if e.raw_os_error() == Some(libc::ESRCH) => {}
+            other => other?,
+        }
+    }
+    Ok(())
+}
+
+const CPU_SET_SIZE: usize = 8 * std::mem::size_of::<libc::cpu_set_t>();
+
+fn set_affinity(tid: libc::pid_t, cpus: &[usize]) -> std::io::Result<()> {
+    if cpus.is_empty() || cpus.iter().any(|&c| c >= CPU_SET_SIZE) {
         return Err(std::io::Error::from_raw_os_error(libc::EINVAL));
     }
-    // SAFETY: cpu_set_t is plain data; `cpu` is within its size (checked above).
+    // SAFETY: cpu_set_t is plain data; every CPU is within its size (checked above).
     let rc = unsafe {
         let mut set: libc::cpu_set_t = std::mem::zeroed();
-        libc::CPU_SET(cpu, &mut set);
-        libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
+        for &cpu in cpus {
+            libc::CPU_SET(cpu, &mut set);
+        }
+        libc::sched_setaffinity(tid, std::mem::size_of::<libc::cpu_set_t>(), &set)
     };
     if rc == 0 {
         Ok(())
     } else {
         Err(std::io::Error::last_os_error())
     }
+}
+
+/// The CPUs the calling thread may run on (all configured ones if the kernel will not say).
+pub fn allowed_cpus() -> Vec<usize> {
+    // SAFETY: cpu_set_t is plain data, filled by the kernel; CPU_ISSET reads within it.
+    unsafe {
+        let mut set: libc::cpu_set_t = std::mem::zeroed();
+        if libc::sched_getaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &mut set) == 0 {
+            return (0..CPU_SET_SIZE)
+                .filter(|&c| libc::CPU_ISSET(c, &set))
+                .collect();
+        }
+        let n = libc::sysconf(libc::_SC_NPROCESSORS_CONF).max(1) as usize;
+        (0..n).collect()
+    }
+}
+
+/// `0,2,3` for [0, 2, 3].
+pub fn cpu_list(cpus: &[usize]) -> String {
+    cpus.iter()
+        .map(usize::to_string)
+        .collect::<Vec<_>>()
+        .join(",")
 }

@@ -396,8 +396,8 @@ impl Deployment {
     /// where the loops take them all (two cores), all but the current loop's and the
     /// bridge's. Empty when no loop is pinned. Why: beside everything attached (the gateway,
     /// a remote watcher, the live view and its client), helpers left to the scheduler ran
-    /// their socket calls on the current loop's CPU in its sleeps, where this kernel
-    /// (preempt=none) does not preempt them; the loop's CPU was then taken from it for
+    /// their socket calls on the current loop's CPU in its sleeps (this kernel does not
+    /// preempt a system call: preempt=none), and the loop's CPU was taken from it for
     /// ≥ 20 µs 687-1090 times in 10 s against 260-505 alone; kept off it, 165-459 against
     /// 155-505 (docs/remote.md).
     pub fn helper_cpus(&self) -> Vec<usize> {

@@ -111,10 +111,17 @@ fn a_silent_position_loop_is_stood_in_for_by_a_controlled_stop() {
     let stood = theta_d(t) + omega_d(t).powi(2) / (2.0 * qs);
     let expected = theta_d(3.7) - stood;
     let final_error = num(r, "final_error_rad");
+    // The report's stale time is the first state that carries the flag: a sample or more
+    // after the current loop began its stop, never before. At ordinary priority on a busy
+    // CI machine that was once 0.9 ms late, which at 13.13 rad/s cruise puts the expected
+    // stop 12 mrad short. So the rotor may stand further from the end by up to 5 ms of
+    // cruise (66 mrad), and no nearer; a stop from the wrong speed or at the wrong rate
+    // moves it by tenths of a radian (v²/2a_qs = 0.43 rad), a missing stop by radians.
+    let late = final_error - expected;
     assert!(
-        (final_error - expected).abs() < 1e-2,
+        (-1e-2..v * 5e-3).contains(&late),
         "stale at {t} s: the rotor stands {final_error} rad from the trajectory's end, the \
-         stop puts it {expected} rad away"
+         stop puts it {expected} rad away ({late:+.4} rad)"
     );
 }
 

@@ -813,11 +813,20 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     ]);
     let out = text(&streamed);
     assert!(streamed.status.success(), "{out}");
-    assert_same_after(
-        &out,
-        "stream time played ",
-        3,
-        "the axes play different stream times",
+    // One origin: the same offset on every axis, to one plant sample. Each figure comes
+    // from that axis's last status, and once CI's stack at ordinary priority read one axis's
+    // a sample later than the others' (1.476700 against 1.476650 s).
+    let offsets: Vec<f64> = out
+        .lines()
+        .filter_map(|l| l.split("stream time played ").nth(1))
+        .filter_map(|v| v.trim_end_matches(" s").parse().ok())
+        .collect();
+    assert_eq!(offsets.len(), 3, "{out}");
+    let spread = offsets.iter().fold(f64::NEG_INFINITY, |a, &b| a.max(b))
+        - offsets.iter().fold(f64::INFINITY, |a, &b| a.min(b));
+    assert!(
+        spread <= 60e-6,
+        "the axes play different stream times: {out}"
     );
     std::thread::sleep(Duration::from_millis(300));
     for (n, end) in [("0", 0.5), ("1", -0.5), ("2", 0.0)] {

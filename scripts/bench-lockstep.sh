@@ -7,11 +7,13 @@
 #
 #   scripts/bench-lockstep.sh [RUNS (5)] [HOG COUNTS ("0 2")]
 #   STEPDRIVE_EXE=/other/build/stepdrive scripts/bench-lockstep.sh   (an A/B against a build)
+#   RUN_ARGS="--nice 0" scripts/bench-lockstep.sh                     (options for every run)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 runs=${1:-5}
 hog_counts=${2:-"0 2"}
 exe=${STEPDRIVE_EXE:-}
+read -ra run_args <<<"${RUN_ARGS:-}"
 if [ -z "$exe" ]; then
   cargo build --release -q
   exe=target/release/stepdrive
@@ -48,7 +50,7 @@ for n in $hog_counts; do
   done
   : >"$tmp/walls"
   for i in $(seq 1 "$runs"); do
-    if ! "$exe" run --method proposed --instance "bench-lockstep-$$" --json "$tmp/run.json" >/dev/null 2>&1; then
+    if ! "$exe" run --method proposed "${run_args[@]}" --instance "bench-lockstep-$$" --json "$tmp/run.json" >/dev/null 2>&1; then
       echo "run $i with $n hog(s) failed" >&2
       exit 1
     fi

@@ -259,6 +259,7 @@ impl MonitorArgs {
             helper_cpus: Deployment::default().helper_cpus(),
             lock_memory: false,
             timer_slack_ns: None,
+            nice: None,
             require,
         }
         .apply()
@@ -555,6 +556,7 @@ pub fn gateway(a: GatewayArgs) -> Result<()> {
         helper_cpus: cpus,
         lock_memory: false,
         timer_slack_ns: None,
+        nice: None,
         require: true,
     }
     .apply()

@@ -237,6 +237,13 @@ pub struct RtArgs {
     /// Fail if the system refuses a real-time setting instead of warning and going on.
     #[arg(long)]
     pub require_rt: bool,
+    /// Nice value of every process of the stack at ordinary scheduling (all of them in
+    /// lockstep; in realtime those given priority 0), -20..=19: default -10, so that their
+    /// hand-offs are not queued behind ordinary tasks on a busy machine (needs root, else
+    /// the inherited one stays); 0 keeps the inherited value
+    #[arg(long, value_name = "N", allow_negative_numbers = true,
+          value_parser = clap::value_parser!(i32).range(-20..=19))]
+    pub nice: Option<i32>,
 }
 
 impl RtArgs {
@@ -248,6 +255,9 @@ impl RtArgs {
             d.timer_slack_ns = ns;
         }
         d.require_rt |= self.require_rt;
+        if let Some(n) = self.nice {
+            d.nice = n;
+        }
     }
 }
 

@@ -139,6 +139,7 @@ pub fn realtime_priority(priority: u8) -> Result<(), ClientError> {
         helper_cpus: Vec::new(),
         lock_memory: false,
         timer_slack_ns: None,
+        nice: None,
         require: true,
     }
     .apply()

@@ -24,7 +24,7 @@ use stepdrive_shared::axis::{
 };
 use stepdrive_shared::messages::{state_flags, DriveState, ResetRequest, TorqueSetpoint};
 use stepdrive_shared::scenario::{GroupStop, Mode};
-use stepdrive_shared::services::{Topic, LOOP_BUFFER};
+use stepdrive_shared::services::Topic;
 use stepdrive_shared::stack::POSITION_LOOP;
 use stepdrive_shared::Scenario;
 
@@ -51,6 +51,12 @@ pub struct PositionLoopPorts {
     pub presence: Box<dyn Presence>,
 }
 
+/// Lockstep: the queue of states between two ticks. Deep enough that the position loop
+/// sleeps from tick to tick: at 16 it was woken every 8 samples to drain it, each time a
+/// futex call in the plant's hand-off and a CPU taken from a spinning peer (the default
+/// run 0.26-0.46 -> 0.15-0.33 s). The plant would wait on a full one.
+const LOCKSTEP_STATE_QUEUE: usize = 1024;
+
 impl PositionLoopPorts {
     pub fn open(f: &mut impl PortFactory, mode: Mode) -> Result<Self, PortError> {
         Ok(Self {
@@ -61,7 +67,7 @@ impl PositionLoopPorts {
                 &POSITION_LOOP,
                 mode,
                 match mode {
-                    Mode::Lockstep => LOOP_BUFFER,
+                    Mode::Lockstep => LOCKSTEP_STATE_QUEUE,
                     Mode::Realtime | Mode::Hardware => 1,
                 },
             )?,
@@ -419,7 +425,7 @@ impl Node for PositionLoopNode {
         let next = self.latest.map_or(0, |s| s.seq + 1);
         let tick = next.div_ceil(self.ratio) * self.ratio;
         Awaits::Later {
-            state: Some(tick.min(next + LOOP_BUFFER as u64 / 2)),
+            state: Some(tick.min(next + LOCKSTEP_STATE_QUEUE as u64 / 2)),
         }
     }
 
@@ -796,4 +802,35 @@ fn lanes_measured(lanes: &[PositionLoopNode]) -> Option<([Measured; MAX_LANES], 
         m[i] = measured(&lane.latest?);
     }
     Some((m, lanes.len().min(MAX_LANES)))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What a lockstep position loop that has taken state `seq` sleeps for, at `hz`.
+    fn sleeps_for(hz: f64, seq: u64) -> Awaits {
+        let mut s = Scenario::default();
+        s.rates.position_loop_hz = hz;
+        let mut node = PositionLoopNode::new(&s, 0, Mode::Lockstep, 0).expect("node");
+        node.latest = Some(DriveState {
+            seq,
+            ..DriveState::default()
+        });
+        node.awaits()
+    }
+
+    #[test]
+    fn a_lockstep_position_loop_sleeps_from_tick_to_tick_not_queue_to_queue() {
+        let at = |state| Awaits::Later { state: Some(state) };
+        // 20 kHz samples: a tick every 10 states at 2 kHz, every 100 at 200 Hz (a queue of
+        // 16 had it woken every 8 states to drain it).
+        assert_eq!(sleeps_for(2_000.0, 0), at(10));
+        assert_eq!(sleeps_for(2_000.0, 10), at(20));
+        assert_eq!(sleeps_for(200.0, 0), at(100));
+        assert_eq!(sleeps_for(200.0, 99), at(100));
+        // Ticks further apart than half its queue: woken to drain it, so the plant never
+        // waits on a full one.
+        assert_eq!(sleeps_for(20.0, 0), at(1 + LOCKSTEP_STATE_QUEUE as u64 / 2));
+    }
 }

@@ -28,6 +28,9 @@ use stepdrive_shared::Scenario;
 /// Lockstep: after this long without the awaited command, and then at most this often, the
 /// plant looks for dead peers.
 const LOOK_FOR_THE_DEAD_NS: u64 = 200_000_000;
+/// Lockstep: after this long without the awaited command the plant watches the current loop
+/// leave and another attach.
+const WATCH_AFTER_NS: u64 = 100_000;
 
 /// What the plant reads and writes.
 pub struct PlantPorts {
@@ -319,8 +322,9 @@ impl Node for PlantNode {
         if !self.emitted {
             self.publish_state(ports, cx)?;
             self.emitted = true;
+            // Once a sample: polling an empty queue costs a lockstep hand-off its latency.
+            self.take_resets(ports)?;
         }
-        self.take_resets(ports)?;
         let next_needed = self.sim.sample_index().saturating_sub(self.delay);
         while let Some(t) = ports.commands.take()? {
             let c = t.message;
@@ -347,7 +351,13 @@ impl Node for PlantNode {
             return Ok(Poll::READY);
         }
         if !clocked {
-            self.watch_current_loop(ports, cx.now())?;
+            let now = cx.now();
+            let since = *self.rejoin.waiting_since_ns.get_or_insert(now);
+            // Counting the peers walks iceoryx2's port tables: not on every poll of a
+            // hand-off that takes a few µs.
+            if now.saturating_sub(since) >= WATCH_AFTER_NS {
+                self.watch_current_loop(ports, now)?;
+            }
         }
         Ok(Poll::Pending)
     }

@@ -94,6 +94,13 @@ pub struct Deployment {
     pub timer_slack_ns: u64,
     /// Fail when the system refuses a real-time setting, instead of warning and going on.
     pub require_rt: bool,
+    /// The nice value of every process of the stack that runs at ordinary scheduling (all of
+    /// them in lockstep; in realtime those without a SCHED_FIFO priority), -20..=19, 0 to
+    /// leave it. A lockstep stack hands off ~60 000 times a simulated second, and a hand-off
+    /// whose peer has to get its CPU back from an ordinary task waits for a scheduler slice:
+    /// beside two CPU hogs a run was 2-3× slower at nice 0 (docs/measurements.md). Negative
+    /// values need root or CAP_SYS_NICE; without them a process keeps its inherited nice.
+    pub nice: i32,
     pub plant: Placement,
     pub current_loop: Placement,
     pub position_loop: Placement,
@@ -109,6 +116,9 @@ pub struct Deployment {
 /// ordinary task waking at 1 kHz is run ahead of SCHED_FIFO tasks by the kernel's fair
 /// server, and delays them). docs/design.md has the measurements.
 pub const DEFAULT_PRIORITY: u8 = 80;
+
+/// The default nice value of a stack's processes at ordinary scheduling ([`Deployment::nice`]).
+pub const DEFAULT_NICE: i32 = -10;
 
 /// The most axes whose plant spins before its deadlines by default ([`Deployment::for_axes`]).
 pub const PLANT_SPINS_UP_TO_AXES: usize = 2;
@@ -133,6 +143,7 @@ impl Default for Deployment {
             lock_memory: true,
             timer_slack_ns: 1000,
             require_rt: false,
+            nice: DEFAULT_NICE,
             plant: Placement::default(),
             current_loop: Placement::default(),
             position_loop: Placement::default(),
@@ -210,6 +221,12 @@ impl Deployment {
         seconds("peer_timeout_s", self.peer_timeout_s)?;
         if self.watchdog_periods == 0 {
             return Err(invalid("watchdog_periods", "must be at least 1"));
+        }
+        if !(-20..=19).contains(&self.nice) {
+            return Err(invalid(
+                "nice",
+                format!("must be a nice value in -20..=19 (got {})", self.nice),
+            ));
         }
         let link = &self.drive;
         if link.silence_periods == 0 {
@@ -430,26 +447,36 @@ impl Deployment {
         }
     }
 
-    /// The real-time settings `process` applies to itself in `mode` (none in lockstep).
+    /// The real-time settings `process` applies to itself in `mode` (in lockstep only the
+    /// stack's nice value, which a realtime process without a priority takes too).
     pub fn rt(&self, process: Role, mode: Mode) -> RtOptions {
         if mode == Mode::Lockstep {
-            return RtOptions::default();
+            return RtOptions {
+                nice: self.nice_value(),
+                ..RtOptions::default()
+            };
         }
         let p = self.placement(process);
+        let priority = p.priority.filter(|&v| v > 0);
         let helper_cpus = if process == Role::Monitor && p.cpu.is_none() {
             self.helper_cpus()
         } else {
             Vec::new()
         };
         RtOptions {
-            priority: p.priority.filter(|&v| v > 0),
+            priority,
             cpu: p.cpu,
             helper_cpus,
             // The monitor only wants its priority: it allocates as it records.
             lock_memory: self.lock_memory && process != Role::Monitor,
             timer_slack_ns: (process != Role::Monitor).then_some(self.timer_slack_ns),
+            nice: priority.map_or_else(|| self.nice_value(), |_| None),
             require: self.require_rt,
         }
+    }
+
+    fn nice_value(&self) -> Option<i32> {
+        (self.nice != 0).then_some(self.nice)
     }
 }
 
@@ -479,7 +506,32 @@ mod tests {
             d.wait(Role::Bridge, Mode::Hardware),
             WaitStrategy::Hybrid { margin_ns: 30_000 }
         );
-        assert_eq!(d.rt(Role::Plant, Mode::Lockstep), RtOptions::default());
+        // Lockstep: no priority, CPU or locking; the whole stack at one nice value, which
+        // in realtime only a process at ordinary scheduling takes.
+        for p in [
+            Role::Plant,
+            Role::CurrentLoop,
+            Role::PositionLoop,
+            Role::Monitor,
+        ] {
+            assert_eq!(
+                d.rt(p, Mode::Lockstep),
+                RtOptions {
+                    nice: Some(DEFAULT_NICE),
+                    ..RtOptions::default()
+                }
+            );
+            assert_eq!(d.rt(p, Mode::Realtime).nice, None, "{p:?} has a priority");
+        }
+        let mut ordinary = Deployment::default();
+        ordinary.set_priorities(0, 0);
+        let rt = ordinary.rt(Role::CurrentLoop, Mode::Realtime);
+        assert_eq!((rt.priority, rt.nice), (None, Some(DEFAULT_NICE)));
+        let polite = Deployment {
+            nice: 0,
+            ..Deployment::default()
+        };
+        assert_eq!(polite.rt(Role::Plant, Mode::Lockstep), RtOptions::default());
         let back: Deployment = toml::from_str(&d.to_toml_string()).expect("parses");
         assert_eq!(back, d);
         // Written out for a mode, every wait strategy is spelled out and reads back the same.
@@ -556,6 +608,8 @@ mod tests {
                 .expect_err("must be rejected")
         };
         assert!(bad("watchdog_periods = 0").contains("watchdog_periods"));
+        assert!(bad("nice = -21").contains("nice"));
+        assert!(bad("nice = 20").contains("-20..=19"));
         assert!(bad("peer_timeout_s = -1.0").contains("peer_timeout_s"));
         assert!(bad("[drive]\nobserver_hz = nan").contains("drive.observer_hz"));
         assert!(bad("[plant]\nwait = \"nap\"").contains("nap"));

@@ -19,6 +19,11 @@ pub struct RtOptions {
     pub lock_memory: bool,
     /// prctl(PR_SET_TIMERSLACK) in ns (the kernel default is 50 µs, a whole period here).
     pub timer_slack_ns: Option<u64>,
+    /// This nice value (ordinary scheduling), for the calling thread and what it starts
+    /// afterwards. A refusal (not root) is noted at debug level only, even with `require`:
+    /// the run is the same, only slower on a busy machine.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub nice: Option<i32>,
     /// Fail instead of warning when the system refuses a setting.
     pub require: bool,
 }
@@ -68,6 +73,7 @@ pub struct RtApplied {
     pub pinned: bool,
     pub locked: bool,
     pub slack: bool,
+    pub niced: bool,
 }
 
 fn refuse(require: bool, error: RtError) -> Result<(), RtError> {
@@ -115,6 +121,19 @@ impl RtOptions {
             } else {
                 let source = std::io::Error::last_os_error();
                 refuse(self.require, RtError::LockMemory(source))?;
+            }
+        }
+        if let Some(nice) = self.nice {
+            // SAFETY: plain setpriority on the calling thread (who = 0).
+            let rc = unsafe { libc::setpriority(libc::PRIO_PROCESS, 0, nice) };
+            if rc == 0 {
+                applied.niced = true;
+            } else {
+                tracing::debug!(
+                    nice,
+                    error = %std::io::Error::last_os_error(),
+                    "nice value refused: this process competes with ordinary tasks as an equal"
+                );
             }
         }
         // Priority before affinity: a process that moves to a CPU where a SCHED_FIFO loop
@@ -278,4 +297,47 @@ pub fn cpu_list(cpus: &[usize]) -> String {
         .map(usize::to_string)
         .collect::<Vec<_>>()
         .join(",")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn own_nice() -> i32 {
+        // SAFETY: getpriority of the calling thread; errno is not needed (-1 is a valid
+        // nice, and the values asserted here are not -1).
+        unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) }
+    }
+
+    #[test]
+    fn a_nice_value_is_applied_to_the_calling_thread_and_inherited_by_its_threads() {
+        std::thread::spawn(|| {
+            let before = own_nice();
+            // Raising the nice value to the top needs no privilege.
+            let applied = RtOptions {
+                nice: Some(19),
+                ..RtOptions::default()
+            }
+            .apply()
+            .expect("apply");
+            assert!(applied.niced);
+            assert_eq!(own_nice(), 19, "was {before}");
+            let child = std::thread::spawn(own_nice).join().expect("child");
+            assert_eq!(child, 19, "a thread started afterwards inherits it");
+            // Lowering it again without privilege is refused, quietly, and the run goes on.
+            let again = RtOptions {
+                nice: Some(-20),
+                require: true,
+                ..RtOptions::default()
+            }
+            .apply()
+            .expect("a refused nice value is not an error");
+            // SAFETY: geteuid has no preconditions.
+            let root = unsafe { libc::geteuid() } == 0;
+            assert_eq!(again.niced, root);
+            assert_eq!(own_nice(), if root { -20 } else { 19 });
+        })
+        .join()
+        .expect("thread");
+    }
 }

@@ -895,12 +895,7 @@ fn an_ordinary_task_busy_on_the_current_loops_cpu_does_not_trip_the_watchdog() {
     let hog = {
         let stop = stop.clone();
         std::thread::spawn(move || {
-            // SAFETY: a CPU set of this thread's own, on the stack, passed by pointer.
-            let pinned = unsafe {
-                let mut set: libc::cpu_set_t = std::mem::zeroed();
-                libc::CPU_SET(1, &mut set);
-                libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set) == 0
-            };
+            let pinned = stepdrive_runtime::rt::pin_to_cpu(1).is_ok();
             let mut spins = 0u64;
             while !stop.load(std::sync::atomic::Ordering::Relaxed) {
                 spins = std::hint::black_box(spins.wrapping_add(1));

@@ -95,8 +95,6 @@ impl std::str::FromStr for CpuList {
             return Ok(CpuList(Vec::new()));
         }
         let bad = || format!("`{s}` is not a CPU list (e.g. 0 or 0,2-3) or any");
-        // SAFETY: sysconf only reads a system constant.
-        let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_CONF) }.max(1) as usize;
         let mut cpus = Vec::new();
         for part in s.split(',') {
             let (a, b) = part.split_once('-').unwrap_or((part, part));
@@ -105,12 +103,7 @@ impl std::str::FromStr for CpuList {
             if a > b {
                 return Err(bad());
             }
-            if b >= n {
-                return Err(format!(
-                    "CPU {b} does not exist (this machine has CPUs 0-{})",
-                    n - 1
-                ));
-            }
+            stepdrive_runtime::rt::cpu_exists(b)?;
             cpus.extend(a..=b);
         }
         cpus.sort_unstable();
@@ -393,13 +386,9 @@ impl StackArgs {
         }
         if let Some(Cpus(cpus)) = self.cpus {
             if let Some((a, b)) = cpus {
-                // SAFETY: sysconf only reads a system constant.
-                let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_CONF) }.max(1) as usize;
-                if let Some(bad) = [a, b].into_iter().find(|&c| c >= n) {
-                    anyhow::bail!(
-                        "--cpus: CPU {bad} does not exist (this machine has CPUs 0-{})",
-                        n - 1
-                    );
+                for cpu in [a, b] {
+                    stepdrive_runtime::rt::cpu_exists(cpu)
+                        .map_err(|e| anyhow::anyhow!("--cpus: {e}"))?;
                 }
             }
             d.set_cpus(cpus);
@@ -531,8 +520,7 @@ mod tests {
         let list = |s: &str| s.parse::<CpuList>().map(|c| c.0);
         assert_eq!(list("0"), Ok(vec![0]));
         assert_eq!(list("any"), Ok(vec![]));
-        // SAFETY: sysconf only reads a system constant.
-        let n = unsafe { libc::sysconf(libc::_SC_NPROCESSORS_CONF) }.max(1) as usize;
+        let n = stepdrive_runtime::rt::configured_cpus();
         if n >= 2 {
             assert_eq!(list("1,0-1"), Ok(vec![0, 1]));
         }

@@ -286,8 +286,26 @@ pub fn allowed_cpus() -> Vec<usize> {
                 .filter(|&c| libc::CPU_ISSET(c, &set))
                 .collect();
         }
-        let n = libc::sysconf(libc::_SC_NPROCESSORS_CONF).max(1) as usize;
-        (0..n).collect()
+    }
+    (0..configured_cpus()).collect()
+}
+
+/// The CPUs this machine has (configured, online or not).
+pub fn configured_cpus() -> usize {
+    // SAFETY: sysconf only reads a system constant.
+    unsafe { libc::sysconf(libc::_SC_NPROCESSORS_CONF) }.max(1) as usize
+}
+
+/// Refuses a CPU this machine does not have, naming the ones it has.
+pub fn cpu_exists(cpu: usize) -> Result<(), String> {
+    let n = configured_cpus();
+    if cpu < n {
+        Ok(())
+    } else {
+        Err(format!(
+            "CPU {cpu} does not exist (this machine has CPUs 0-{})",
+            n - 1
+        ))
     }
 }
 
@@ -307,6 +325,20 @@ mod tests {
         // SAFETY: getpriority of the calling thread; errno is not needed (-1 is a valid
         // nice, and the values asserted here are not -1).
         unsafe { libc::getpriority(libc::PRIO_PROCESS, 0) }
+    }
+
+    #[test]
+    fn a_cpu_past_the_last_is_refused_naming_the_ones_there_are() {
+        let n = configured_cpus();
+        assert!(cpu_exists(0).is_ok());
+        assert!(cpu_exists(n - 1).is_ok());
+        let e = cpu_exists(n).expect_err("one past the last");
+        assert_eq!(
+            e,
+            format!("CPU {n} does not exist (this machine has CPUs 0-{})", n - 1)
+        );
+        // What the thread may use is among what the machine has.
+        assert!(allowed_cpus().iter().all(|&c| c < n));
     }
 
     #[test]

@@ -47,8 +47,23 @@ pub fn reset(instance: &str, wait: Duration) -> Result<ResetResult> {
         std::thread::sleep(Duration::from_millis(5));
     }
     requests.connect()?;
+    // What was latched before the request, from a state that has come: a subscriber gets
+    // the newest state only once the device publishes again, and reading none as "nothing
+    // latched" reported a reset that cleared a fault as "no fault was latched".
+    let latched_before = loop {
+        if let Some(s) = states.newest()? {
+            break s.fault & LATCHED;
+        }
+        if Instant::now() > deadline {
+            bail!(
+                "no state from the plant or bridge of instance `{instance}` within {:.1} s: \
+                 cannot tell what a reset would clear",
+                wait.as_secs_f64()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(1));
+    };
     let sent = monotonic_ns();
-    let latched_before = states.newest()?.map_or(0, |s| s.fault & LATCHED);
     requests.publish(&ResetRequest {
         seq: 1,
         publish_time_ns: sent,

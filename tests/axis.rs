@@ -816,9 +816,8 @@ fn each_axis_of_a_served_three_axis_stack_is_commanded_by_its_index() {
     // One origin: the same offset on every axis, to one plant sample. Each figure comes
     // from that axis's last status, and once CI's stack at ordinary priority read one axis's
     // a sample later than the others' (1.476700 against 1.476650 s).
-    let offsets: Vec<f64> = out
-        .lines()
-        .filter_map(|l| l.split("stream time played ").nth(1))
+    let offsets: Vec<f64> = after(&out, "stream time played ")
+        .into_iter()
         .filter_map(|v| v.trim_end_matches(" s").parse().ok())
         .collect();
     assert_eq!(offsets.len(), 3, "{out}");

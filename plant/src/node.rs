@@ -217,6 +217,11 @@ impl PlantNode {
     fn watch_current_loop(&mut self, ports: &mut PlantPorts, now: u64) -> Result<(), RunError> {
         let r = &mut self.rejoin;
         let since = *r.waiting_since_ns.get_or_insert(now);
+        // Counting the peers walks iceoryx2's port tables: not on every poll of a hand-off
+        // that takes a few µs.
+        if now.saturating_sub(since) < WATCH_AFTER_NS {
+            return Ok(());
+        }
         if now.saturating_sub(since) > LOOK_FOR_THE_DEAD_NS
             && now.saturating_sub(r.dead_checked_ns) > LOOK_FOR_THE_DEAD_NS
         {
@@ -351,13 +356,7 @@ impl Node for PlantNode {
             return Ok(Poll::READY);
         }
         if !clocked {
-            let now = cx.now();
-            let since = *self.rejoin.waiting_since_ns.get_or_insert(now);
-            // Counting the peers walks iceoryx2's port tables: not on every poll of a
-            // hand-off that takes a few µs.
-            if now.saturating_sub(since) >= WATCH_AFTER_NS {
-                self.watch_current_loop(ports, now)?;
-            }
+            self.watch_current_loop(ports, cx.now())?;
         }
         Ok(Poll::Pending)
     }

@@ -96,7 +96,7 @@ pub struct Deployment {
     pub require_rt: bool,
     /// The nice value of every process of the stack that runs at ordinary scheduling (all of
     /// them in lockstep; in realtime those without a SCHED_FIFO priority), -20..=19, 0 to
-    /// leave it. A lockstep stack hands off ~60 000 times a simulated second, and a hand-off
+    /// leave it. A lockstep stack hands off ~44 000 times a simulated second, and a hand-off
     /// whose peer has to get its CPU back from an ordinary task waits for a scheduler slice:
     /// beside two CPU hogs a run was 2-3× slower at nice 0 (docs/measurements.md). Negative
     /// values need root or CAP_SYS_NICE; without them a process keeps its inherited nice.

@@ -625,10 +625,15 @@ impl Csv {
     }
 }
 
+/// What follows `marker` on each line of `out` that holds it.
+pub fn after<'a>(out: &'a str, marker: &str) -> Vec<&'a str> {
+    out.lines().filter_map(|l| l.split(marker).nth(1)).collect()
+}
+
 /// Asserts that `out` has `count` lines holding `marker` and that what follows the marker
 /// is the same on each (`what`: the property that says, for the message).
 pub fn assert_same_after(out: &str, marker: &str, count: usize, what: &str) {
-    let after: Vec<&str> = out.lines().filter_map(|l| l.split(marker).nth(1)).collect();
+    let after = after(out, marker);
     assert_eq!(after.len(), count, "{out}");
     assert!(after.iter().all(|a| *a == after[0]), "{what}: {out}");
 }

@@ -11,17 +11,25 @@
 //! sleep 200 µs): with one CPU hog per core every hand-off ended in the sleep, and a 0.18 s
 //! run took 20–40 s.
 //!
+//! A reader may be woken by another reader instead of the publisher
+//! ([`stepdrive_shared::stack::woken_by`]): the current loop rings the position loop's
+//! doorbell for the state of its tick as it takes it, and the position loop sleeps on the
+//! current loop's CPU (the relaying ring notes that CPU in the doorbell). A wake-up on the
+//! waker's own CPU is one context switch, ~4 µs here; woken by the plant, on a CPU where the
+//! plant or the current loop spins, it was ~17 µs, and the current loop waits for that
+//! tick's setpoint (docs/measurements.md).
+//!
 //! Realtime and hardware stacks use one doorbell only: the position loop's, rung by a client
 //! that sent it a command, so that the command is carried out between ticks instead of at
 //! the next one (a tick waited up to a whole period: command latency p99 was one period plus
 //! the wake-up, 563–945 µs at 2 kHz). Their loops are otherwise paced by the clock or by the
 //! bridge's event, and no publisher rings.
 
-use std::sync::atomic::{fence, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{fence, AtomicBool, AtomicU32, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 use stepdrive_shared::services::Topic;
-use stepdrive_shared::stack::{Role, NODES};
+use stepdrive_shared::stack::{woken_by, Role, NODES};
 
 /// One role's doorbell, one cache line, so that ringing one reader does not bounce another's.
 #[repr(C, align(64))]
@@ -31,6 +39,8 @@ struct Bell {
     /// 0 while the role is awake; otherwise 1 + the first state sequence number it sleeps
     /// for (1: any message).
     wake_at: AtomicU64,
+    /// 1 + the CPU of the reader that relays the role's wake-ups (0: none does).
+    relay_cpu: AtomicU32,
 }
 
 /// Doorbells, one per role code (`Role::code` is below this).
@@ -174,29 +184,65 @@ impl Doorbells {
         }))
     }
 
-    /// The ringer of `topic`'s readers (every role the stack's declaration says reads it).
+    /// The ringer of `topic`'s readers (every role the stack's declaration says reads it),
+    /// for its publisher: except those another reader wakes ([`Doorbells::relay`]).
     pub fn ringer(&self, topic: Topic) -> Ringer {
+        self.ringer_of_all(
+            NODES
+                .iter()
+                .filter(|n| n.reads(topic) && woken_by(n.role, topic).is_none())
+                .map(|n| n.role),
+            false,
+        )
+    }
+
+    /// The ringer of the readers of `topic` that `reader` wakes as it takes each message
+    /// ([`stepdrive_shared::stack::woken_by`]); `None` if it wakes none.
+    pub fn relay(&self, reader: Role, topic: Topic) -> Option<Ringer> {
+        let woken = NODES
+            .iter()
+            .map(|n| n.role)
+            .filter(|&r| woken_by(r, topic) == Some(reader));
+        let ringer = self.ringer_of_all(woken, true);
+        (ringer.n > 0).then_some(ringer)
+    }
+
+    fn ringer_of_all(&self, roles: impl Iterator<Item = Role>, relay: bool) -> Ringer {
         let mut codes = [0u32; BELLS];
         let mut n = 0;
-        for node in NODES.iter().filter(|n| n.reads(topic)) {
-            codes[n] = node.role.code();
+        for role in roles.take(BELLS) {
+            codes[n] = role.code();
             n += 1;
         }
         Ringer {
             page: self.page.clone(),
             codes,
             n,
+            relay,
         }
     }
 
     /// The ringer of one role's doorbell (a client's command wakes the position loop).
     pub fn ringer_of(&self, role: Role) -> Ringer {
-        let mut codes = [0u32; BELLS];
-        codes[0] = role.code();
-        Ringer {
-            page: self.page.clone(),
-            codes,
-            n: 1,
+        self.ringer_of_all(std::iter::once(role), false)
+    }
+
+    /// Keeps `role`'s process on the CPU it runs on if it relays wake-ups
+    /// ([`Doorbells::relay`]): the readers it wakes follow it there. Left free, the scheduler
+    /// moved it to the plant's CPU whenever that idled for a moment, and the position loop
+    /// followed: all three shared one CPU while the other idled (seen in `/proc` as runs of
+    /// a third slower).
+    pub fn settle(role: Role) {
+        let relays = NODES.iter().any(|n| {
+            n.reads
+                .iter()
+                .any(|i| woken_by(n.role, i.topic) == Some(role))
+        });
+        let Some(cpu) = current_cpu().filter(|_| relays) else {
+            return;
+        };
+        if let Err(e) = crate::rt::pin_to_cpu(cpu as usize) {
+            tracing::debug!(cpu, error = %e, "cannot stay on this CPU; the readers this one wakes follow it where it goes");
         }
     }
 
@@ -208,6 +254,7 @@ impl Doorbells {
         Waiter {
             page: self.page.clone(),
             code,
+            may_follow: Arc::new(AtomicBool::new(true)),
         }
     }
 }
@@ -217,6 +264,8 @@ pub struct Ringer {
     page: Arc<Page>,
     codes: [u32; BELLS],
     n: usize,
+    /// A reader's relay: it notes its CPU for the readers it wakes.
+    relay: bool,
 }
 
 impl Ringer {
@@ -227,8 +276,16 @@ impl Ringer {
         // `Waiter::arm`): either the reader's last poll sees the message, or this sees the
         // reader asleep.
         fence(Ordering::SeqCst);
+        let cpu = match self.relay {
+            true => current_cpu().map_or(0, |c| c + 1),
+            false => 0,
+        };
         for &code in &self.codes[..self.n] {
             let bell = self.page.bell(code);
+            // Stored only when it changed: the line stays in this CPU's cache.
+            if self.relay && bell.relay_cpu.load(Ordering::Relaxed) != cpu {
+                bell.relay_cpu.store(cpu, Ordering::Relaxed);
+            }
             bell.rung.fetch_add(1, Ordering::SeqCst);
             let wake_at = bell.wake_at.load(Ordering::SeqCst);
             let wanted = match key {
@@ -248,6 +305,8 @@ impl Ringer {
 pub struct Waiter {
     page: Arc<Page>,
     code: u32,
+    /// False once moving to the relaying reader's CPU was refused (a cpuset without it).
+    may_follow: Arc<AtomicBool>,
 }
 
 /// What the armed doorbell read: the sleep returns at once if it has been rung since.
@@ -265,11 +324,27 @@ impl Waiter {
         Armed(bell.rung.load(Ordering::SeqCst))
     }
 
-    /// Sleeps until rung (since `armed`) or `timeout`, then disarms.
-    pub fn sleep(&self, armed: Armed, timeout: Duration) {
+    /// Sleeps until rung (since `armed`) or `timeout`, then disarms. True if it was rung:
+    /// the input is there, or a relayed ring's a moment ahead of it.
+    pub fn sleep(&self, armed: Armed, timeout: Duration) -> bool {
         let bell = self.page.bell(self.code);
         futex_wait(&bell.rung, armed.0, timeout);
         self.disarm();
+        bell.rung.load(Ordering::SeqCst) != armed.0
+    }
+
+    /// Moves the calling thread to the CPU of the reader that relays this role's wake-ups,
+    /// if one does and it runs elsewhere, so that its ring wakes this thread there. Call
+    /// before sleeping; it costs a system call only when that reader has moved.
+    pub fn follow_relay(&self) {
+        let cpu = self.page.bell(self.code).relay_cpu.load(Ordering::Relaxed);
+        if cpu == 0 || !self.may_follow.load(Ordering::Relaxed) || current_cpu() == Some(cpu - 1) {
+            return;
+        }
+        if let Err(e) = crate::rt::pin_to_cpu(cpu as usize - 1) {
+            self.may_follow.store(false, Ordering::Relaxed);
+            tracing::debug!(cpu = cpu - 1, error = %e, "cannot sleep on the CPU of the reader that wakes this one; it sleeps where it is");
+        }
     }
 
     /// Sleeps until rung (since `armed`) or the absolute CLOCK_MONOTONIC time `t_ns` (as
@@ -299,6 +374,14 @@ impl Waiter {
     pub fn disarm(&self) {
         self.page.bell(self.code).wake_at.store(0, Ordering::SeqCst);
     }
+}
+
+/// The CPU the calling thread runs on (glibc reads it from the kernel's rseq area: no
+/// system call).
+fn current_cpu() -> Option<u32> {
+    // SAFETY: no arguments; -1 on failure.
+    let cpu = unsafe { libc::sched_getcpu() };
+    u32::try_from(cpu).ok()
 }
 
 fn futex_wait(word: &AtomicU32, expected: u32, timeout: Duration) {
@@ -350,7 +433,10 @@ mod tests {
         let name = instance("wake");
         let bells = Doorbells::open(&name).expect("open");
         let position = bells.waiter(Role::PositionLoop);
-        let states = bells.ringer(Topic::State);
+        // The current loop wakes the position loop for its states.
+        let states = bells
+            .relay(Role::CurrentLoop, Topic::State)
+            .expect("the current loop relays states");
         // Asleep for state 10: state 3 does not wake it, state 10 does.
         let sleeper = std::thread::spawn(move || {
             let armed = position.arm(Some(10));
@@ -396,6 +482,68 @@ mod tests {
         let t0 = Instant::now();
         plant.sleep(armed, Duration::from_millis(100));
         assert!(t0.elapsed() >= Duration::from_millis(100));
+        remove(&name);
+    }
+
+    #[test]
+    fn the_current_loop_wakes_the_position_loop_for_a_state_and_the_plant_does_not() {
+        let name = instance("relay");
+        let bells = Doorbells::open(&name).expect("open");
+        let position = bells.waiter(Role::PositionLoop);
+        let published = bells.ringer(Topic::State);
+        let relayed = bells
+            .relay(Role::CurrentLoop, Topic::State)
+            .expect("the current loop relays states");
+        assert!(bells.relay(Role::Plant, Topic::State).is_none());
+        assert!(bells.relay(Role::CurrentLoop, Topic::Setpoint).is_none());
+        // The plant's ring of the awaited state leaves the position loop asleep.
+        let armed = position.arm(Some(10));
+        published.ring(Some(10));
+        let t0 = Instant::now();
+        assert!(!position.sleep(armed, Duration::from_millis(100)));
+        assert!(t0.elapsed() >= Duration::from_millis(100));
+        // The current loop's ring of it wakes it, and says so.
+        let armed = position.arm(Some(10));
+        relayed.ring(Some(10));
+        let t0 = Instant::now();
+        assert!(position.sleep(armed, Duration::from_secs(5)));
+        assert!(t0.elapsed() < Duration::from_secs(1));
+        // The plant still wakes the current loop.
+        let current = bells.waiter(Role::CurrentLoop);
+        let armed = current.arm(None);
+        published.ring(Some(11));
+        assert!(current.sleep(armed, Duration::from_secs(5)));
+        remove(&name);
+    }
+
+    #[test]
+    fn a_woken_reader_moves_to_the_cpu_of_the_reader_that_relays_to_it() {
+        let cpus = crate::rt::allowed_cpus();
+        let (Some(&first), Some(&last)) = (cpus.first(), cpus.last()) else {
+            return;
+        };
+        let name = instance("follow");
+        let bells = Doorbells::open(&name).expect("open");
+        let relayed = bells
+            .relay(Role::CurrentLoop, Topic::State)
+            .expect("the current loop relays states");
+        let position = bells.waiter(Role::PositionLoop);
+        // The relaying thread rings from the last allowed CPU; the woken one starts on the
+        // first.
+        std::thread::spawn(move || {
+            crate::rt::pin_to_cpu(last).expect("pin the relay");
+            relayed.ring(Some(1));
+        })
+        .join()
+        .expect("relay");
+        let here = std::thread::spawn(move || {
+            crate::rt::pin_to_cpu(first).expect("pin the reader");
+            position.follow_relay();
+            current_cpu()
+        })
+        .join()
+        .expect("reader");
+        assert_eq!(here, Some(last as u32));
         remove(&name);
     }
 

@@ -28,6 +28,7 @@ use stepdrive_shared::messages::{ResetRequest, StackScenario};
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::scenario::MAX_AXES;
 use stepdrive_shared::services::{Message, ServiceNames, Topic};
+use stepdrive_shared::stack::{Role, NODES};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::{DriveCommand, DriveState, Scenario, TorqueSetpoint};
 
@@ -112,6 +113,8 @@ pub struct IpcBus {
     verifier: AttributeVerifier,
     /// Lockstep: the instance's doorbells, rung by every publisher.
     doorbells: Option<Doorbells>,
+    /// The stack's node this process is, if it is one (its readers may relay rings).
+    role: Option<Role>,
     /// The axis whose services the next ports are opened on ([`PortFactory::set_axis`]).
     axis: u32,
 }
@@ -162,6 +165,7 @@ impl IpcBus {
             stamp: stamp.clone(),
             verifier,
             doorbells,
+            role: NODES.iter().map(|n| n.role).find(|r| r.id() == role),
             axis: 0,
         })
     }
@@ -318,6 +322,11 @@ impl IpcBus {
         Ok(IpcSubscriber {
             subscriber,
             service,
+            relay: self
+                .doorbells
+                .as_ref()
+                .zip(self.role)
+                .and_then(|(d, role)| d.relay(role, M::TOPIC)),
             _factory: factory,
         })
     }
@@ -784,7 +793,7 @@ impl IpcBus {
                     tracing::debug!("commands wait for the position loop's tick: {e}");
                     None
                 })
-                .map(|d| d.ringer_of(stepdrive_shared::stack::Role::PositionLoop)),
+                .map(|d| d.ringer_of(Role::PositionLoop)),
         };
         Ok(CommandClient {
             client,
@@ -924,6 +933,9 @@ impl<M: Message> Publish<M> for IpcPublisher<M> {
 pub struct IpcSubscriber<M: Message> {
     subscriber: iceoryx2::port::subscriber::Subscriber<Ipc, M, ()>,
     service: String,
+    /// Lockstep: wakes the readers this one wakes for each message it takes
+    /// ([`Doorbells::relay`]).
+    relay: Option<Ringer>,
     _factory: TopicFactory<M>,
 }
 
@@ -940,7 +952,13 @@ impl<M: Message> IpcSubscriber<M> {
 impl<M: Message> Subscribe<M> for IpcSubscriber<M> {
     fn receive(&mut self) -> Result<Option<M>, PortError> {
         match self.subscriber.receive() {
-            Ok(Some(sample)) => Ok(Some(*sample.payload())),
+            Ok(Some(sample)) => {
+                let message = *sample.payload();
+                if let Some(relay) = &self.relay {
+                    relay.ring(message.stream_key());
+                }
+                Ok(Some(message))
+            }
             Ok(None) => Ok(None),
             Err(e) => Err(self.receive_error(e)),
         }
@@ -949,7 +967,12 @@ impl<M: Message> Subscribe<M> for IpcSubscriber<M> {
     fn drain(&mut self, f: &mut dyn FnMut(&M)) -> Result<(), PortError> {
         loop {
             match self.subscriber.receive() {
-                Ok(Some(sample)) => f(sample.payload()),
+                Ok(Some(sample)) => {
+                    if let Some(relay) = &self.relay {
+                        relay.ring(sample.payload().stream_key());
+                    }
+                    f(sample.payload())
+                }
                 Ok(None) => return Ok(()),
                 Err(e) => return Err(self.receive_error(e)),
             }

@@ -51,6 +51,9 @@ impl<'a> Process<'a> {
         // Before any port exists: mlockall then locks every segment as it is mapped, and a
         // peer that waits for this process's publishers sees them only once it is set up.
         spec.deployment.rt(spec.role, spec.mode).apply()?;
+        if spec.mode == Mode::Lockstep {
+            crate::doorbell::Doorbells::settle(spec.role);
+        }
         let stamp = Stamp::new(spec.mode, spec.scenario);
         let mut bus = IpcBus::open(spec.instance, spec.role.id(), &stamp)?;
         // Statistics are published in realtime and hardware modes.

@@ -549,6 +549,8 @@ impl<N: Node> Runner<N> {
         };
         let mut backoff = Backoff::default();
         let mut polls: u32 = 0;
+        // Lockstep: the poll at which the doorbell last woke the node.
+        let mut rung_at: Option<u32> = None;
         loop {
             if let Some(flow) = self.try_input_cycle(clock, wake)? {
                 return Ok(flow);
@@ -566,12 +568,18 @@ impl<N: Node> Runner<N> {
             }
             // A node that awaits a state further off (the position loop between its ticks)
             // sleeps at once: on two cores its spin would take a core from the plant and the
-            // current loop, which hand off every sample.
+            // current loop, which hand off every sample. Once rung it spins too: a relayed
+            // ring may come a moment before the message reaches its queue.
             let awaits = match self.bell {
                 Some(_) => self.node.awaits(),
                 None => Awaits::Next,
             };
-            if self.bell.is_some() && awaits == Awaits::Next && polls < DOORBELL_SPIN_POLLS {
+            let spin_until = match (awaits, rung_at) {
+                (_, Some(at)) => at.saturating_add(DOORBELL_SPIN_POLLS),
+                (Awaits::Next, None) => DOORBELL_SPIN_POLLS,
+                (Awaits::Later { .. }, None) => 0,
+            };
+            if self.bell.is_some() && polls < spin_until {
                 std::hint::spin_loop();
                 continue;
             }
@@ -587,7 +595,10 @@ impl<N: Node> Runner<N> {
                     bell.disarm();
                     return Ok(flow);
                 }
-                bell.sleep(armed, Duration::from_nanos(BLOCK_NS));
+                bell.follow_relay();
+                if bell.sleep(armed, Duration::from_nanos(BLOCK_NS)) {
+                    rung_at = Some(polls);
+                }
                 continue;
             }
             if self.node.block(&mut self.ports, now, now + BLOCK_NS)? {

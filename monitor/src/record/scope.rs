@@ -385,9 +385,8 @@ pub fn run_scope(instance: &str, given: Option<&Scenario>, axis: u32) -> Result<
             if view.ended.is_none() && view.samples > 0 && heard.elapsed() > SILENT {
                 view.ended = Some("SILENT (no sample for 2 s)");
             }
-            while let Some(r) = stats.receive()? {
-                view.push_stats(&r);
-            }
+            // In place: a report is ~90 KB (see `Supervisor::take_stats`).
+            stats.drain(&mut |r| view.push_stats(r))?;
             if Instant::now() >= next_frame {
                 terminal.draw(|f| render(f, &view))?;
                 next_frame = Instant::now() + Duration::from_millis(50);

@@ -13,11 +13,10 @@
 //!
 //! A reader may be woken by another reader instead of the publisher
 //! ([`stepdrive_shared::stack::woken_by`]): the current loop rings the position loop's
-//! doorbell for the state of its tick as it takes it, and the position loop sleeps on the
-//! current loop's CPU (the relaying ring notes that CPU in the doorbell). A wake-up on the
-//! waker's own CPU is one context switch, ~4 µs here; woken by the plant, on a CPU where the
-//! plant or the current loop spins, it was ~17 µs, and the current loop waits for that
-//! tick's setpoint (docs/measurements.md).
+//! doorbell for the state of its tick as it takes it, and the two share a CPU, the plant
+//! has the other ([`placement`]). A wake-up on the waker's own CPU is one context switch,
+//! ~4 µs here; woken by the plant, on a CPU where the plant or the current loop spins, it
+//! was ~17 µs, and the current loop waits for that tick's setpoint (docs/measurements.md).
 //!
 //! Realtime and hardware stacks use one doorbell only: the position loop's, rung by a client
 //! that sent it a command, so that the command is carried out between ticks instead of at
@@ -25,11 +24,11 @@
 //! the wake-up, 563–945 µs at 2 kHz). Their loops are otherwise paced by the clock or by the
 //! bridge's event, and no publisher rings.
 
-use std::sync::atomic::{fence, AtomicBool, AtomicU32, AtomicU64, Ordering};
+use std::sync::atomic::{fence, AtomicU32, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 use stepdrive_shared::services::Topic;
-use stepdrive_shared::stack::{woken_by, Role, NODES};
+use stepdrive_shared::stack::{wakes_or_is_woken, woken_by, Role, NODES};
 
 /// One role's doorbell, one cache line, so that ringing one reader does not bounce another's.
 #[repr(C, align(64))]
@@ -39,8 +38,6 @@ struct Bell {
     /// 0 while the role is awake; otherwise 1 + the first state sequence number it sleeps
     /// for (1: any message).
     wake_at: AtomicU64,
-    /// 1 + the CPU of the reader that relays the role's wake-ups (0: none does).
-    relay_cpu: AtomicU32,
 }
 
 /// Doorbells, one per role code (`Role::code` is below this).
@@ -120,6 +117,30 @@ fn remove_stale_in(dir: &std::path::Path, live: &std::collections::BTreeSet<Stri
     }
 }
 
+/// Lockstep: the CPU `role` runs on, out of the `allowed` ones. The current loop and the
+/// position loop it wakes ([`woken_by`]) share one: it waits for the setpoint anyway, so
+/// its CPU is the one to lend, and a wake-up there is a context switch of its own CPU. The
+/// plant has another to itself. Which two, the instance's name decides, so that parallel
+/// stacks spread over the CPUs. Left to the scheduler, the three sometimes shared one CPU
+/// beside a CPU hog for a whole run (1.7x real time, against 5-6x). None on one CPU, or
+/// for a role in no pair (a tool, the identification).
+pub fn placement(role: Role, instance: &str, allowed: &[usize]) -> Option<usize> {
+    let n = allowed.len();
+    if n < 2 {
+        return None;
+    }
+    // FNV-1a: the same instance gets the same CPUs in every process of its stack.
+    let h = instance.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
+    });
+    let device = (h % n as u64) as usize;
+    match role {
+        Role::Plant => Some(allowed[device]),
+        _ if wakes_or_is_woken(role) => Some(allowed[(device + 1) % n]),
+        _ => None,
+    }
+}
+
 /// An instance's doorbells, shared by the ports and the runner of one process.
 #[derive(Clone)]
 pub struct Doorbells {
@@ -192,7 +213,6 @@ impl Doorbells {
                 .iter()
                 .filter(|n| n.reads(topic) && woken_by(n.role, topic).is_none())
                 .map(|n| n.role),
-            false,
         )
     }
 
@@ -203,11 +223,11 @@ impl Doorbells {
             .iter()
             .map(|n| n.role)
             .filter(|&r| woken_by(r, topic) == Some(reader));
-        let ringer = self.ringer_of_all(woken, true);
+        let ringer = self.ringer_of_all(woken);
         (ringer.n > 0).then_some(ringer)
     }
 
-    fn ringer_of_all(&self, roles: impl Iterator<Item = Role>, relay: bool) -> Ringer {
+    fn ringer_of_all(&self, roles: impl Iterator<Item = Role>) -> Ringer {
         let mut codes = [0u32; BELLS];
         let mut n = 0;
         for role in roles.take(BELLS) {
@@ -218,32 +238,12 @@ impl Doorbells {
             page: self.page.clone(),
             codes,
             n,
-            relay,
         }
     }
 
     /// The ringer of one role's doorbell (a client's command wakes the position loop).
     pub fn ringer_of(&self, role: Role) -> Ringer {
-        self.ringer_of_all(std::iter::once(role), false)
-    }
-
-    /// Keeps `role`'s process on the CPU it runs on if it relays wake-ups
-    /// ([`Doorbells::relay`]): the readers it wakes follow it there. Left free, the scheduler
-    /// moved it to the plant's CPU whenever that idled for a moment, and the position loop
-    /// followed: all three shared one CPU while the other idled (seen in `/proc` as runs of
-    /// a third slower).
-    pub fn settle(role: Role) {
-        let relays = NODES.iter().any(|n| {
-            n.reads
-                .iter()
-                .any(|i| woken_by(n.role, i.topic) == Some(role))
-        });
-        let Some(cpu) = current_cpu().filter(|_| relays) else {
-            return;
-        };
-        if let Err(e) = crate::rt::pin_to_cpu(cpu as usize) {
-            tracing::debug!(cpu, error = %e, "cannot stay on this CPU; the readers this one wakes follow it where it goes");
-        }
+        self.ringer_of_all(std::iter::once(role))
     }
 
     /// `role`'s doorbell, to wait on. It starts awake (a process killed asleep left its
@@ -254,7 +254,6 @@ impl Doorbells {
         Waiter {
             page: self.page.clone(),
             code,
-            may_follow: Arc::new(AtomicBool::new(true)),
         }
     }
 }
@@ -264,8 +263,6 @@ pub struct Ringer {
     page: Arc<Page>,
     codes: [u32; BELLS],
     n: usize,
-    /// A reader's relay: it notes its CPU for the readers it wakes.
-    relay: bool,
 }
 
 impl Ringer {
@@ -276,16 +273,8 @@ impl Ringer {
         // `Waiter::arm`): either the reader's last poll sees the message, or this sees the
         // reader asleep.
         fence(Ordering::SeqCst);
-        let cpu = match self.relay {
-            true => current_cpu().map_or(0, |c| c + 1),
-            false => 0,
-        };
         for &code in &self.codes[..self.n] {
             let bell = self.page.bell(code);
-            // Stored only when it changed: the line stays in this CPU's cache.
-            if self.relay && bell.relay_cpu.load(Ordering::Relaxed) != cpu {
-                bell.relay_cpu.store(cpu, Ordering::Relaxed);
-            }
             bell.rung.fetch_add(1, Ordering::SeqCst);
             let wake_at = bell.wake_at.load(Ordering::SeqCst);
             let wanted = match key {
@@ -305,8 +294,6 @@ impl Ringer {
 pub struct Waiter {
     page: Arc<Page>,
     code: u32,
-    /// False once moving to the relaying reader's CPU was refused (a cpuset without it).
-    may_follow: Arc<AtomicBool>,
 }
 
 /// What the armed doorbell read: the sleep returns at once if it has been rung since.
@@ -331,20 +318,6 @@ impl Waiter {
         futex_wait(&bell.rung, armed.0, timeout);
         self.disarm();
         bell.rung.load(Ordering::SeqCst) != armed.0
-    }
-
-    /// Moves the calling thread to the CPU of the reader that relays this role's wake-ups,
-    /// if one does and it runs elsewhere, so that its ring wakes this thread there. Call
-    /// before sleeping; it costs a system call only when that reader has moved.
-    pub fn follow_relay(&self) {
-        let cpu = self.page.bell(self.code).relay_cpu.load(Ordering::Relaxed);
-        if cpu == 0 || !self.may_follow.load(Ordering::Relaxed) || current_cpu() == Some(cpu - 1) {
-            return;
-        }
-        if let Err(e) = crate::rt::pin_to_cpu(cpu as usize - 1) {
-            self.may_follow.store(false, Ordering::Relaxed);
-            tracing::debug!(cpu = cpu - 1, error = %e, "cannot sleep on the CPU of the reader that wakes this one; it sleeps where it is");
-        }
     }
 
     /// Sleeps until rung (since `armed`) or the absolute CLOCK_MONOTONIC time `t_ns` (as
@@ -374,14 +347,6 @@ impl Waiter {
     pub fn disarm(&self) {
         self.page.bell(self.code).wake_at.store(0, Ordering::SeqCst);
     }
-}
-
-/// The CPU the calling thread runs on (glibc reads it from the kernel's rseq area: no
-/// system call).
-fn current_cpu() -> Option<u32> {
-    // SAFETY: no arguments; -1 on failure.
-    let cpu = unsafe { libc::sched_getcpu() };
-    u32::try_from(cpu).ok()
 }
 
 fn futex_wait(word: &AtomicU32, expected: u32, timeout: Duration) {
@@ -517,34 +482,34 @@ mod tests {
     }
 
     #[test]
-    fn a_woken_reader_moves_to_the_cpu_of_the_reader_that_relays_to_it() {
-        let cpus = crate::rt::allowed_cpus();
-        let (Some(&first), Some(&last)) = (cpus.first(), cpus.last()) else {
-            return;
-        };
-        let name = instance("follow");
-        let bells = Doorbells::open(&name).expect("open");
-        let relayed = bells
-            .relay(Role::CurrentLoop, Topic::State)
-            .expect("the current loop relays states");
-        let position = bells.waiter(Role::PositionLoop);
-        // The relaying thread rings from the last allowed CPU; the woken one starts on the
-        // first.
-        std::thread::spawn(move || {
-            crate::rt::pin_to_cpu(last).expect("pin the relay");
-            relayed.ring(Some(1));
-        })
-        .join()
-        .expect("relay");
-        let here = std::thread::spawn(move || {
-            crate::rt::pin_to_cpu(first).expect("pin the reader");
-            position.follow_relay();
-            current_cpu()
-        })
-        .join()
-        .expect("reader");
-        assert_eq!(here, Some(last as u32));
-        remove(&name);
+    fn the_current_and_position_loops_share_a_cpu_the_plant_has_another_and_stacks_spread() {
+        let mut layouts = std::collections::BTreeSet::new();
+        for i in 0..16 {
+            let name = format!("stack-{i}");
+            let at = |role| placement(role, &name, &[2, 5, 7]);
+            let (plant, current, position) = (
+                at(Role::Plant),
+                at(Role::CurrentLoop),
+                at(Role::PositionLoop),
+            );
+            assert_eq!(current, position, "{name}");
+            assert_ne!(plant, current, "{name}");
+            assert!([plant, current]
+                .iter()
+                .all(|c| c.is_some_and(|c| [2, 5, 7].contains(&c))));
+            assert_eq!(at(Role::Identify), None);
+            assert_eq!(at(Role::Monitor), None);
+            layouts.insert((plant, current));
+        }
+        assert!(
+            layouts.len() > 1,
+            "every stack on the same CPUs: {layouts:?}"
+        );
+        assert_eq!(placement(Role::Plant, "one", &[3]), None);
+        assert_eq!(
+            placement(Role::Plant, "x", &[1, 0]),
+            placement(Role::Plant, "x", &[1, 0])
+        );
     }
 
     #[test]

@@ -52,7 +52,12 @@ impl<'a> Process<'a> {
         // peer that waits for this process's publishers sees them only once it is set up.
         spec.deployment.rt(spec.role, spec.mode).apply()?;
         if spec.mode == Mode::Lockstep {
-            crate::doorbell::Doorbells::settle(spec.role);
+            let allowed = crate::rt::allowed_cpus();
+            if let Some(cpu) = crate::doorbell::placement(spec.role, spec.instance, &allowed) {
+                if let Err(e) = crate::rt::pin_to_cpu(cpu) {
+                    tracing::debug!(cpu, error = %e, "cannot take this process's lockstep CPU");
+                }
+            }
         }
         let stamp = Stamp::new(spec.mode, spec.scenario);
         let mut bus = IpcBus::open(spec.instance, spec.role.id(), &stamp)?;

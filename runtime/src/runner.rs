@@ -595,7 +595,6 @@ impl<N: Node> Runner<N> {
                     bell.disarm();
                     return Ok(flow);
                 }
-                bell.follow_relay();
                 if bell.sleep(armed, Duration::from_nanos(BLOCK_NS)) {
                     rung_at = Some(polls);
                 }

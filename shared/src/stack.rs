@@ -244,7 +244,7 @@ pub const IDENTIFY: NodeDecl = NodeDecl {
 /// Lockstep: who wakes `reader` for a message of `topic` it sleeps for, when not the
 /// message's publisher. The position loop sleeps from tick to tick; the current loop takes
 /// every state as it comes, so it wakes the position loop for its tick's, on its own CPU
-/// (the position loop sleeps there: `stepdrive_runtime::doorbell`). The plant ringing it
+/// (the two share one: `stepdrive_runtime::doorbell::placement`). The plant ringing it
 /// instead woke it on the plant's CPU or another busy one, where a wake-up costs ~17 µs
 /// here against ~4 µs on the waker's own, and at every tick the current loop waits for
 /// that setpoint.
@@ -253,6 +253,16 @@ pub fn woken_by(reader: Role, topic: Topic) -> Option<Role> {
         (Role::PositionLoop, Topic::State) => Some(Role::CurrentLoop),
         _ => None,
     }
+}
+
+/// Lockstep: whether `role` wakes another reader or is woken by one ([`woken_by`]).
+pub fn wakes_or_is_woken(role: Role) -> bool {
+    NODES.iter().any(|n| {
+        n.reads.iter().any(|i| match woken_by(n.role, i.topic) {
+            Some(waker) => waker == role || n.role == role,
+            None => false,
+        })
+    })
 }
 
 /// Every node a stack's processes can run (the monitor is not one: it never blocks a
@@ -419,5 +429,7 @@ mod tests {
             relayed,
             [(Role::PositionLoop, Topic::State, Role::CurrentLoop)]
         );
+        assert!(wakes_or_is_woken(Role::CurrentLoop) && wakes_or_is_woken(Role::PositionLoop));
+        assert!(!wakes_or_is_woken(Role::Plant) && !wakes_or_is_woken(Role::Identify));
     }
 }

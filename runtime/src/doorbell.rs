@@ -129,10 +129,8 @@ pub fn placement(role: Role, instance: &str, allowed: &[usize]) -> Option<usize>
     if n < 2 {
         return None;
     }
-    // FNV-1a: the same instance gets the same CPUs in every process of its stack.
-    let h = instance.bytes().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
-        (h ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3)
-    });
+    // The same instance gets the same CPUs in every process of its stack.
+    let h = stepdrive_shared::fnv1a(instance.as_bytes());
     let device = (h % n as u64) as usize;
     match role {
         Role::Plant => Some(allowed[device]),

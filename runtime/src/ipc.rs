@@ -940,6 +940,13 @@ pub struct IpcSubscriber<M: Message> {
 }
 
 impl<M: Message> IpcSubscriber<M> {
+    /// Wakes the readers this one wakes for `message` (lockstep).
+    fn relay(&self, message: &M) {
+        if let Some(relay) = &self.relay {
+            relay.ring(message.stream_key());
+        }
+    }
+
     fn receive_error(&self, e: iceoryx2::port::ReceiveError) -> PortError {
         PortError::Transfer {
             service: self.service.clone(),
@@ -953,11 +960,8 @@ impl<M: Message> Subscribe<M> for IpcSubscriber<M> {
     fn receive(&mut self) -> Result<Option<M>, PortError> {
         match self.subscriber.receive() {
             Ok(Some(sample)) => {
-                let message = *sample.payload();
-                if let Some(relay) = &self.relay {
-                    relay.ring(message.stream_key());
-                }
-                Ok(Some(message))
+                self.relay(sample.payload());
+                Ok(Some(*sample.payload()))
             }
             Ok(None) => Ok(None),
             Err(e) => Err(self.receive_error(e)),
@@ -968,9 +972,7 @@ impl<M: Message> Subscribe<M> for IpcSubscriber<M> {
         loop {
             match self.subscriber.receive() {
                 Ok(Some(sample)) => {
-                    if let Some(relay) = &self.relay {
-                        relay.ring(sample.payload().stream_key());
-                    }
+                    self.relay(sample.payload());
                     f(sample.payload())
                 }
                 Ok(None) => return Ok(()),

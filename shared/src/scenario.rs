@@ -913,12 +913,7 @@ impl Scenario {
     /// processes with the same fingerprint run the same scenario.
     pub fn fingerprint(&self) -> String {
         let text = self.to_toml_string().unwrap_or_default();
-        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-        for b in text.bytes() {
-            h ^= u64::from(b);
-            h = h.wrapping_mul(0x0100_0000_01b3);
-        }
-        format!("{h:016x}")
+        format!("{:016x}", crate::fnv1a(text.as_bytes()))
     }
 
     /// One pass of the trajectory: its phases added up, s.

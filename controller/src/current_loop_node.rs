@@ -8,7 +8,7 @@
 use stepdrive_control::current_loop::CurrentLoop;
 use stepdrive_control::stale::StaleGuard;
 use stepdrive_runtime::inbox::Inbox;
-use stepdrive_runtime::node::{Cx, Flow, Node, Pace, Poll, Role, Start};
+use stepdrive_runtime::node::{Awaits, Cx, Flow, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::port::{Listen, PortError, PortFactory, Presence, Publish};
 use stepdrive_runtime::RunError;
 use stepdrive_shared::messages::{
@@ -200,6 +200,15 @@ impl Node for CurrentLoopNode {
         self.rate_hz
     }
 
+    /// Lockstep: a state in hand waits for its tick's setpoint, from the position loop on
+    /// this loop's CPU.
+    fn awaits(&self) -> Awaits {
+        match self.state {
+            Some(_) => Awaits::Beside,
+            None => Awaits::Next,
+        }
+    }
+
     fn awaiting(&self) -> String {
         match self.state {
             _ if !self.started => "a plant subscribed to drive/command".to_string(),
@@ -365,6 +374,75 @@ pub(crate) fn wait_state_ready(ready: &mut Option<Box<dyn Listen>>) -> Result<bo
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::time::Duration;
+    use stepdrive_runtime::clock::VirtualClock;
+    use stepdrive_runtime::memory::MemoryBus;
+    use stepdrive_runtime::runner::{Runner, Settings, Wake};
+
+    /// Lockstep: a state in hand without its tick's setpoint is waited on beside the
+    /// position loop (the runner yields the CPU they share); without a state, the plant's
+    /// next one is a hand-off away.
+    #[test]
+    fn a_lockstep_current_loop_waits_beside_the_position_loop_only_for_a_tick_setpoint() {
+        let s = Scenario::default();
+        let mut bus = MemoryBus::new(Mode::Lockstep);
+        let ports = CurrentLoopPorts::open(&mut bus, Mode::Lockstep, false).expect("ports");
+        let mut states = bus.publisher::<DriveState>().expect("states");
+        let mut setpoints = bus.publisher::<TorqueSetpoint>().expect("setpoints");
+        let mut commands = bus.subscriber::<DriveCommand>(16).expect("commands");
+        let node = CurrentLoopNode::new(&s, Method::Proposed, Mode::Lockstep);
+        let timeout = Duration::from_secs(1);
+        let mut runner = Runner::new(node, ports, Settings::lockstep(timeout, timeout), None);
+        let clock = VirtualClock::default();
+        assert!(runner.try_start(&clock).expect("start"));
+        let state = |seq| DriveState {
+            seq,
+            ..DriveState::default()
+        };
+        let setpoint = |tick| TorqueSetpoint {
+            from_state_seq: tick,
+            ..TorqueSetpoint::default()
+        };
+        assert_eq!(runner.node().awaits(), Awaits::Next);
+        states.publish(&state(0)).expect("publish");
+        assert!(
+            !runner_cycle(&mut runner, &clock),
+            "no setpoint for tick 0 yet"
+        );
+        assert_eq!(runner.node().awaits(), Awaits::Beside);
+        setpoints.publish(&setpoint(0)).expect("publish");
+        assert!(
+            runner_cycle(&mut runner, &clock),
+            "answered with tick 0's setpoint"
+        );
+        assert_eq!(runner.node().awaits(), Awaits::Next);
+        // The samples of a tick after its first are answered with its setpoint.
+        let ratio = (s.rates.current_loop_hz / s.rates.position_loop_hz).round() as u64;
+        for seq in 1..ratio {
+            states.publish(&state(seq)).expect("publish");
+            assert!(runner_cycle(&mut runner, &clock), "sample {seq}");
+            assert_eq!(runner.node().awaits(), Awaits::Next);
+        }
+        states.publish(&state(ratio)).expect("publish");
+        assert!(
+            !runner_cycle(&mut runner, &clock),
+            "the next tick's setpoint"
+        );
+        assert_eq!(runner.node().awaits(), Awaits::Beside);
+        let mut answered = Vec::new();
+        commands
+            .drain(&mut |c| answered.push(c.seq))
+            .expect("commands");
+        assert_eq!(answered, (0..ratio).collect::<Vec<_>>());
+    }
+
+    /// One poll of the runner: true if the node ran a cycle.
+    fn runner_cycle(runner: &mut Runner<CurrentLoopNode>, clock: &VirtualClock) -> bool {
+        runner
+            .try_input_cycle(clock, Wake::default())
+            .expect("cycle")
+            .is_some()
+    }
 
     #[test]
     fn each_axis_plans_every_tenth_sample_and_no_two_axes_plan_after_one_sample() {

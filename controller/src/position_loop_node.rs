@@ -455,7 +455,7 @@ impl Node for PositionLoopNode {
 
     fn poll(&mut self, ports: &mut PositionLoopPorts, cx: &mut Cx) -> Result<Poll, RunError> {
         let fresh = std::mem::take(&mut self.fresh);
-        let Some(taken) = ports.states.take()? else {
+        let Some(mut taken) = ports.states.take()? else {
             if self.pace == Pace::Input {
                 // A current loop that rejoins gets the newest setpoint from the topic's
                 // history, delivered when the publisher updates its connections.
@@ -468,13 +468,27 @@ impl Node for PositionLoopNode {
             }
             return Ok(Poll::Ready { fresh, skipped: 0 });
         };
+        // Lockstep, one axis: the states between two ticks only pass through, so they are
+        // taken in one cycle. Woken at its tick, the loop found ten queued and ran a cycle
+        // for each while the current loop waited for the setpoint. The lanes of several
+        // axes step state by state together.
+        let mut skipped = taken.skipped;
+        if self.pace == Pace::Input && self.axes == 1 {
+            while !self.ticks_on(&taken.message) && taken.message.flags & state_flags::LAST == 0 {
+                let Some(next) = ports.states.take()? else {
+                    break;
+                };
+                skipped += next.skipped;
+                taken = next;
+            }
+        }
         cx.stats
             .hop
             .record(cx.now().saturating_sub(taken.message.publish_time_ns));
         self.latest = Some(taken.message);
         Ok(Poll::Ready {
             fresh: true,
-            skipped: taken.skipped,
+            skipped,
         })
     }
 
@@ -818,6 +832,49 @@ mod tests {
             ..DriveState::default()
         });
         node.awaits()
+    }
+
+    /// Lockstep: the states of a tick in one cycle for one axis, one by one for the lanes
+    /// of several (which step together); a setpoint at each tick either way.
+    #[test]
+    fn a_lockstep_position_loop_takes_the_states_between_ticks_in_one_cycle() {
+        use stepdrive_runtime::clock::VirtualClock;
+        use stepdrive_runtime::memory::MemoryBus;
+        use stepdrive_runtime::runner::{Runner, Settings, Wake};
+        let s = Scenario::default();
+        let ratio = (s.rates.current_loop_hz / s.rates.position_loop_hz).round() as u64;
+        for (axes, cycles) in [(1, 3), (2, 2 * ratio + 1)] {
+            let mut bus = MemoryBus::new(Mode::Lockstep);
+            let ports = PositionLoopPorts::open(&mut bus, Mode::Lockstep).expect("ports");
+            let mut states = bus.publisher::<DriveState>().expect("states");
+            let mut setpoints = bus.subscriber::<TorqueSetpoint>(16).expect("setpoints");
+            let node = PositionLoopNode::new(&s, 0, Mode::Lockstep, 0)
+                .expect("node")
+                .in_stack_of(axes);
+            let timeout = std::time::Duration::from_secs(1);
+            let settings = Settings::lockstep(timeout, timeout);
+            let mut runner = Runner::new(node, ports, settings, None);
+            let clock = VirtualClock::default();
+            assert!(runner.try_start(&clock).expect("start"));
+            for seq in 0..=2 * ratio {
+                let state = DriveState {
+                    seq,
+                    ..DriveState::default()
+                };
+                states.publish(&state).expect("publish");
+            }
+            while runner
+                .try_input_cycle(&clock, Wake::default())
+                .expect("cycle")
+                .is_some()
+            {}
+            assert_eq!(runner.stats().cycles, cycles, "{axes} axes");
+            let mut ticks = Vec::new();
+            setpoints
+                .drain(&mut |sp| ticks.push(sp.from_state_seq))
+                .expect("setpoints");
+            assert_eq!(ticks, [0, ratio, 2 * ratio], "{axes} axes");
+        }
     }
 
     #[test]

@@ -327,8 +327,11 @@ impl Node for PlantNode {
         if !self.emitted {
             self.publish_state(ports, cx)?;
             self.emitted = true;
-            // Once a sample: polling an empty queue costs a lockstep hand-off its latency.
-            self.take_resets(ports)?;
+            // Once a sample on the clock; in lockstep every 16th: polling an empty queue
+            // costs a hand-off its latency.
+            if self.pace() != Pace::Input || self.sim.sample_index().is_multiple_of(16) {
+                self.take_resets(ports)?;
+            }
         }
         let next_needed = self.sim.sample_index().saturating_sub(self.delay);
         while let Some(t) = ports.commands.take()? {

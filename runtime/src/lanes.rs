@@ -341,8 +341,8 @@ impl<N: Together> Node for Lanes<N> {
     }
 
     fn awaits(&self) -> Awaits {
-        // The earliest any waiting lane needs: an answer within a hand-off, else the
-        // earliest state one sleeps for.
+        // The earliest any waiting lane needs: an answer within a hand-off, else a setpoint
+        // from the position loop beside it, else the earliest state one sleeps for.
         let waiting = || {
             self.lanes
                 .iter()
@@ -353,10 +353,13 @@ impl<N: Together> Node for Lanes<N> {
         if waiting().any(|n| n.awaits() == Awaits::Next) {
             return Awaits::Next;
         }
+        if waiting().any(|n| n.awaits() == Awaits::Beside) {
+            return Awaits::Beside;
+        }
         let state = waiting()
             .map(|n| match n.awaits() {
                 Awaits::Later { state } => state,
-                Awaits::Next => None,
+                Awaits::Next | Awaits::Beside => None,
             })
             .try_fold(u64::MAX, |min, s| s.map(|s| min.min(s)));
         Awaits::Later {

@@ -6,7 +6,7 @@
 //! ([`ipc`]) and an in-memory one ([`memory`]).
 //!
 //! Around it: the clocks ([`clock`], [`pacer`]), waiting and termination ([`poll`], lockstep's [`doorbell`]), real-time
-//! setup ([`rt`]), the per-cycle records ([`cycle`]), the host-hold accounting ([`steal`]), lockstep's wake-up latency request ([`wakeup`]),
+//! setup ([`rt`]), the per-cycle records ([`cycle`]), the host-hold accounting ([`steal`]), lockstep's wake-up latency request ([`wakeup`]) and yielding ([`yielding`]),
 //! and the deployment settings every process reads ([`deploy`]).
 
 pub mod clock;
@@ -28,6 +28,7 @@ pub mod runner;
 pub mod simulation;
 pub mod steal;
 pub mod wakeup;
+pub mod yielding;
 
 pub use error::RunError;
 pub use node::{Awaits, Cx, Flow, Late, Node, Pace, Poll, Role, Start};

@@ -19,6 +19,9 @@ pub enum Awaits {
     /// Something a position-loop tick away: sleep at once, woken by any message (None) or
     /// from that state on (the position loop sleeps through the states between its ticks).
     Later { state: Option<u64> },
+    /// The answer of a node that shares this one's CPU (the current loop waiting for its
+    /// tick's setpoint): yield the CPU between polls, so that the other runs now.
+    Beside,
 }
 
 /// What starts a node's cycle.

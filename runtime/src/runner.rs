@@ -19,6 +19,7 @@ use crate::pacer::{sleep_until, wait_until, Pacer, Tick, WaitStrategy};
 use crate::poll::{termination_requested, Backoff};
 use crate::port::Publish;
 use crate::steal::{Slept, StealMeter, HOST_HOLD_MIN_NS};
+use crate::yielding::YieldPoll;
 use std::time::Duration;
 use stepdrive_shared::stats::StatsReport;
 
@@ -115,6 +116,8 @@ pub struct Runner<N: Node> {
     /// Lockstep: the doorbell this node sleeps on between inputs; clock-paced, the one that
     /// wakes it between ticks ([`Node::rung`]).
     bell: Option<Waiter>,
+    /// Lockstep: whether the position loop yields or sleeps between its ticks.
+    yield_poll: YieldPoll,
 }
 
 impl<N: Node> Runner<N> {
@@ -162,6 +165,7 @@ impl<N: Node> Runner<N> {
             paused_ns: 0,
             steal,
             bell: None,
+            yield_poll: YieldPoll::default(),
         }
     }
 
@@ -567,21 +571,35 @@ impl<N: Node> Runner<N> {
                 continue;
             }
             // A node that awaits a state further off (the position loop between its ticks)
-            // sleeps at once: on two cores its spin would take a core from the plant and the
-            // current loop, which hand off every sample. Once rung it spins too: a relayed
-            // ring may come a moment before the message reaches its queue.
+            // does not spin: on two cores its spin would take a core from the plant and the
+            // current loop, which hand off every sample. It yields the CPU it shares with the
+            // current loop while no one else takes it ([`YieldPoll`]), else sleeps at once.
+            // Once rung it spins too: a relayed ring may come a moment before the message
+            // reaches its queue. The current loop waiting for its tick's setpoint yields
+            // between polls, so that the position loop beside it runs now.
             let awaits = match self.bell {
                 Some(_) => self.node.awaits(),
                 None => Awaits::Next,
             };
             let spin_until = match (awaits, rung_at) {
                 (_, Some(at)) => at.saturating_add(DOORBELL_SPIN_POLLS),
-                (Awaits::Next, None) => DOORBELL_SPIN_POLLS,
+                (Awaits::Next | Awaits::Beside, None) => DOORBELL_SPIN_POLLS,
                 (Awaits::Later { .. }, None) => 0,
             };
             if self.bell.is_some() && polls < spin_until {
-                std::hint::spin_loop();
+                match awaits {
+                    Awaits::Beside => std::thread::yield_now(),
+                    _ => std::hint::spin_loop(),
+                }
                 continue;
+            }
+            if self.bell.is_some() && matches!(awaits, Awaits::Later { .. }) {
+                let now = monotonic_ns();
+                if self.yield_poll.yields(now, self.last_taken_ns) {
+                    std::thread::yield_now();
+                    self.yield_poll.yielded(now, monotonic_ns());
+                    continue;
+                }
             }
             let now = monotonic_ns();
             self.check_waiting(now)?;
@@ -589,7 +607,7 @@ impl<N: Node> Runner<N> {
                 // Armed before the last poll: a message published after it rings the bell.
                 let armed = bell.arm(match awaits {
                     Awaits::Later { state } => state,
-                    Awaits::Next => None,
+                    Awaits::Next | Awaits::Beside => None,
                 });
                 if let Some(flow) = self.try_input_cycle(clock, wake)? {
                     bell.disarm();

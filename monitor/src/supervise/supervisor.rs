@@ -19,6 +19,14 @@ use stepdrive_shared::stack::{Role, Slot};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
+/// The supervisor's nap between drains, realtime: ~20 states at the default 20 kHz.
+const REALTIME_NAP: Duration = Duration::from_millis(1);
+/// Lockstep: ~900 states a drain at 22x real time, an eighth of the monitor's queue (a full
+/// queue holds the plant, it never drops). Every wake-up of the monitor takes a CPU from the
+/// plant or the loops, which hand off every sample: at 0.5 ms (1800 a second) the run took
+/// 4 % longer (docs/measurements.md).
+const LOCKSTEP_NAP: Duration = Duration::from_millis(2);
+
 /// States taken between two drains of the controls: half a position-loop tick at the
 /// default rates, so a recorded state's setpoint is at most a tick or two behind it.
 const CONTROLS_EVERY: u32 = 5;
@@ -461,6 +469,15 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 last_sample_at = Instant::now();
             }
             if let Some(stop) = self.dead_child()? {
+                // A plant that ended in order exits after its last sample, which may have
+                // come after the drain above took that axis (a multi-axis drain takes the
+                // axes in turn): what it published is still queued.
+                if let Err(stop) = self.drain()? {
+                    break Ending::Stopped(stop);
+                }
+                if until == Until::LastSample && self.all_last_seen() {
+                    break Ending::Last;
+                }
                 break Ending::Stopped(stop);
             }
             if termination_requested() {
@@ -529,7 +546,10 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 // The last reading while every child lives: one that has exited has none.
                 self.resource.read_end();
             }
-            std::thread::sleep(Duration::from_micros(if realtime { 1000 } else { 500 }));
+            std::thread::sleep(match realtime {
+                true => REALTIME_NAP,
+                false => LOCKSTEP_NAP,
+            });
         };
         progress.finish();
         self.resource.read_end();

@@ -343,27 +343,27 @@ impl<N: Together> Node for Lanes<N> {
     fn awaits(&self) -> Awaits {
         // The earliest any waiting lane needs: an answer within a hand-off, else a setpoint
         // from the position loop beside it, else the earliest state one sleeps for.
-        let waiting = || {
-            self.lanes
-                .iter()
-                .zip(&self.nodes)
-                .filter(|(l, _)| !l.finished && !l.ready)
-                .map(|(_, n)| n)
-        };
-        if waiting().any(|n| n.awaits() == Awaits::Next) {
-            return Awaits::Next;
+        let waiting = self
+            .lanes
+            .iter()
+            .zip(&self.nodes)
+            .filter(|(l, _)| !l.finished && !l.ready)
+            .map(|(_, n)| n);
+        let mut beside = false;
+        // Until a lane sleeps for any message (None); u64::MAX: none sleeps at all.
+        let mut earliest = Some(u64::MAX);
+        for n in waiting {
+            match n.awaits() {
+                Awaits::Next => return Awaits::Next,
+                Awaits::Beside => beside = true,
+                Awaits::Later { state } => earliest = earliest.zip(state).map(|(a, b)| a.min(b)),
+            }
         }
-        if waiting().any(|n| n.awaits() == Awaits::Beside) {
+        if beside {
             return Awaits::Beside;
         }
-        let state = waiting()
-            .map(|n| match n.awaits() {
-                Awaits::Later { state } => state,
-                Awaits::Next | Awaits::Beside => None,
-            })
-            .try_fold(u64::MAX, |min, s| s.map(|s| min.min(s)));
         Awaits::Later {
-            state: state.filter(|&s| s != u64::MAX),
+            state: earliest.filter(|&s| s != u64::MAX),
         }
     }
 

@@ -593,15 +593,15 @@ impl<N: Node> Runner<N> {
                 }
                 continue;
             }
-            if self.bell.is_some() && matches!(awaits, Awaits::Later { .. }) {
-                let now = monotonic_ns();
-                if self.yield_poll.yields(now, self.last_taken_ns) {
-                    std::thread::yield_now();
-                    self.yield_poll.yielded(now, monotonic_ns());
-                    continue;
-                }
-            }
             let now = monotonic_ns();
+            if self.bell.is_some()
+                && matches!(awaits, Awaits::Later { .. })
+                && self.yield_poll.yields(now, self.last_taken_ns)
+            {
+                std::thread::yield_now();
+                self.yield_poll.yielded(now, monotonic_ns());
+                continue;
+            }
             self.check_waiting(now)?;
             if let Some(bell) = self.bell.clone() {
                 // Armed before the last poll: a message published after it rings the bell.

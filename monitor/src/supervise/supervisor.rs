@@ -443,6 +443,11 @@ impl<'a, 'r> Supervisor<'a, 'r> {
         let endless = self.s.run.until_stopped;
         let progress = Progress::new(&self.label, total, endless);
         let ending = loop {
+            // Before the drain: a plant that ended in order exits after its last sample,
+            // which a multi-axis drain (the axes in turn) may not have taken yet; what a
+            // child published before it exited is drained below, and its exit counts only
+            // if the run is not complete.
+            let died = self.dead_child()?;
             let got = match self.drain()? {
                 Ok(got) => got,
                 Err(stop) => break Ending::Stopped(stop),
@@ -468,16 +473,7 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                 }
                 last_sample_at = Instant::now();
             }
-            if let Some(stop) = self.dead_child()? {
-                // A plant that ended in order exits after its last sample, which may have
-                // come after the drain above took that axis (a multi-axis drain takes the
-                // axes in turn): what it published is still queued.
-                if let Err(stop) = self.drain()? {
-                    break Ending::Stopped(stop);
-                }
-                if until == Until::LastSample && self.all_last_seen() {
-                    break Ending::Last;
-                }
+            if let Some(stop) = died {
                 break Ending::Stopped(stop);
             }
             if termination_requested() {

@@ -71,13 +71,20 @@ fn a_served_axis_is_commanded_from_other_processes() {
 
     let on = axis(&["enable"]);
     assert!(on.status.success(), "{}", text(&on));
-    for (args, why) in [
-        (&["move", "--to", "nan"][..], "target NaN"),
-        (&["move", "--to", "1", "--vmax", "0"][..], "not positive"),
-        (&["move", "--to", "1e9"][..], "outside the soft limits"),
+    // A value that is no number the axis could take is a usage error (exit 2), never
+    // sent; one the axis refuses comes back with its reason (exit 1).
+    for (args, code, why) in [
+        (&["move", "--to", "nan"][..], 2, "finite"),
+        (&["move", "--to", "1", "--vmax", "0"][..], 2, "positive"),
+        (&["move", "--to", "1e9"][..], 1, "outside the soft limits"),
+        (
+            &["move", "--to", "1", "--vmax", "1e6"][..],
+            1,
+            "exceeds the axis's",
+        ),
     ] {
         let out = axis(args);
-        assert_eq!(out.status.code(), Some(1), "{args:?}: {}", text(&out));
+        assert_eq!(out.status.code(), Some(code), "{args:?}: {}", text(&out));
         assert!(text(&out).contains(why), "{args:?}: {}", text(&out));
     }
 

@@ -2,7 +2,7 @@
 //! client crate (`stepdrive-client`), as a program would.
 
 use crate::commands::Exit;
-use crate::options::seconds;
+use crate::options::parse_seconds;
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand};
 use std::path::PathBuf;
@@ -32,18 +32,41 @@ pub struct AxisArgs {
     verb: Verb,
 }
 
-/// A move's or jog's limits (absent: the axis's move defaults, `[axis]`).
+/// A move's or jog's limits (absent: the axis's move defaults, `[axis]`). Each must be
+/// positive and finite here; the axis refuses one above its maximum, below a millionth of
+/// it, or so low that the command would take longer than `[axis] move_time_max_s`.
 #[derive(Args, Debug, Clone, Copy)]
 struct LimitArgs {
     /// Speed limit, rad/s.
-    #[arg(long, allow_negative_numbers = true)]
+    #[arg(long, allow_negative_numbers = true, value_parser = positive)]
     vmax: Option<f64>,
     /// Acceleration limit, rad/s².
-    #[arg(long, allow_negative_numbers = true)]
+    #[arg(long, allow_negative_numbers = true, value_parser = positive)]
     amax: Option<f64>,
     /// Jerk limit, rad/s³.
-    #[arg(long, allow_negative_numbers = true)]
+    #[arg(long, allow_negative_numbers = true, value_parser = positive)]
     jmax: Option<f64>,
+}
+
+/// A limit: positive and finite.
+fn positive(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() && v > 0.0 => Ok(v),
+        _ => Err(format!("must be a positive finite number (got {s})")),
+    }
+}
+
+/// A position or speed: finite.
+fn finite(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(v) if v.is_finite() => Ok(v),
+        _ => Err(format!("must be a finite number (got {s})")),
+    }
+}
+
+/// A stream's lead, s.
+fn lead(s: &str) -> Result<f64, String> {
+    crate::options::number_within(s, 0.0, 10.0, false, "s")
 }
 
 impl LimitArgs {
@@ -77,12 +100,16 @@ enum Verb {
     QuickStop,
     /// Fault reset (the drive's own fault too, once its cause is gone).
     Reset,
-    /// Profile position: a jerk-limited move.
+    /// Profile position: a jerk-limited move. With --wait, Ctrl-C halts the move (a stop at
+    /// the axis's move limits, if no other command has taken the axis over since) and exits
+    /// 130.
     Move {
         /// The target, rad.
-        #[arg(long, allow_negative_numbers = true)]
+        #[arg(long, allow_negative_numbers = true, value_parser = finite)]
         to: f64,
-        /// `--to` is relative to the current target.
+        /// `--to` is relative to the preceding move's target (the move in progress, or the
+        /// last one if nothing has moved the axis since), else to where the axis stands
+        /// (CiA 402's relative positioning): never to a jog's or a stop's.
         #[arg(long)]
         relative: bool,
         /// After the current move ends (otherwise the move in progress changes at once).
@@ -94,19 +121,21 @@ enum Verb {
         #[arg(long)]
         wait: bool,
         /// Longest wait with --wait, s.
-        #[arg(long, default_value_t = 30.0)]
-        timeout: f64,
+        #[arg(long, default_value = "30", value_parser = parse_seconds)]
+        timeout: Duration,
     },
     /// A coordinated move of several axes of a multi-axis stack: each to its target
     /// (absolute, at its `[axis]` move limits), all leaving on one tick and arriving on one
     /// tick; refused as a whole if any axis cannot take its part. (`--axis` is not used.)
+    /// With --wait, Ctrl-C halts every axis the move still runs and exits 130.
     MoveTogether {
         /// The targets, rad, one per axis of --axes: `--to 1,-6,12`.
         #[arg(
             long,
             value_delimiter = ',',
             allow_negative_numbers = true,
-            required = true
+            required = true,
+            value_parser = finite
         )]
         to: Vec<f64>,
         /// The axes, in the order of --to (default: 0, 1, … one per target).
@@ -116,16 +145,22 @@ enum Verb {
         #[arg(long)]
         wait: bool,
         /// Longest wait with --wait, s.
-        #[arg(long, default_value_t = 30.0)]
-        timeout: f64,
+        #[arg(long, default_value = "30", value_parser = parse_seconds)]
+        timeout: Duration,
     },
-    /// Profile velocity: run at a speed (stops at the soft position limit).
+    /// Profile velocity: run at a speed (stops at the soft position limit) while this
+    /// command runs: it renews the jog every 0.1 s until Ctrl-C (or --for), then stops the
+    /// axis at the jog's limits. The axis quick-stops a jog its client stops renewing
+    /// (`[axis] jog_timeout_s`, 0.5 s), so a jog never outlives the command that runs it.
     Jog {
         /// Speed, rad/s.
-        #[arg(long, allow_negative_numbers = true)]
+        #[arg(long, allow_negative_numbers = true, value_parser = finite)]
         velocity: f64,
         #[command(flatten)]
         limits: LimitArgs,
+        /// Stop after this long, s (default: at Ctrl-C).
+        #[arg(long = "for", value_name = "S", value_parser = parse_seconds)]
+        duration: Option<Duration>,
     },
     /// Halt: decelerate to a standstill and stay enabled.
     Stop {
@@ -138,7 +173,7 @@ enum Verb {
     Stream {
         file: PathBuf,
         /// How far behind its points the axis plays the stream, s (default: the axis's).
-        #[arg(long)]
+        #[arg(long, value_parser = lead)]
         lead: Option<f64>,
         /// SCHED_FIFO priority of this client, 0 for ordinary: the stack's loops run at
         /// SCHED_FIFO, and a client at ordinary priority was measured held off the CPU for
@@ -157,7 +192,7 @@ enum Verb {
         #[arg(long, value_delimiter = ',')]
         axes: Option<Vec<u32>>,
         /// How far behind its points every axis plays the stream, s (default: each axis's).
-        #[arg(long)]
+        #[arg(long, value_parser = lead)]
         lead: Option<f64>,
         /// SCHED_FIFO priority of this client, 0 for ordinary (as `stream`'s).
         #[arg(long, value_name = "P", default_value_t = stepdrive_client::STREAM_PRIORITY,
@@ -201,7 +236,7 @@ enum Verb {
     },
     /// Declare the present position (at a standstill).
     SetPosition {
-        #[arg(allow_negative_numbers = true)]
+        #[arg(allow_negative_numbers = true, value_parser = finite)]
         position: f64,
     },
 }
@@ -210,6 +245,7 @@ enum Verb {
 fn failed(e: ClientError) -> anyhow::Error {
     let code = match &e {
         ClientError::Fault { .. } => Outcome::Fault.exit_code(),
+        ClientError::Interrupted { .. } => Outcome::Interrupted.exit_code(),
         _ => 1,
     };
     // The whole chain: "answer on … failed" alone does not say the position loop is silent.
@@ -279,12 +315,7 @@ pub fn axis(a: AxisArgs) -> Result<()> {
         let axes = axes
             .clone()
             .unwrap_or_else(|| (0..to.len() as u32).collect());
-        // Parse errors before any connection.
-        let timeout = wait
-            .then(|| seconds(*timeout))
-            .transpose()
-            .map_err(anyhow::Error::msg)
-            .context("--timeout")?;
+        let timeout = wait.then_some(*timeout);
         let group = match &a.connect {
             Some(endpoint) => Group::connect_remote(endpoint, &a.instance, &axes),
             None => Group::connect(&a.instance, &axes),
@@ -374,11 +405,13 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             let mv = axis.move_with(to, limits.limits(), flags).map_err(failed)?;
             println!("move taken (seq {})", mv.seq);
             if wait {
-                let timeout = seconds(timeout)
-                    .map_err(anyhow::Error::msg)
-                    .context("--timeout")?;
                 let started = Instant::now();
-                let s = axis.wait_target_reached(&mv, timeout).map_err(failed)?;
+                let s = match axis.wait_target_reached(&mv, timeout) {
+                    Err(ClientError::Interrupted { .. }) => {
+                        return Err(halted(&mut [(&mut axis, a.axis)], mv.seq))
+                    }
+                    r => r.map_err(failed)?,
+                };
                 println!(
                     "target {:.6} rad reached in {:.3} s: θ {:.6} rad, θ_d − θ {:.2e} rad",
                     s.target_rad,
@@ -391,12 +424,14 @@ pub fn axis(a: AxisArgs) -> Result<()> {
         Verb::MoveTogether { .. } | Verb::StreamTogether { .. } => {
             unreachable!("handled before an axis is connected")
         }
-        Verb::Jog { velocity, limits } => {
+        Verb::Jog {
+            velocity,
+            limits,
+            duration,
+        } => {
             axis.jog(velocity, limits.limits()).map_err(failed)?;
             println!("jogging at {velocity} rad/s");
-            if axis.endpoint().is_some() {
-                hold_remote_jog(&mut axis, limits.limits())?;
-            }
+            hold_jog(&mut axis, limits.limits(), duration)?;
         }
         Verb::Stop { limits } => {
             axis.stop(limits.limits()).map_err(failed)?;
@@ -470,7 +505,17 @@ fn move_together(
         return Ok(());
     };
     let started = Instant::now();
-    let arrived = group.wait_arrived(&mv, timeout).map_err(failed)?;
+    let arrived = match group.wait_arrived(&mv, timeout) {
+        Err(ClientError::Interrupted { .. }) => {
+            let mut each: Vec<(&mut Axis, u32)> = group
+                .axes_mut()
+                .iter_mut()
+                .zip(axes.iter().copied())
+                .collect();
+            return Err(halted(&mut each, mv.seq));
+        }
+        r => r.map_err(failed)?,
+    };
     for (axis, s) in axes.iter().zip(&arrived) {
         println!(
             "axis {axis}: target {:.6} rad reached: θ {:.6} rad, θ_d − θ {:.2e} rad, contour error peak {:.2e} rad",
@@ -485,15 +530,53 @@ fn move_together(
     Ok(())
 }
 
-/// A jog through a gateway lasts as long as its client: the gateway quick-stops a jog whose
-/// client went away (its lease), so this command holds the lease until Ctrl-C, then stops
-/// the axis (a deceleration at the jog's limits) and exits. Exit 3 if the axis faults.
-fn hold_remote_jog(axis: &mut Axis, limits: Limits) -> Result<()> {
-    println!("through the gateway: the jog lasts while this command runs; Ctrl-C stops it");
-    while !stepdrive_runtime::poll::termination_requested() {
+/// Ctrl-C during a wait: each axis whose newest command is still `seq` (the motion this
+/// command started) is halted at its move limits; the exit is 130, and the headline says
+/// where each stood.
+fn halted(axes: &mut [(&mut Axis, u32)], seq: u64) -> anyhow::Error {
+    let mut said = Vec::new();
+    for (axis, index) in axes.iter_mut() {
+        said.push(match axis.halt_if_still(seq) {
+            Ok(Some(s)) => format!(
+                "axis {index} halted at θ {:.6} rad, ω {:.4} rad/s (a stop at its move limits)",
+                s.theta_rad, s.omega_rad_s
+            ),
+            Ok(None) => format!("axis {index}: another command had taken it over, left alone"),
+            Err(e) => format!("axis {index}: could not halt it: {e}"),
+        });
+    }
+    Exit {
+        code: Outcome::Interrupted.exit_code(),
+        headline: format!("interrupted: {}", said.join("; ")),
+    }
+    .into()
+}
+
+/// How often a held jog is renewed: well inside the axis's `jog_timeout_s` (0.5 s by
+/// default), so that a client held off the CPU for a while keeps its jog.
+const RENEW_EVERY: Duration = Duration::from_millis(100);
+
+/// A jog lasts while its command runs: the axis quick-stops a jog whose client stops
+/// renewing it, so this holds the jog (renewing it) until Ctrl-C or `duration`, then stops
+/// the axis (a deceleration at the jog's limits). Exit 3 if the axis faults.
+fn hold_jog(axis: &mut Axis, limits: Limits, duration: Option<Duration>) -> Result<()> {
+    println!("the jog lasts while this command runs; Ctrl-C stops it");
+    let started = Instant::now();
+    while !stepdrive_runtime::poll::termination_requested()
+        && duration.is_none_or(|d| started.elapsed() < d)
+    {
+        let ack = axis.renew().map_err(failed)?;
         let s = axis.status().map_err(failed)?;
         stepdrive_client::faulted(&s).map_err(failed)?;
-        std::thread::sleep(Duration::from_millis(50));
+        if AxisMode::from_u32(s.mode) != Some(AxisMode::ProfileVelocity) {
+            // Stopped by another command, a quick stop or its soft limit: nothing to hold.
+            let state = AxisState::from_u32(ack.state).map_or("?", |x| x.name());
+            anyhow::bail!(
+                "the jog ended: the axis is in {state}, mode {}",
+                AxisMode::from_u32(s.mode).map_or("?", |m| m.name())
+            );
+        }
+        std::thread::sleep(RENEW_EVERY);
     }
     axis.stop(limits).map_err(failed)?;
     println!("stopping");
@@ -509,24 +592,52 @@ fn stream_rows(
 ) -> Result<()> {
     let mut stream = axis.stream(lead).map_err(failed)?;
     let started = Instant::now();
-    for row in rows {
-        stream.pace(row.t_s).map_err(failed)?;
-        if stepdrive_runtime::poll::termination_requested() {
-            // The axis quick-stops a stream that stops coming.
-            anyhow::bail!("interrupted: the stream stopped; the axis quick-stops");
+    let played = (|| {
+        for row in rows {
+            stream.pace(row.t_s)?;
+            stream.followed()?;
+            stream.push(row.t_s, row.theta_rad, row.omega_rad_s, row.torque_ff_nm)?;
         }
-        stream
-            .push(row.t_s, row.theta_rad, row.omega_rad_s, row.torque_ff_nm)
-            .map_err(failed)?;
-    }
+        stream.played_out()?;
+        stream.followed()
+    })();
     let sent = stream.sent();
-    stream.played_out().map_err(failed)?;
+    let dry = stream.ran_dry();
+    if let Err(e) = played {
+        // The stream this command started ends here: the axis brakes to a hold (a stream
+        // left to run dry would be quick-stopped by its watchdog).
+        let ended = stream.end();
+        return Err(stream_failed(e, sent, ended.err()));
+    }
     stream.end().map_err(failed)?;
     println!(
         "{sent} points streamed in {:.3} s",
         started.elapsed().as_secs_f64()
     );
+    if dry {
+        println!("warning: the stream ran dry at times (STREAM_UNDERRUN): the axis carried its last point on at its speed until the next came");
+    }
     Ok(())
+}
+
+/// A stream that failed after `sent` points, ended (or not: `end_failed`) by this command.
+fn stream_failed(e: ClientError, sent: u64, end_failed: Option<ClientError>) -> anyhow::Error {
+    let ended = match end_failed {
+        None => "the stream was ended: the axis brakes to a hold".to_string(),
+        Some(f) => format!(
+            "the stream could not be ended ({f}): the axis's stream watchdog quick-stops it"
+        ),
+    };
+    let e = failed(e);
+    let (code, headline) = match e.downcast_ref::<Exit>() {
+        Some(x) => (x.code, x.headline.clone()),
+        None => (1, e.to_string()),
+    };
+    Exit {
+        code,
+        headline: format!("{headline} (after {sent} points; {ended})"),
+    }
+    .into()
 }
 
 /// `axis stream-together`: every row's positions, paced as one stream; then each axis's
@@ -535,14 +646,22 @@ fn stream_together(mut group: Group, rows: &[Vec<f64>], lead: Option<f64>) -> Re
     let indices = group.indices().to_vec();
     let mut stream = group.stream(lead).map_err(failed)?;
     let started = Instant::now();
-    for row in rows {
-        stream.pace(row[0]).map_err(failed)?;
-        if stepdrive_runtime::poll::termination_requested() {
-            anyhow::bail!("interrupted: the stream stopped; the axes quick-stop");
+    let mut sent = 0;
+    let played = (|| {
+        for row in rows {
+            stream.pace(row[0])?;
+            stream.followed()?;
+            stream.push(row[0], &row[1..])?;
+            sent += 1;
         }
-        stream.push(row[0], &row[1..]).map_err(failed)?;
+        stream.played_out()?;
+        stream.followed()
+    })();
+    if let Err(e) = played {
+        let ended = stream.end();
+        return Err(stream_failed(e, sent, ended.err()));
     }
-    stream.played_out().map_err(failed)?;
+    let dry = stream.ran_dry();
     let offsets: Vec<Option<f64>> = stream
         .last_statuses()
         .iter()
@@ -560,6 +679,9 @@ fn stream_together(mut group: Group, rows: &[Vec<f64>], lead: Option<f64>) -> Re
             Some(o) => println!("axis {axis}: stack time − stream time played {o:.6} s"),
             None => println!("axis {axis}: no status read while streaming"),
         }
+    }
+    if dry {
+        println!("warning: the stream ran dry at times (STREAM_UNDERRUN) on an axis: it carried its last point on at its speed until the next came");
     }
     Ok(())
 }

@@ -16,7 +16,14 @@
 //! scenario). A command or point for an axis the stack lacks is refused (`UnknownAxis`).
 //! - leases: every remote client holds a liveliness token; when one goes (its session
 //!   closed, or its link silent for [`LEASE`](crate::remote::LEASE)) and the axis is still
-//!   in a stream or jog that client started, the gateway quick-stops the axis.
+//!   in a stream or jog that client started, the gateway quick-stops the axis. That is the
+//!   fast path for a client that ends; safety does not rest on it: the axis itself stops a
+//!   jog its client stops renewing, and a stream whose points stop or never come, whatever
+//!   a client declares.
+//! - a request is a remote client's or none: its client id odd and at least 2³¹, and the
+//!   top 32 bits of its sequence number (refused `BadClient` otherwise, so that no remote
+//!   client speaks, or renews a jog, as a local one). A stream start that names no lead
+//!   gets the remote one, [`REMOTE_STREAM_LEAD_S`](crate::remote::REMOTE_STREAM_LEAD_S).
 
 use crate::remote::{self, decode, encoding, Side};
 use std::collections::HashMap;
@@ -259,7 +266,7 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                 ack
             } else if let Some(local) = local {
                 sum.commands += 1;
-                let mut r = request;
+                let mut r = with_remote_lead(request);
                 r.publish_time_ns = stepdrive_runtime::clock::monotonic_ns();
                 if r.flags & request_flags::COORDINATED != 0 {
                     // A coordinated part is answered once its partners, later queries,
@@ -451,6 +458,23 @@ fn started_motion(s: &AxisStatus, client: u32) -> bool {
         )
 }
 
+/// Whether `r` is a remote client's: its id odd and at least 2³¹ (never a pid, nor the
+/// gateway's own), and the top of its sequence number (the stack tells clients apart by it).
+fn remote_client(r: &AxisRequest) -> bool {
+    r.client & 1 == 1 && r.client >= 1 << 31 && (r.seq >> 32) as u32 == r.client
+}
+
+/// A remote stream start that names no lead gets the remote one: points cross a network
+/// and two processes the drive's host may hold off (docs/remote.md), and a client that
+/// left the lead to the axis would get the local 50 ms and run dry.
+fn with_remote_lead(mut r: AxisRequest) -> AxisRequest {
+    if r.kind == RequestKind::StreamStart as u32 && r.flags & request_flags::HAS_LEAD == 0 {
+        r.lead_s = remote::REMOTE_STREAM_LEAD_S;
+        r.flags |= request_flags::HAS_LEAD;
+    }
+    r
+}
+
 /// Takes a token from `client`'s bucket at `now` (refilled at `rate`/s up to `burst`);
 /// whether it was empty.
 fn over_rate(
@@ -482,7 +506,15 @@ fn refused_here(
     max_commands_hz: f64,
     state: u32,
 ) -> Option<AxisAck> {
-    let (refusal, text) = if keyed != Some(request.axis) {
+    let (refusal, text) = if !remote_client(request) {
+        (
+            Refusal::BadClient,
+            format!(
+                "client id {:#x} with sequence number {:#x}: a remote client's id is odd, at least 2^31, and the top 32 bits of its sequence numbers",
+                request.client, request.seq
+            ),
+        )
+    } else if keyed != Some(request.axis) {
         (
             Refusal::UnknownAxis,
             format!(
@@ -564,8 +596,11 @@ mod tests {
     /// over the rate is refused `too many`; others go on to the stack.
     #[test]
     fn a_request_for_another_axis_than_its_key_names_is_refused() {
+        let client = 0x8000_1235u32;
         let request = AxisRequest {
             axis: 0,
+            client,
+            seq: (u64::from(client) << 32) + 1,
             ..Default::default()
         };
         let ack = refused_here(&request, Some(3), false, 500.0, 7).expect("refused");
@@ -580,6 +615,52 @@ mod tests {
         assert_eq!(ack.refusal, Refusal::TooMany as u32);
         assert!(ack.text().contains("500 commands/s"));
         assert!(refused_here(&request, Some(0), false, 500.0, 7).is_none());
+    }
+
+    /// A local client's id (a pid), the gateway's own, or an id its sequence numbers do not
+    /// carry are refused before anything else: no remote client speaks as another.
+    #[test]
+    fn a_request_that_is_not_a_remote_clients_is_refused() {
+        let remote = 0x8000_1235u32;
+        for (client, seq_top) in [
+            (4242u32, 4242u32),
+            (GATEWAY_CLIENT, GATEWAY_CLIENT),
+            (remote, remote + 2),
+            (0x8000_1234, 0x8000_1234),
+            (0, 0),
+        ] {
+            let request = AxisRequest {
+                client,
+                seq: (u64::from(seq_top) << 32) + 1,
+                ..Default::default()
+            };
+            let ack = refused_here(&request, Some(0), false, 500.0, 7).expect("refused");
+            assert_eq!(ack.refusal, Refusal::BadClient as u32, "{client:#x}");
+        }
+    }
+
+    /// A remote stream start without a lead gets the remote one; one with a lead keeps it;
+    /// other requests pass unchanged.
+    #[test]
+    fn a_remote_stream_without_a_lead_gets_the_remote_lead() {
+        let start = AxisRequest {
+            kind: RequestKind::StreamStart as u32,
+            ..Default::default()
+        };
+        let r = with_remote_lead(start);
+        assert_eq!(r.lead_s, remote::REMOTE_STREAM_LEAD_S);
+        assert!(r.flags & request_flags::HAS_LEAD != 0);
+        let own = AxisRequest {
+            lead_s: 0.2,
+            flags: request_flags::HAS_LEAD,
+            ..start
+        };
+        assert_eq!(with_remote_lead(own), own);
+        let jog = AxisRequest {
+            kind: RequestKind::Jog as u32,
+            ..Default::default()
+        };
+        assert_eq!(with_remote_lead(jog), jog);
     }
 
     /// What the gateway declares matches the key every client names, for any axis and

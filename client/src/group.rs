@@ -103,6 +103,11 @@ impl Group {
         &self.indices
     }
 
+    /// The group's axes, in the group's order.
+    pub fn axes_mut(&mut self) -> &mut [Axis] {
+        &mut self.axes
+    }
+
     /// The group's `k`-th axis, to command on its own.
     pub fn axis(&mut self, k: usize) -> Option<&mut Axis> {
         self.axes.get_mut(k)
@@ -141,8 +146,10 @@ impl Group {
     /// every axis had its first point. Refused as a whole if any axis cannot stream (not
     /// enabled, a lead out of range).
     pub fn stream(&mut self, lead: Option<f64>) -> Result<GroupStream<'_>, ClientError> {
+        let mut refused_before = Vec::with_capacity(self.axes.len());
         for axis in &mut self.axes {
             axis.link.open_stream()?;
+            refused_before.push(axis.status()?.refused_points);
         }
         let remote = self.axes.iter().any(|a| a.endpoint().is_some());
         let lead = lead.or(remote.then_some(crate::remote::REMOTE_STREAM_LEAD_S));
@@ -157,14 +164,8 @@ impl Group {
             .axes
             .iter_mut()
             .zip(&acks)
-            .map(|(axis, ack)| Stream {
-                axis,
-                id: seq,
-                start_tick: ack.tick,
-                next: 0,
-                last_t: None,
-                seen: None,
-            })
+            .zip(refused_before)
+            .map(|((axis, ack), refused)| Stream::new(axis, seq, ack.tick, refused))
             .collect();
         Ok(GroupStream { streams })
     }
@@ -291,6 +292,17 @@ impl GroupStream<'_> {
     /// Each axis's newest status read while pacing, in the group's order.
     pub fn last_statuses(&self) -> Vec<Option<&AxisStatus>> {
         self.streams.iter().map(|s| s.last_status()).collect()
+    }
+
+    /// Fails with [`ClientError::StreamLimited`] if any axis could not follow its part of
+    /// the stream within its limits so far ([`Stream::followed`]).
+    pub fn followed(&self) -> Result<(), ClientError> {
+        self.streams.iter().try_for_each(Stream::followed)
+    }
+
+    /// Whether any axis's part ran dry at some status read ([`Stream::ran_dry`]).
+    pub fn ran_dry(&self) -> bool {
+        self.streams.iter().any(Stream::ran_dry)
     }
 
     /// Waits until every axis has played every point sent ([`Stream::played_out`]).

@@ -113,6 +113,28 @@ pub enum ClientError {
     /// A group or a coordinated move that cannot be asked for (see [`Group`]).
     #[error("{0}")]
     BadGroup(String),
+    /// SIGINT or SIGTERM came while waiting (the process installed
+    /// `stepdrive_runtime::poll::install_termination_handler`): the wait ended, nothing was
+    /// sent because of it.
+    #[error("interrupted while waiting for {what}")]
+    Interrupted { what: String },
+    /// The axis refused points of the stream (counted in its status): it will not play the
+    /// path that was sent.
+    #[error("the axis refused {count} point(s) of the stream, the last: {}", refusal.name())]
+    PointsRefused { count: u64, refusal: Refusal },
+    /// The axis could not follow the stream within its v/a/j limits (warning
+    /// STREAM_LIMITED): it followed as close as its limits allow, not the path sent.
+    #[error("the axis could not follow the stream within its speed, acceleration and jerk limits at stream time {t:.4} s (warning STREAM_LIMITED); a stream must start where the axis stands, at its speed, and keep within [axis] v_max_rad_s, a_max_rad_s2, j_max_rad_s3")]
+    StreamLimited { t: f64 },
+}
+
+/// Whether SIGINT or SIGTERM came (a process that installed the runtime's handler): a
+/// wait ends with [`ClientError::Interrupted`].
+fn interrupted(what: impl FnOnce() -> String) -> Result<(), ClientError> {
+    if stepdrive_runtime::poll::termination_requested() {
+        return Err(ClientError::Interrupted { what: what() });
+    }
+    Ok(())
 }
 
 /// How long a request waits for its answer.
@@ -374,7 +396,9 @@ impl Axis {
     /// [`Axis::connect`]. The status comes at the gateway's rate (100 Hz by default), a
     /// stream's default lead is [`remote::REMOTE_STREAM_LEAD_S`], and while this value
     /// lives it holds a lease at the gateway: if this process ends or its link is silent
-    /// for [`remote::LEASE`], a stream or jog it started is quick-stopped.
+    /// for [`remote::LEASE`], a stream or jog it started is quick-stopped at once. (The axis
+    /// stops a jog that is not renewed, and a stream whose points stop, on its own and
+    /// sooner: the lease is the fast path for a client that ends, not the safety.)
     pub fn connect_remote(endpoint: &str, instance: &str, axis: u32) -> Result<Self, ClientError> {
         stepdrive_shared::services::instance_name(instance).map_err(ClientError::BadInstance)?;
         let client = remote_client_id();
@@ -476,6 +500,13 @@ impl Axis {
         self.simple(RequestKind::Enable)
     }
 
+    /// Renews the jog this client runs (any command does; this one changes nothing): a jog
+    /// that hears nothing from its client for `[axis] jog_timeout_s` (0.5 s by default) is
+    /// quick-stopped. Send it at least every 0.1 s while jogging. Answers with the state.
+    pub fn renew(&mut self) -> Result<AxisAck, ClientError> {
+        self.simple(RequestKind::Status)
+    }
+
     /// Disables the axis (disable voltage): no torque.
     pub fn disable(&mut self) -> Result<AxisAck, ClientError> {
         self.simple(RequestKind::DisableVoltage)
@@ -528,7 +559,8 @@ impl Axis {
 
     /// Waits until the move's target is reached (the trajectory at its target and the
     /// rotor within the target window); fails if the axis faults or another command takes
-    /// over.
+    /// over, and ends with [`ClientError::Interrupted`] on SIGINT/SIGTERM (the move goes
+    /// on: halt it with [`Axis::halt_if_still`]).
     pub fn wait_target_reached(
         &mut self,
         mv: &Move,
@@ -546,6 +578,7 @@ impl Axis {
             if s.last_seq == mv.seq && s.target_reached() {
                 return Ok(s);
             }
+            interrupted(|| format!("the move to {} rad", s.target_rad))?;
             if Instant::now() >= deadline {
                 return Err(ClientError::Timeout {
                     what: format!("the move to {} rad", s.target_rad),
@@ -556,7 +589,22 @@ impl Axis {
         }
     }
 
-    /// Profile velocity: runs at `velocity` rad/s (stops at the soft position limit).
+    /// Halts the axis (a stop at its move limits) if the newest command is still the one
+    /// of sequence number `seq`, i.e. the motion it started is this client's to end (a
+    /// command of another client since has taken the axis over: it is left alone). The
+    /// status after, or `None` if the axis was left alone.
+    pub fn halt_if_still(&mut self, seq: u64) -> Result<Option<AxisStatus>, ClientError> {
+        let s = self.status()?;
+        if s.last_seq != seq || !s.axis_state().is_some_and(AxisState::outputs_on) {
+            return Ok(None);
+        }
+        self.stop(Limits::default())?;
+        self.status().map(Some)
+    }
+
+    /// Profile velocity: runs at `velocity` rad/s (stops at the soft position limit) while
+    /// this client renews it ([`Axis::renew`], or any command, at least every 0.1 s): the
+    /// axis quick-stops a jog that hears nothing from its client for `[axis] jog_timeout_s`.
     pub fn jog(&mut self, velocity: f64, limits: Limits) -> Result<AxisAck, ClientError> {
         let mut r = self.request(RequestKind::Jog);
         r.velocity_rad_s = velocity;
@@ -615,9 +663,12 @@ impl Axis {
 
     /// Starts a cyclic synchronous position stream, played `lead` s behind its points'
     /// arrival (`None`: the axis's default). Push points with [`Stream::push`] at 100 Hz to
-    /// 2 kHz; a stream that stops coming is quick-stopped by the axis.
+    /// 2 kHz; a stream that stops coming, or whose first point does not come, is
+    /// quick-stopped by the axis.
     pub fn stream(&mut self, lead: Option<f64>) -> Result<Stream<'_>, ClientError> {
         self.link.open_stream()?;
+        // Points refused before this stream are not this stream's.
+        let refused_before = self.status()?.refused_points;
         let mut r = self.request(RequestKind::StreamStart);
         let lead = match (&self.link, lead) {
             (Link::Remote(_), None) => Some(remote::REMOTE_STREAM_LEAD_S),
@@ -629,14 +680,7 @@ impl Axis {
         }
         let id = r.seq;
         let ack = self.send(r)?;
-        Ok(Stream {
-            axis: self,
-            id,
-            start_tick: ack.tick,
-            next: 0,
-            last_t: None,
-            seen: None,
-        })
+        Ok(Stream::new(self, id, ack.tick, refused_before))
     }
 }
 
@@ -649,9 +693,51 @@ pub struct Stream<'a> {
     next: u64,
     last_t: Option<f64>,
     seen: Option<AxisStatus>,
+    /// The axis's count of refused points when the stream started.
+    refused_before: u64,
+    /// The stream time of the first status that carried STREAM_LIMITED, and whether one
+    /// carried STREAM_UNDERRUN.
+    limited_at: Option<f64>,
+    underrun: bool,
 }
 
-impl Stream<'_> {
+impl<'a> Stream<'a> {
+    pub(crate) fn new(axis: &'a mut Axis, id: u64, start_tick: u64, refused_before: u64) -> Self {
+        Self {
+            axis,
+            id,
+            start_tick,
+            next: 0,
+            last_t: None,
+            seen: None,
+            refused_before,
+            limited_at: None,
+            underrun: false,
+        }
+    }
+
+    /// The stream time at which the axis first said it could not follow the stream within
+    /// its limits (warning STREAM_LIMITED), from the statuses read while pacing; `None` if
+    /// it followed it all so far.
+    pub fn limited_at(&self) -> Option<f64> {
+        self.limited_at
+    }
+
+    /// Whether the stream ran dry at some status read (warning STREAM_UNDERRUN: the axis
+    /// carried the last point on at its speed until points came again).
+    pub fn ran_dry(&self) -> bool {
+        self.underrun
+    }
+
+    /// Fails with [`ClientError::StreamLimited`] if the axis could not follow the stream
+    /// within its limits so far.
+    pub fn followed(&self) -> Result<(), ClientError> {
+        match self.limited_at {
+            Some(t) => Err(ClientError::StreamLimited { t }),
+            None => Ok(()),
+        }
+    }
+
     /// Sends the point at stream time `t` s: θ rad, and optionally ω rad/s and a torque
     /// feed-forward N·m. Time must increase; a point that breaks that, or is not finite,
     /// is refused here and never sent.
@@ -697,8 +783,9 @@ impl Stream<'_> {
     /// `stream_time_s`, on the stack's clock) is within the stream's lead of `t`. Paced so,
     /// the axis holds one lead of points whatever the two clocks do: a simulated plant's
     /// time pauses while its process is held up, and a wall-clock sender would run ahead
-    /// of it. Fails if the axis faults or leaves the stream, or its stream time stands
-    /// still for the client's timeout.
+    /// of it. Fails if the axis faults, leaves the stream or refuses a point (one beyond
+    /// the soft limits, say), its stream time stands still for the client's timeout, or on
+    /// SIGINT/SIGTERM.
     pub fn pace(&mut self, t: f64) -> Result<(), ClientError> {
         if self.next == 0 {
             return Ok(());
@@ -725,6 +812,7 @@ impl Stream<'_> {
     ) -> Result<(), ClientError> {
         let mut moved = (f64::NAN, Instant::now());
         loop {
+            interrupted(|| format!("the axis's stream time to reach {t} s"))?;
             // Statuses of ticks before the stream's start say nothing of it.
             let start = self.start_tick;
             let axis = self.axis.axis;
@@ -738,6 +826,17 @@ impl Stream<'_> {
             }
             if let Some(s) = self.seen {
                 faulted(&s)?;
+                if s.refused_points > self.refused_before {
+                    return Err(ClientError::PointsRefused {
+                        count: s.refused_points - self.refused_before,
+                        refusal: Refusal::from_u32(s.last_refusal)
+                            .unwrap_or(Refusal::UnknownCommand),
+                    });
+                }
+                if s.warning & axis_warnings::STREAM_LIMITED != 0 && self.limited_at.is_none() {
+                    self.limited_at = Some(s.stream_time_s);
+                }
+                self.underrun |= s.warning & axis_warnings::STREAM_UNDERRUN != 0;
                 if AxisMode::from_u32(s.mode) != Some(AxisMode::CyclicPosition) {
                     return Err(ClientError::StreamLeft {
                         state: s.axis_state().map_or("?", |x| x.name()),

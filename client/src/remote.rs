@@ -2,7 +2,9 @@
 //! stack's host (docs/remote.md). The gateway answers commands with the local command
 //! service's acknowledgements, publishes the axis's status at its rate, and forwards stream
 //! points; the client holds a liveliness token, and when it goes away (its process ends,
-//! or its link is silent for a lease) the gateway quick-stops the stream or jog it started.
+//! or its link is silent for a lease) the gateway quick-stops the stream or jog it started
+//! (the axis itself stops a jog its client stops renewing, and a stream whose points stop,
+//! whatever the client declares: docs/remote.md).
 
 use crate::ClientError;
 use std::time::Duration;

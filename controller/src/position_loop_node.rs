@@ -199,8 +199,14 @@ impl PositionLoopNode {
         }
     }
 
-    /// Applies `request` to the axis at `state`, returning its answer.
+    /// Applies a client's `request` to the axis at `state`, returning its answer.
     fn apply(&mut self, request: &AxisRequest, state: &DriveState) -> AxisAck {
+        self.apply_from(request, state, false)
+    }
+
+    /// [`Self::apply`]; `scripted`: a step of the scenario's program (a jog it starts needs
+    /// no renewal from a client).
+    fn apply_from(&mut self, request: &AxisRequest, state: &DriveState, scripted: bool) -> AxisAck {
         let m = measured(state);
         let result = if request.axis != self.axis {
             Err((
@@ -211,10 +217,12 @@ impl PositionLoopNode {
                 ),
             ))
         } else {
-            self.body
-                .axis()
-                .request(request, &m)
-                .map_err(|r| (r.refusal, r.text))
+            let axis = self.body.axis();
+            match scripted {
+                true => axis.request_scripted(request, &m),
+                false => axis.request(request, &m),
+            }
+            .map_err(|r| (r.refusal, r.text))
         };
         self.answer_of(request, state.sample_time_s, result)
     }
@@ -298,7 +306,7 @@ impl PositionLoopNode {
                 self.coordinated = Some(request);
                 continue;
             }
-            let ack = self.apply(&request, state);
+            let ack = self.apply_from(&request, state, true);
             if !ack.taken() {
                 tracing::warn!(
                     "program step {} ({}) at {:.4} s refused: {}",

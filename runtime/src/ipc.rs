@@ -603,14 +603,16 @@ impl PendingAnswer {
         }
     }
 
-    /// Waits until `deadline` for the answer.
+    /// Waits until `deadline` for the answer. Not cut short by SIGINT/SIGTERM: what a
+    /// process sends as it stops (a halt after Ctrl-C, a quick stop at shutdown) must be
+    /// answered, and the deadline bounds the wait.
     pub fn wait(self, deadline: Instant) -> Result<AxisAck, PortError> {
         let started = Instant::now();
         loop {
             if let Some(ack) = self.answer()? {
                 return Ok(ack);
             }
-            if Instant::now() >= deadline || crate::poll::termination_requested() {
+            if Instant::now() >= deadline {
                 return Err(self.unanswered(deadline.saturating_duration_since(started)));
             }
             std::thread::sleep(Duration::from_micros(50));

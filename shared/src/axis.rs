@@ -52,7 +52,22 @@ pub struct AxisParams {
     /// the axis holds its setpoint where the rotor stood this long, the current holding the
     /// rotor before the brake lets go, and then follows its commands. 0: released at once.
     pub brake_release_s: f64,
+    /// A jog runs while the client that started it renews it: a jog that hears no command
+    /// from its client for this long is quick-stopped (warning JOG_LOST), s. Any command
+    /// renews it, a status request the cheapest. A client that dies, hangs or loses its
+    /// link mid-jog so leaves the motor stopped (moteus's watchdog timeout plays this role).
+    /// A scenario's `[[program]]` is the stack's own script and needs no renewal.
+    pub jog_timeout_s: f64,
+    /// The longest a move, a jog's change of speed or a stop may take at the limits it
+    /// asks, s: a command whose planned trajectory is longer is refused (limits so low that
+    /// the axis would not arrive in any useful time are a mistake, not a move).
+    pub move_time_max_s: f64,
 }
+
+/// The least limit a command may ask, as a fraction of the axis's maximum (`v_max_rad_s`,
+/// `a_max_rad_s2`, `j_max_rad_s3`; a jog's speed too): below it the trajectory generator
+/// works with numbers it cannot resolve.
+pub const LIMIT_FLOOR: f64 = 1e-6;
 
 impl Default for AxisParams {
     fn default() -> Self {
@@ -74,6 +89,8 @@ impl Default for AxisParams {
             stream_timeout_s: 0.05,
             setpoint_age_ticks: 20,
             brake_release_s: 0.02,
+            jog_timeout_s: 0.5,
+            move_time_max_s: 3600.0,
         }
     }
 }
@@ -113,6 +130,17 @@ impl AxisParams {
         within("axis.j_max_rad_s3", self.j_max_rad_s3, 1e-6, 1e12, "rad/s³")?;
         let at_most = |field: &'static str, v: f64, max: f64, max_field: &str, unit: &str| {
             within(field, v, 1e-6, f64::MAX, unit)?;
+            if v < max * LIMIT_FLOOR {
+                return Err(invalid(
+                    field,
+                    format!(
+                        "({} {unit}) is below a millionth of {max_field} ({} {unit}): the \
+                         trajectory generator cannot resolve it",
+                        num(v),
+                        num(max)
+                    ),
+                ));
+            }
             if v > max {
                 return Err(invalid(
                     field,
@@ -184,6 +212,8 @@ impl AxisParams {
             60.0,
             "s",
         )?;
+        within("axis.jog_timeout_s", self.jog_timeout_s, 0.01, 60.0, "s")?;
+        within("axis.move_time_max_s", self.move_time_max_s, 1.0, 1e6, "s")?;
         if !(2..=100_000).contains(&self.setpoint_age_ticks) {
             return Err(invalid(
                 "axis.setpoint_age_ticks",
@@ -222,7 +252,8 @@ pub struct ProgramStep {
     /// move: the target (set-position: the new position), rad.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub to: Option<f64>,
-    /// move: `to` is relative to the current target.
+    /// move: `to` is relative to the preceding move's target, else to where the axis
+    /// stands (see `request_flags::RELATIVE`).
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub relative: bool,
     /// move: wait for the current move to end instead of changing at once.
@@ -381,7 +412,8 @@ pub mod status_bits {
     pub const WARNING: u16 = 1 << 7;
     pub const TARGET_REACHED: u16 = 1 << 10;
     pub const INTERNAL_LIMIT: u16 = 1 << 11;
-    /// Profile position: the last set-point was taken.
+    /// Profile position (CiA 402's single set-point buffer): a move taken "after the
+    /// current" waits in the buffer; another such move is refused until it is free.
     pub const SETPOINT_ACK: u16 = 1 << 12;
     pub const FOLLOWING_ERROR: u16 = 1 << 13;
     /// Manufacturer-specific: the axis applies the holding brake (outputs off, or its
@@ -464,7 +496,9 @@ impl RequestKind {
 }
 
 pub mod request_flags {
-    /// Move: the target is relative to the current target.
+    /// Move: the target is relative to the preceding move's target (the move in progress,
+    /// or the last one if nothing has moved the axis since), else to where the axis stands
+    /// (its position demand, θ_d): never to a jog's or a stop's internal target.
     pub const RELATIVE: u32 = 1 << 0;
     /// Move: after the current move ends (otherwise it changes at once).
     pub const AFTER_CURRENT: u32 = 1 << 1;
@@ -549,10 +583,16 @@ pub enum Refusal {
     BufferFull = 13,
     /// A coordinated part whose partners did not all come in time.
     GroupIncomplete = 14,
+    /// Limits below the axis's least ([`LIMIT_FLOOR`] of its maximum), or so low that the
+    /// command would take longer than `[axis] move_time_max_s`.
+    TooSlow = 15,
+    /// Through a gateway: a request whose client id is not a remote client's (odd, at least
+    /// 2³¹) or differs from the top 32 bits of its sequence number.
+    BadClient = 16,
 }
 
 impl Refusal {
-    pub const ALL: [Refusal; 15] = [
+    pub const ALL: [Refusal; 17] = [
         Refusal::None,
         Refusal::UnknownAxis,
         Refusal::UnknownCommand,
@@ -568,6 +608,8 @@ impl Refusal {
         Refusal::TooMany,
         Refusal::BufferFull,
         Refusal::GroupIncomplete,
+        Refusal::TooSlow,
+        Refusal::BadClient,
     ];
 
     pub fn from_u32(v: u32) -> Option<Self> {
@@ -589,8 +631,10 @@ impl Refusal {
             Refusal::StreamNotStarted => "no stream is running",
             Refusal::StreamOutOfOrder => "stream time must increase",
             Refusal::TooMany => "too many commands in one tick",
-            Refusal::BufferFull => "the stream's buffer is full",
+            Refusal::BufferFull => "a buffer is full (the stream's, or the set-point buffer)",
             Refusal::GroupIncomplete => "the coordinated move's other parts did not come",
+            Refusal::TooSlow => "limits too low for the axis to carry the command out",
+            Refusal::BadClient => "not a remote client's id",
         }
     }
 }
@@ -743,10 +787,13 @@ pub mod axis_warnings {
     pub const SOFT_LIMIT: u32 = 1 << 1;
     /// A stream point came late or was past its time; the stream's last state was held.
     pub const STREAM_UNDERRUN: u32 = 1 << 2;
-    /// A stream asked beyond the axis's limits; the envelope limited it.
+    /// A stream asked beyond the axis's limits; the envelope limited it (the setpoint left
+    /// the stream by more than `target_window_rad`).
     pub const STREAM_LIMITED: u32 = 1 << 3;
-    /// A stream stopped coming (its watchdog): the axis quick-stopped.
+    /// A stream stopped coming, or never began (its watchdog): the axis quick-stopped.
     pub const STREAM_LOST: u32 = 1 << 4;
+    /// A jog's client stopped renewing it (`[axis] jog_timeout_s`): the axis quick-stopped.
+    pub const JOG_LOST: u32 = 1 << 5;
 }
 
 /// Position loop → everyone, every position-loop tick: the axis as it stands.

@@ -21,7 +21,7 @@ pub mod track;
 use otg::{Goal, Limits, Otg, OtgError};
 use stepdrive_shared::axis::{
     axis_faults, axis_warnings, request_flags, status_bits, AxisMode, AxisParams, AxisRequest,
-    AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind,
+    AxisState, AxisStatus, AxisStreamPoint, Refusal, RequestKind, LIMIT_FLOOR,
 };
 use stepdrive_shared::trajectory::{Reference, Trapezoid};
 use stream::{Play, Point, PointError, Stream};
@@ -66,11 +66,33 @@ pub struct Refused {
     pub text: String,
 }
 
+/// `x` to four significant digits, trailing zeros left out (3e-5, not 2.9999999999999997e-5).
+fn short(x: f64) -> String {
+    let s = format!("{x:.3e}");
+    match s.split_once('e') {
+        Some((mantissa, exp)) if mantissa.contains('.') => {
+            format!(
+                "{}e{exp}",
+                mantissa.trim_end_matches('0').trim_end_matches('.')
+            )
+        }
+        _ => s,
+    }
+}
+
 fn refuse(refusal: Refusal, text: impl Into<String>) -> Refused {
     Refused {
         refusal,
         text: text.into(),
     }
+}
+
+/// Who sent a command: a client (its jogs need renewing: [`AxisParams::jog_timeout_s`]) or
+/// the scenario's program, the stack's own script, which lives and dies with the loop.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Source {
+    Client,
+    Program,
 }
 
 /// The axis. See the module documentation.
@@ -84,9 +106,21 @@ pub struct Axis {
     /// The OTG's own time (a whole number of periods after its last restart).
     otg_t: f64,
     profile: Option<Trapezoid>,
-    /// The move waiting for the current one to end (`after current`).
+    /// CiA 402's single set-point buffer: the move waiting for the current one to end
+    /// (`after current`), its target and limits.
     queued: Option<(f64, Limits)>,
+    /// Where the setpoint heads (a jog: the soft limit it runs to), for the status.
     target: f64,
+    /// The target of the move in progress, or of the last one while nothing else has moved
+    /// the axis since: what a relative move counts from. Never a jog's or a stop's.
+    move_target: Option<f64>,
+    /// The client whose jog runs (`None`: no jog, or the program's), and the axis time it
+    /// last heard from that client.
+    jog_client: Option<u32>,
+    jog_renewed: f64,
+    /// The axis time the running stream was started (its first point is due by a lead and
+    /// a stream timeout after).
+    stream_started: f64,
     move_id: u64,
     /// A stream: its id (its start's seq), its lead, the axis time its first point came
     /// and that point's stream time.
@@ -108,7 +142,6 @@ pub struct Axis {
     fault: u32,
     warning: u32,
     following_since: Option<f64>,
-    setpoint_acked: bool,
     /// A fault reset waiting for the device's fault to clear.
     reset_pending: bool,
     last_kind: u32,
@@ -146,6 +179,10 @@ impl Axis {
             profile: None,
             queued: None,
             target: 0.0,
+            move_target: None,
+            jog_client: None,
+            jog_renewed: 0.0,
+            stream_started: 0.0,
             move_id: 0,
             stream: Stream::default(),
             stream_id: None,
@@ -160,7 +197,6 @@ impl Axis {
             fault: 0,
             warning: 0,
             following_since: None,
-            setpoint_acked: false,
             reset_pending: false,
             last_kind: 0,
             last_seq: 0,
@@ -233,6 +269,8 @@ impl Axis {
         self.mode = AxisMode::Hold;
         self.profile = None;
         self.queued = None;
+        self.move_target = None;
+        self.jog_client = None;
         self.end_stream();
         self.end_coordinated();
         self.following_since = None;
@@ -261,6 +299,53 @@ impl Axis {
         self.profile = None;
         self.end_stream();
         self.torque_ff = 0.0;
+        // Whatever takes over ends the move a relative move would count from, and a jog.
+        self.move_target = None;
+        self.jog_client = None;
+    }
+
+    /// The state a change of source starts from: the setpoint where the generator does not
+    /// run the axis (the scenario's profile, a stream, the group's move), else the
+    /// generator's own state.
+    fn takeover_state(&self) -> Reference {
+        match self.mode {
+            AxisMode::ScenarioProfile | AxisMode::CyclicPosition | AxisMode::Coordinated => {
+                self.reference
+            }
+            _ => self.otg.state(),
+        }
+    }
+
+    /// Refuses a command whose trajectory the generator cannot plan, or that would take
+    /// longer than `[axis] move_time_max_s` (`what`: the command, for the text).
+    fn plannable(
+        &mut self,
+        from: Reference,
+        goal: Goal,
+        limits: Limits,
+        what: &str,
+    ) -> Result<(), Refused> {
+        let max = self.p.move_time_max_s;
+        match self.otg.plan_duration(from, goal, limits) {
+            Ok(d) if d <= max => Ok(()),
+            Ok(d) => Err(refuse(
+                Refusal::TooSlow,
+                format!(
+                    "{what} would take {} s at these limits, over the axis's {max} s",
+                    short(d)
+                ),
+            )),
+            Err(e) => Err(refuse(
+                Refusal::TooSlow,
+                format!("{what} cannot be planned at these limits: {}", e.why),
+            )),
+        }
+    }
+
+    /// What a relative move counts from: the preceding move's target, else where the axis
+    /// stands (its position demand).
+    fn relative_base(&self) -> f64 {
+        self.move_target.unwrap_or(self.reference.theta)
     }
 
     /// Leaves the group's move: from here the generator holds or takes the axis on.
@@ -325,6 +410,8 @@ impl Axis {
         self.mode = AxisMode::Hold;
         self.profile = None;
         self.queued = None;
+        self.move_target = None;
+        self.jog_client = None;
         self.end_stream();
         self.following_since = None;
     }
@@ -363,6 +450,16 @@ impl Axis {
                 return Err(refuse(
                     Refusal::LimitNotPositive,
                     format!("{name} {v} {unit} is not positive"),
+                ));
+            }
+            if v < max * LIMIT_FLOOR {
+                return Err(refuse(
+                    Refusal::TooSlow,
+                    format!(
+                        "{name} {} {unit} is below the axis's least, {} {unit}",
+                        short(v),
+                        short(max * LIMIT_FLOOR)
+                    ),
                 ));
             }
             if v > max {
@@ -450,16 +547,30 @@ impl Axis {
         )
     }
 
-    /// One command, at the tick whose measured state is `m`: taken (applied from this tick
-    /// on) or refused with its reason (nothing applied).
+    /// A client's command, at the tick whose measured state is `m`: taken (applied from
+    /// this tick on) or refused with its reason (nothing applied). Any command of the client
+    /// whose jog runs renews the jog, taken or not (the client is alive).
     pub fn request(&mut self, r: &AxisRequest, m: &Measured) -> Result<(), Refused> {
+        if self.jog_client == Some(r.client) {
+            self.jog_renewed = m.t;
+        }
+        self.command(r, m, Source::Client)
+    }
+
+    /// A step of the scenario's program, as [`Self::request`] takes a client's command; a
+    /// jog it starts needs no renewal (the program is the position loop's own).
+    pub fn request_scripted(&mut self, r: &AxisRequest, m: &Measured) -> Result<(), Refused> {
+        self.command(r, m, Source::Program)
+    }
+
+    fn command(&mut self, r: &AxisRequest, m: &Measured, source: Source) -> Result<(), Refused> {
         let Some(kind) = RequestKind::from_u32(r.kind) else {
             return Err(refuse(
                 Refusal::UnknownCommand,
                 format!("unknown command {}", r.kind),
             ));
         };
-        self.apply(kind, r, m)?;
+        self.apply(kind, r, m, source)?;
         // A status request reads: it is no command, and must not stand in the status as
         // the last one (a client waiting for its move, or a gateway judging whose motion
         // runs, would see another client's read as a new command).
@@ -470,7 +581,13 @@ impl Axis {
         Ok(())
     }
 
-    fn apply(&mut self, kind: RequestKind, r: &AxisRequest, m: &Measured) -> Result<(), Refused> {
+    fn apply(
+        &mut self,
+        kind: RequestKind,
+        r: &AxisRequest,
+        m: &Measured,
+        source: Source,
+    ) -> Result<(), Refused> {
         use AxisState as S;
         let s = self.state;
         match kind {
@@ -554,23 +671,50 @@ impl Axis {
                         format!("target {}", r.target_rad),
                     ));
                 }
-                let base = match self.queued {
-                    Some((t, _)) => t,
-                    None => self.target,
-                };
                 let target = if r.flags & request_flags::RELATIVE != 0 {
-                    base + r.target_rad
+                    self.relative_base() + r.target_rad
                 } else {
                     r.target_rad
                 };
+                if !target.is_finite() {
+                    return Err(refuse(
+                        Refusal::NotFinite,
+                        format!(
+                            "target {} relative to {}",
+                            r.target_rad,
+                            self.relative_base()
+                        ),
+                    ));
+                }
                 self.within_soft_limits(target)?;
                 let busy = self.mode == AxisMode::ProfilePosition && !self.otg.done();
                 if r.flags & request_flags::AFTER_CURRENT != 0 && busy {
+                    // CiA 402's single set-point buffer: one move waits, a second is refused
+                    // until it is free (status word bit 12 says so).
+                    if let Some((queued, _)) = self.queued {
+                        return Err(refuse(
+                            Refusal::BufferFull,
+                            format!(
+                                "the set-point buffer holds the move to {queued} rad (status bit 12)"
+                            ),
+                        ));
+                    }
+                    // It starts at rest on the current move's target.
+                    let from = Reference {
+                        theta: self.target,
+                        omega: 0.0,
+                        alpha: 0.0,
+                    };
+                    self.plannable(from, Goal::Position(target), limits, "the move")?;
                     self.queued = Some((target, limits));
                 } else {
+                    let from = self.takeover_state();
+                    self.plannable(from, Goal::Position(target), limits, "the move")?;
+                    // Changed at once: a move waiting in the buffer is dropped with the one
+                    // it waited for.
+                    self.queued = None;
                     self.start_move(target, limits, m);
                 }
-                self.setpoint_acked = true;
             }
             RequestKind::Jog => {
                 self.enabled("a jog")?;
@@ -587,7 +731,25 @@ impl Axis {
                         ),
                     ));
                 }
+                let floor = self.p.v_max_rad_s * LIMIT_FLOOR;
+                if v != 0.0 && v.abs() < floor {
+                    return Err(refuse(
+                        Refusal::TooSlow,
+                        format!(
+                            "jog at {} rad/s is below the axis's least speed, {} rad/s",
+                            short(v),
+                            short(floor)
+                        ),
+                    ));
+                }
                 let mut limits = self.limits_of(r)?;
+                let goal = Goal::Velocity(v);
+                let speed = Limits {
+                    v: if v == 0.0 { limits.v } else { v.abs() },
+                    ..limits
+                };
+                let from = self.takeover_state();
+                self.plannable(from, goal, speed, "the jog's change of speed")?;
                 self.take_over(m);
                 self.queued = None;
                 if v == 0.0 {
@@ -604,12 +766,21 @@ impl Axis {
                     self.otg.set_limits(limits);
                     self.otg.set_goal(Goal::Position(edge));
                     self.target = edge;
+                    // Open-ended: it runs while its client renews it (the program's needs
+                    // none).
+                    if source == Source::Client {
+                        self.jog_client = Some(r.client);
+                        self.jog_renewed = m.t;
+                    }
+                    self.warning &= !axis_warnings::JOG_LOST;
                 }
                 self.mode = AxisMode::ProfileVelocity;
             }
             RequestKind::Stop => {
                 self.enabled("a stop")?;
                 let limits = self.limits_of(r)?;
+                let from = self.takeover_state();
+                self.plannable(from, Goal::Velocity(0.0), limits, "the stop")?;
                 self.take_over(m);
                 self.queued = None;
                 self.otg.set_limits(limits);
@@ -627,6 +798,11 @@ impl Axis {
                 self.otg.hold();
                 self.stream_id = Some(r.seq);
                 self.stream_lead = lead;
+                self.stream_started = m.t;
+                // The stream's warnings are this stream's.
+                self.warning &= !(axis_warnings::STREAM_UNDERRUN
+                    | axis_warnings::STREAM_LIMITED
+                    | axis_warnings::STREAM_LOST);
                 self.followed = self.otg.state();
                 self.followed_jerk = self.otg.jerk();
                 self.mode = AxisMode::CyclicPosition;
@@ -667,6 +843,7 @@ impl Axis {
                 self.otg_t = m.t;
                 self.reference = at;
                 self.target += shift;
+                self.move_target = self.move_target.map(|t| t + shift);
             }
         }
         Ok(())
@@ -677,6 +854,7 @@ impl Axis {
         self.otg.set_limits(limits);
         self.otg.set_goal(Goal::Position(target));
         self.target = target;
+        self.move_target = Some(target);
         self.mode = AxisMode::ProfilePosition;
         self.move_id += 1;
     }
@@ -698,6 +876,17 @@ impl Axis {
             torque_ff: (p.flags & stepdrive_shared::axis::point_flags::HAS_TORQUE != 0)
                 .then_some(p.torque_ff_nm),
         };
+        let (lo, hi) = (self.p.position_min_rad, self.p.position_max_rad);
+        if !(lo..=hi).contains(&point.theta) && point.theta.is_finite() {
+            // Refused like a move's target: the stream is never played out there.
+            return Err(self.point_refused(refuse(
+                Refusal::OutsideSoftLimits,
+                format!(
+                    "point at t = {} s: {} rad is outside the soft limits [{lo}, {hi}] rad",
+                    point.t, point.theta
+                ),
+            )));
+        }
         if self.stream_origin.is_none() && point.t.is_finite() {
             if !self.origin_from_group {
                 self.stream_origin = Some((m.t, point.t));
@@ -782,6 +971,17 @@ impl Axis {
     /// past its watchdog is quick-stopped.
     fn stream_to(&mut self, m: &Measured) -> Result<Reference, OtgError> {
         let Some((origin, first)) = self.stream_origin else {
+            // A stream whose first point does not come is lost as one that stops coming
+            // (its client died or never sent one): quick-stopped a lead and a timeout after
+            // its start, or after the brake let go.
+            let since = self
+                .stream_started
+                .max(self.enabled_at + self.p.brake_release_s);
+            if m.t - since > self.stream_lead + self.p.stream_timeout_s {
+                self.warning |= axis_warnings::STREAM_LOST;
+                self.quick_stop(m);
+                return self.otg_to(m.t);
+            }
             // No point yet: the trajectory the stream found runs on (a move or a jog it
             // interrupted brakes to a hold), and the stream is followed from where it is.
             let r = self.otg_to(m.t)?;
@@ -808,7 +1008,9 @@ impl Axis {
             };
             let (after, j) =
                 track::follow(s, now, next, limits, track::DEFAULT_BANDWIDTH, self.period);
-            if (after.theta - next.theta).abs() > 1e-9 {
+            // Off the stream by more than the target window: not a rounding, nor the few
+            // µrad between where a path starts and where the setpoint stood.
+            if (after.theta - next.theta).abs() > self.p.target_window_rad {
                 self.warning |= axis_warnings::STREAM_LIMITED;
             }
             s = after;
@@ -854,10 +1056,10 @@ impl Axis {
         self.take_over(m);
         self.queued = None;
         self.target = target;
+        self.move_target = Some(target);
         self.mode = AxisMode::Coordinated;
         self.coordinated = true;
         self.move_id += 1;
-        self.setpoint_acked = true;
     }
 
     /// Still in the group's move (no command, quick stop or fault took it out).
@@ -904,6 +1106,16 @@ impl Axis {
             if m.setpoint_stale && self.state.outputs_on() {
                 self.enter_fault(axis_faults::SETPOINT_STALE);
             }
+        }
+        if self.jog_client.is_some()
+            && self.mode == AxisMode::ProfileVelocity
+            && self.state == AxisState::OperationEnabled
+            && m.t - self.jog_renewed > self.p.jog_timeout_s
+        {
+            // The jog's client went silent (died, hung, lost its link): stop, whatever it
+            // declared.
+            self.warning |= axis_warnings::JOG_LOST;
+            self.quick_stop(m);
         }
         if self.reset_pending && m.device_fault == 0 {
             self.reset_pending = false;
@@ -1066,7 +1278,7 @@ impl Axis {
         if reached {
             word |= status_bits::TARGET_REACHED;
         }
-        if std::mem::take(&mut self.setpoint_acked) {
+        if self.queued.is_some() {
             word |= status_bits::SETPOINT_ACK;
         }
         if self.warning != 0 {
@@ -1740,5 +1952,297 @@ mod tests {
         assert!(prev.omega > 1.0, "mid-move: {prev:?}");
         assert!((next.omega - prev.omega).abs() <= p.move_a_rad_s2 * T * (1.0 + 1e-9));
         assert!(next.theta > prev.theta);
+    }
+
+    /// Ticks the axis from tick `k` for `n` ticks on a perfect plant; returns the last
+    /// setpoint and the next tick.
+    fn run(axis: &mut Axis, r: &mut Reference, k: &mut u64, n: u64) {
+        for _ in 0..n {
+            *r = axis.tick(&on(*k as f64 * T, r)).reference;
+            *k += 1;
+        }
+    }
+
+    fn relative(delta: f64, seq: u64) -> AxisRequest {
+        AxisRequest {
+            flags: request_flags::RELATIVE,
+            ..move_to(delta, seq)
+        }
+    }
+
+    /// Issue 44, 1: a relative move counts from the preceding move's target, else from
+    /// where the axis stands; a jog's target (the soft limit) and a stop never leak into it.
+    #[test]
+    fn a_relative_move_counts_from_the_last_move_or_where_the_axis_stands() {
+        let (mut axis, p) = jogging_axis();
+        let (mut r, mut k) = (Reference::default(), 0);
+        // Jog, renewed, then a stop: the axis stands somewhere short of the soft limit.
+        for _ in 0..4 {
+            run(&mut axis, &mut r, &mut k, 200);
+            axis.request(&request(RequestKind::Status, 9), &on(k as f64 * T, &r))
+                .expect("renew");
+        }
+        axis.request(&request(RequestKind::Stop, 10), &on(k as f64 * T, &r))
+            .expect("stop");
+        run(&mut axis, &mut r, &mut k, 2000);
+        assert_eq!(r.omega, 0.0);
+        let stood = r.theta;
+        assert!(stood > 1.0 && stood < 100.0, "{stood}");
+        axis.request(&relative(-1.0, 11), &on(k as f64 * T, &r))
+            .expect("relative after a stop");
+        let s = axis.status(&on(k as f64 * T, &r), 0.0);
+        assert_eq!(
+            s.target_rad,
+            stood - 1.0,
+            "not {}",
+            p.position_max_rad - 1.0
+        );
+        run(&mut axis, &mut r, &mut k, 4000);
+        assert_eq!(r.theta, stood - 1.0);
+        // A second relative move counts from the first's target, mid-move or after.
+        axis.request(&relative(2.0, 12), &on(k as f64 * T, &r))
+            .expect("relative after a move");
+        run(&mut axis, &mut r, &mut k, 50);
+        axis.request(&relative(0.5, 13), &on(k as f64 * T, &r))
+            .expect("relative mid-move");
+        run(&mut axis, &mut r, &mut k, 6000);
+        assert_eq!(r.theta, stood + 1.5);
+        // A quick stop mid-move, then enable: from where the axis stands, not the target.
+        axis.request(&move_to(40.0, 14), &on(k as f64 * T, &r))
+            .expect("move");
+        run(&mut axis, &mut r, &mut k, 600);
+        axis.request(&request(RequestKind::QuickStop, 15), &on(k as f64 * T, &r))
+            .expect("quick stop");
+        run(&mut axis, &mut r, &mut k, 2000);
+        axis.request(&request(RequestKind::Enable, 16), &on(k as f64 * T, &r))
+            .expect("enable");
+        let stood = r.theta;
+        assert!(stood < 39.0, "{stood}");
+        axis.request(&relative(0.5, 17), &on(k as f64 * T, &r))
+            .expect("relative after a quick stop");
+        assert_eq!(
+            axis.status(&on(k as f64 * T, &r), 0.0).target_rad,
+            stood + 0.5
+        );
+    }
+
+    /// Issue 44, 8: CiA 402's single set-point buffer: a second move "after the current"
+    /// is refused while one waits (status bit 12 set), taken once it is free; a move that
+    /// changes at once drops the one waiting.
+    #[test]
+    fn the_set_point_buffer_holds_one_move_and_a_change_at_once_empties_it() {
+        let (mut axis, _) = enabled_axis();
+        let (mut r, mut k) = (Reference::default(), 0);
+        let after = |target: f64, seq: u64| AxisRequest {
+            flags: request_flags::AFTER_CURRENT,
+            ..move_to(target, seq)
+        };
+        let bit12 = |a: &mut Axis, k: u64, r: &Reference| {
+            a.status(&on(k as f64 * T, r), 0.0).statusword as u16 & status_bits::SETPOINT_ACK != 0
+        };
+        axis.request(&move_to(1.0, 2), &on(0.0, &r)).expect("first");
+        assert!(!bit12(&mut axis, k, &r));
+        axis.request(&after(2.0, 3), &on(0.0, &r)).expect("queued");
+        assert!(bit12(&mut axis, k, &r));
+        let e = axis
+            .request(&after(3.0, 4), &on(0.0, &r))
+            .expect_err("the buffer is full");
+        assert_eq!(e.refusal, Refusal::BufferFull);
+        // The first move arrives, the queued one starts: the buffer is free again.
+        while r.theta <= 1.0 {
+            run(&mut axis, &mut r, &mut k, 1);
+            assert!(k < 20_000);
+        }
+        assert!(!bit12(&mut axis, k, &r));
+        axis.request(&after(3.0, 5), &on(k as f64 * T, &r))
+            .expect("queued again");
+        // Changed at once: the move waiting is dropped and never plays.
+        axis.request(&move_to(-1.0, 6), &on(k as f64 * T, &r))
+            .expect("at once");
+        assert!(!bit12(&mut axis, k, &r));
+        run(&mut axis, &mut r, &mut k, 20_000);
+        assert_eq!((r.theta, r.omega), (-1.0, 0.0));
+    }
+
+    /// Issue 44, 2: limits the axis cannot carry out are refused before anything moves:
+    /// below the floor (the generator failed on 1e-300 and faulted the axis), or so low
+    /// that the move would outlast `move_time_max_s` (1e-6 rad/s never arrived); the same
+    /// for a jog's speed and a stop's deceleration. Limits low but workable are taken.
+    #[test]
+    fn limits_the_axis_cannot_carry_out_are_refused_before_anything_moves() {
+        let (mut axis, p) = enabled_axis();
+        let r = Reference::default();
+        let m = on(0.0, &r);
+        let with = |v: Option<f64>, a: Option<f64>, j: Option<f64>, base: AxisRequest| {
+            let mut q = base;
+            for (value, flag, field) in [
+                (v, request_flags::HAS_V, &mut q.v_max_rad_s),
+                (a, request_flags::HAS_A, &mut q.a_max_rad_s2),
+                (j, request_flags::HAS_J, &mut q.j_max_rad_s3),
+            ] {
+                if let Some(x) = value {
+                    *field = x;
+                    q.flags |= flag;
+                }
+            }
+            q
+        };
+        for (v, a, j) in [
+            (Some(1e-300), None, None),
+            (Some(1e-6), None, None),
+            (None, Some(1e-300), None),
+            (None, None, Some(1e-300)),
+        ] {
+            let e = axis
+                .request(&with(v, a, j, move_to(0.25, 2)), &m)
+                .expect_err("refused");
+            assert_eq!(e.refusal, Refusal::TooSlow, "{e:?}");
+        }
+        let jog = |v: f64| AxisRequest {
+            velocity_rad_s: v,
+            ..request(RequestKind::Jog, 3)
+        };
+        assert_eq!(
+            axis.request(&jog(1e-300), &m).expect_err("jog").refusal,
+            Refusal::TooSlow
+        );
+        assert_eq!(axis.state(), AxisState::OperationEnabled);
+        assert_eq!(axis.mode(), AxisMode::Hold);
+        // Moving at 13 rad/s, a stop that would brake at 1e-4 rad/s² takes 1.3e5 s.
+        axis.request(&jog(13.0), &m).expect("jog");
+        let (mut r, mut k) = (r, 0);
+        for _ in 0..5 {
+            run(&mut axis, &mut r, &mut k, 100);
+            axis.request(&request(RequestKind::Status, 4), &on(k as f64 * T, &r))
+                .expect("renew");
+        }
+        let e = axis
+            .request(
+                &with(None, Some(1e-4), None, request(RequestKind::Stop, 5)),
+                &on(k as f64 * T, &r),
+            )
+            .expect_err("a stop that never stops");
+        assert_eq!(e.refusal, Refusal::TooSlow, "{e:?}");
+        // Workable low limits: 1 mrad at 1e-3 rad/s, 1e-2 rad/s², 1 rad/s³ arrives.
+        axis.request(&request(RequestKind::Stop, 6), &on(k as f64 * T, &r))
+            .expect("stop");
+        run(&mut axis, &mut r, &mut k, 4000);
+        let goal = r.theta + 1e-3;
+        axis.request(
+            &with(Some(1e-3), Some(1e-2), Some(1.0), move_to(goal, 7)),
+            &on(k as f64 * T, &r),
+        )
+        .expect("slow but workable");
+        run(&mut axis, &mut r, &mut k, (2.5 / T) as u64);
+        assert_eq!(r.theta, goal);
+        assert_eq!(axis.fault(), 0);
+        let _ = p;
+    }
+
+    /// Issue 44, 6: a client's jog runs while that client renews it; one it stops renewing
+    /// (died, hung, lost its link) is quick-stopped after `jog_timeout_s`, with JOG_LOST.
+    /// Another client's commands do not renew it; the program's jog needs no renewal.
+    #[test]
+    fn a_jog_its_client_stops_renewing_is_quick_stopped() {
+        let (mut axis, p) = jogging_axis();
+        let (mut r, mut k) = (Reference::default(), 0);
+        let renew_every = (0.1 / T) as u64;
+        // Renewed by its client for 2 s: still jogging.
+        for _ in 0..20 {
+            run(&mut axis, &mut r, &mut k, renew_every);
+            let status = AxisRequest {
+                client: 0,
+                ..request(RequestKind::Status, 20)
+            };
+            axis.request(&status, &on(k as f64 * T, &r)).expect("renew");
+        }
+        assert_eq!(axis.mode(), AxisMode::ProfileVelocity);
+        assert!(r.omega > 12.9);
+        // Only another client speaks from now on: stopped after the timeout.
+        let silent_from = k;
+        loop {
+            run(&mut axis, &mut r, &mut k, 1);
+            let other = AxisRequest {
+                client: 4242,
+                ..request(RequestKind::Status, 30)
+            };
+            axis.request(&other, &on(k as f64 * T, &r)).expect("status");
+            if axis.state() == AxisState::QuickStopActive {
+                break;
+            }
+            assert!(k < silent_from + 10_000, "never stopped");
+        }
+        let after = (k - silent_from) as f64 * T;
+        assert!(
+            after > p.jog_timeout_s && after <= p.jog_timeout_s + 2.0 * T,
+            "stopped {after} s after the last renewal"
+        );
+        assert!(axis.warning() & axis_warnings::JOG_LOST != 0);
+        run(&mut axis, &mut r, &mut k, 4000);
+        assert_eq!(r.omega, 0.0);
+        // The program's jog runs on unrenewed.
+        let (mut axis, _) = enabled_axis();
+        let jog = AxisRequest {
+            velocity_rad_s: 5.0,
+            ..request(RequestKind::Jog, 2)
+        };
+        axis.request_scripted(&jog, &on(0.0, &Reference::default()))
+            .expect("jog");
+        let (mut r, mut k) = (Reference::default(), 0);
+        run(&mut axis, &mut r, &mut k, (3.0 / T) as u64);
+        assert_eq!(axis.mode(), AxisMode::ProfileVelocity);
+        assert_eq!(r.omega, 5.0);
+    }
+
+    /// Issue 44, 6: a stream started with no point is lost a lead and a stream timeout
+    /// after it began (it was never stopped).
+    #[test]
+    fn a_stream_whose_first_point_never_comes_is_quick_stopped() {
+        let (mut axis, p) = enabled_axis();
+        let (mut r, mut k) = (Reference::default(), 0);
+        run(
+            &mut axis,
+            &mut r,
+            &mut k,
+            (p.brake_release_s / T) as u64 + 1,
+        );
+        let started = k;
+        axis.request(&request(RequestKind::StreamStart, 3), &on(k as f64 * T, &r))
+            .expect("stream");
+        while axis.state() == AxisState::OperationEnabled {
+            run(&mut axis, &mut r, &mut k, 1);
+            assert!(k < started + 10_000, "never stopped");
+        }
+        let after = (k - started) as f64 * T;
+        let bound = p.stream_lead_s + p.stream_timeout_s;
+        assert!(after > bound && after <= bound + 2.0 * T, "{after} s");
+        assert_eq!(axis.state(), AxisState::QuickStopActive);
+        assert!(axis.warning() & axis_warnings::STREAM_LOST != 0);
+    }
+
+    /// Issue 44, 7: a stream point beyond the soft limits is refused like a move's target
+    /// (counted in the status), never played.
+    #[test]
+    fn a_stream_point_beyond_the_soft_limits_is_refused() {
+        let (mut axis, p) = enabled_axis();
+        let r = Reference::default();
+        axis.request(&request(RequestKind::StreamStart, 3), &on(0.0, &r))
+            .expect("stream");
+        let point = |k: u64, theta: f64| AxisStreamPoint {
+            stream: 3,
+            seq: k,
+            t_s: k as f64 * 1e-3,
+            theta_rad: theta,
+            ..Default::default()
+        };
+        axis.stream_point(&point(0, 0.0), &on(0.0, &r))
+            .expect("inside");
+        let e = axis
+            .stream_point(&point(1, 2.0 * p.position_max_rad), &on(0.0, &r))
+            .expect_err("outside");
+        assert_eq!(e.refusal, Refusal::OutsideSoftLimits);
+        let s = axis.status(&on(0.0, &r), 0.0);
+        assert_eq!(s.refused_points, 1);
+        assert_eq!(s.last_refusal, Refusal::OutsideSoftLimits as u32);
     }
 }

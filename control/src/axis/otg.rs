@@ -61,6 +61,11 @@ pub struct Otg {
     period_s: f64,
     /// The jerk of the trajectory at its current state, rad/s³.
     jerk: f64,
+    /// A second generator that plans what a command would do, to judge it before it is
+    /// taken ([`Otg::plan_duration`]); allocated here, not when a command comes.
+    planner: Ruckig<1, ThrowErrorHandler>,
+    plan_input: InputParameter<1>,
+    plan: Trajectory<1>,
 }
 
 impl std::fmt::Debug for Otg {
@@ -86,6 +91,9 @@ impl Otg {
             done: true,
             period_s,
             jerk: 0.0,
+            planner: Ruckig::new(None, period_s),
+            plan_input: InputParameter::new(None),
+            plan: Trajectory::new(None),
         };
         // Each DoF its own profile toward a moving target: what tracking wants.
         g.input.synchronization = Synchronization::None;
@@ -248,6 +256,55 @@ impl Otg {
         self.goal = Goal::Position(target.theta);
         self.done = false;
         Ok(self.state())
+    }
+
+    /// How long the generator would take from `from` to `goal` with `limits`, s: to stand
+    /// at a position goal, or to reach a speed goal (then it runs on). Nothing of the
+    /// generator's own trajectory changes. An error if it cannot plan it (limits it cannot
+    /// resolve, a state far outside them).
+    pub fn plan_duration(
+        &mut self,
+        from: Reference,
+        goal: Goal,
+        limits: Limits,
+    ) -> Result<f64, OtgError> {
+        let fail = |why: String| OtgError {
+            theta: from.theta,
+            omega: from.omega,
+            alpha: from.alpha,
+            why,
+        };
+        if !limits.valid() {
+            return Err(fail(format!("limits {limits:?}")));
+        }
+        let i = &mut self.plan_input;
+        i.current_position[0] = from.theta;
+        i.current_velocity[0] = from.omega;
+        i.current_acceleration[0] = from.alpha;
+        i.max_velocity[0] = limits.v;
+        i.max_acceleration[0] = limits.a;
+        i.max_jerk[0] = limits.j;
+        i.target_acceleration[0] = 0.0;
+        match goal {
+            Goal::Position(p) if p.is_finite() => {
+                i.control_interface = ControlInterface::Position;
+                i.target_position[0] = p;
+                i.target_velocity[0] = 0.0;
+            }
+            Goal::Velocity(v) if v.is_finite() => {
+                i.control_interface = ControlInterface::Velocity;
+                i.target_velocity[0] = v.clamp(-limits.v, limits.v);
+            }
+            _ => return Err(fail(format!("goal {goal:?}"))),
+        }
+        self.planner
+            .calculate(&self.plan_input, &mut self.plan)
+            .map_err(|e| fail(e.to_string()))?;
+        let d = self.plan.get_duration();
+        if !(d.is_finite() && d >= 0.0) {
+            return Err(fail(format!("a duration of {d} s")));
+        }
+        Ok(d)
     }
 
     /// How long a rest-to-rest move over `distance` takes with `limits`, s (what the

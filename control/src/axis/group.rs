@@ -814,8 +814,8 @@ mod tests {
         const SAMPLE: f64 = 50e-6;
         // Samples between the newest states of consecutive ticks, as recorded.
         const GAPS: [u64; 36] = [
-            10, 10, 9, 9, 10, 10, 9, 6, 11, 1, 9, 5, 8, 1, 10, 7, 4, 9, 1, 9, 10, 4, 9, 9, 3, 1,
-            1, 1, 9, 9, 9, 9, 9, 9, 7, 3,
+            10, 10, 9, 9, 10, 10, 9, 6, 11, 1, 9, 5, 8, 1, 10, 7, 4, 9, 1, 9, 10, 4, 9, 9, 3, 1, 1,
+            1, 9, 9, 9, 9, 9, 9, 7, 3,
         ];
         let mut params = vec![AxisParams::default(); 3];
         for (p, (v, a, j)) in params.iter_mut().zip([
@@ -894,7 +894,10 @@ mod tests {
                 group.after_tick(axes.as_mut_slice(), &m);
             }
         }
-        assert!(moving && !group.coordinated_running(), "the move ran to its end");
+        assert!(
+            moving && !group.coordinated_running(),
+            "the move ran to its end"
+        );
         for (i, axis) in axes.iter().enumerate() {
             assert_eq!(axis.state(), AxisState::OperationEnabled, "axis {i}");
         }

@@ -113,7 +113,7 @@ fn record(dir: &Path, s: &Scenario, fault_at: Option<f64>) -> PathBuf {
                 },
                 ..DriveState::default()
             };
-            rec.state(0, &st).expect("a sample");
+            rec.state(0, &st, None).expect("a sample");
         }
     }
     rec.finish().expect("a finished recording");

@@ -799,6 +799,112 @@ mod tests {
         );
     }
 
+    /// The timeline of a realtime run of `scenarios/three-axes.toml`: the position loop's
+    /// ticks are on its own clock, so the newest sample at a tick is 10 samples after the
+    /// last one's, or 9, 11, or fewer when a tick came late; each lane ticks on its own
+    /// newest sample, and the group steps its move only at the ticks of axis 0 (the lanes'
+    /// `before_lanes`). Whatever the timeline, each axis takes the move where it is at its
+    /// own sample's time: between two of its ticks θ_d advances by the mean of their ω_d
+    /// times the time between them. Before, a tick at which the group gave no state (its
+    /// samples 0.45 ms on: the move's step rounded to none; or axis 0 had no new sample)
+    /// stood on the last one's θ_d, at a later time: 3.6e-3 rad behind the rotor at 8 rad/s,
+    /// and the current loop pulled the rotor back for a tick.
+    #[test]
+    fn on_a_realtime_timeline_each_axis_takes_the_move_at_its_own_sample_time() {
+        const SAMPLE: f64 = 50e-6;
+        // Samples between the newest states of consecutive ticks, as recorded.
+        const GAPS: [u64; 36] = [
+            10, 10, 9, 9, 10, 10, 9, 6, 11, 1, 9, 5, 8, 1, 10, 7, 4, 9, 1, 9, 10, 4, 9, 9, 3, 1, 1,
+            1, 9, 9, 9, 9, 9, 9, 7, 3,
+        ];
+        let mut params = vec![AxisParams::default(); 3];
+        for (p, (v, a, j)) in params.iter_mut().zip([
+            (5.0, 50.0, 2000.0),
+            (10.0, 100.0, 5000.0),
+            (8.0, 40.0, 1000.0),
+        ]) {
+            p.brake_release_s = 0.0;
+            p.move_v_rad_s = v;
+            p.move_a_rad_s2 = a;
+            p.move_j_rad_s3 = j;
+        }
+        let mut axes: Vec<Axis> = params.iter().map(|p| Axis::new(p, T)).collect();
+        let mut group = Coordinator::new(T, StopPolicy::All);
+        let mut m = [Measured::default(); 3];
+        for (axis, mi) in axes.iter_mut().zip(&m) {
+            axis.request(&request(RequestKind::Enable), mi)
+                .expect("enable");
+        }
+        // A lane's newest sample lags the newest of all by 0 or 1 (each is published as it
+        // is computed), and axis 0's sometimes has not come at all (pseudo-random, fixed).
+        let mut lcg = 0x2545_f491_4f6c_dd1d_u64;
+        let mut next = || {
+            lcg = lcg
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            lcg >> 33
+        };
+        let mut newest = 0u64;
+        let mut used = [None::<u64>; 3];
+        let mut last: [Option<(f64, Reference)>; 3] = [None; 3];
+        let mut worst: f64 = 0.0;
+        let mut stood = 0;
+        let mut moving = false;
+        for cycle in 0..6000usize {
+            newest += GAPS[cycle % GAPS.len()];
+            let mut seq = [newest; 3];
+            for (i, s) in seq.iter_mut().enumerate() {
+                *s -= next() % 2;
+                if i == 0 && next() % 8 == 0 {
+                    *s = used[0].unwrap_or(*s);
+                }
+            }
+            let ticks: Vec<bool> = (0..3).map(|i| used[i] != Some(seq[i])).collect();
+            for i in 0..3 {
+                m[i].t = seq[i] as f64 * SAMPLE;
+                // The rotor on its setpoint, carried on by the current loop.
+                if let Some((t, r)) = last[i] {
+                    m[i].theta = r.after(m[i].t - t).theta;
+                    m[i].omega = r.after(m[i].t - t).omega;
+                }
+            }
+            if ticks[0] {
+                if cycle == 20 {
+                    group
+                        .move_together(axes.as_mut_slice(), &[(0, 1.0), (1, -6.0), (2, 12.0)], &m)
+                        .expect("planned");
+                    moving = true;
+                }
+                group.before_tick(axes.as_mut_slice(), &m);
+            }
+            for i in (0..3).filter(|&i| ticks[i]) {
+                let r = axes[i].tick(&m[i]).reference;
+                if let (Some((t0, r0)), true) = (last[i], moving) {
+                    let dt = m[i].t - t0;
+                    let expected = 0.5 * (r0.omega + r.omega) * dt;
+                    worst = worst.max((r.theta - r0.theta - expected).abs());
+                    if r.theta == r0.theta && r.omega != 0.0 && dt > 0.0 {
+                        stood += 1;
+                    }
+                }
+                last[i] = Some((m[i].t, r));
+                used[i] = Some(seq[i]);
+            }
+            if ticks[0] {
+                group.after_tick(axes.as_mut_slice(), &m);
+            }
+        }
+        assert!(
+            moving && !group.coordinated_running(),
+            "the move ran to its end"
+        );
+        for (i, axis) in axes.iter().enumerate() {
+            assert_eq!(axis.state(), AxisState::OperationEnabled, "axis {i}");
+        }
+        assert_eq!(stood, 0, "ticks at which a moving θ_d stood still");
+        assert!(worst < 1e-6, "θ_d off its own time by up to {worst:e} rad");
+    }
+
     /// With each axis to its own (policy Own), a quick stop of one axis stops that axis only:
     /// the others finish the coordinated move on its tick.
     #[test]

@@ -1151,12 +1151,14 @@ impl Axis {
                 Err(e) => self.trajectory_failed(e),
             },
             AxisMode::Coordinated if self.coordinated || self.coordinated_next.is_some() => {
-                // The group steps its move every tick; a tick it did not (none so far) would
-                // stand where the last one left the axis.
-                let (at, jerk, for_t) =
-                    self.coordinated_next
-                        .take()
-                        .unwrap_or((self.reference, 0.0, m.t));
+                // A tick the group gave no state for (on the wall clock: its step rounded to
+                // none, or axis 0 had no new sample) carries the last one on to this
+                // sample's time: standing on it, θ_d fell a tick behind the rotor.
+                let (at, jerk, for_t) = self.coordinated_next.take().unwrap_or((
+                    self.reference,
+                    self.coordinated_jerk,
+                    self.otg_t,
+                ));
                 // On the wall clock the axes' newest samples can be one apart: each takes
                 // the move where it is at its own sample's time.
                 let skew = m.t - for_t;

@@ -732,14 +732,21 @@ impl Recording {
             .map_err(write_error(&self.path))
     }
 
-    /// One state sample of `axis` in the current method's run.
-    pub fn state(&mut self, axis: u32, st: &DriveState) -> Result<(), RecordError> {
+    /// One state sample of `axis` in the current method's run, with the θ_d, ω_d, α_d the
+    /// run's figures graded it against (`None`: this recording's own, see
+    /// [`Track::reference_at`]).
+    pub fn state(
+        &mut self,
+        axis: u32,
+        st: &DriveState,
+        reference: Option<Reference>,
+    ) -> Result<(), RecordError> {
         let (Some(ch), Some(track)) = (self.current(axis), self.track(axis)) else {
             return Ok(());
         };
         let (state_ch, fault_ch, last_fault) = (ch.state, ch.fault, ch.last_fault);
         let t = st.sample_time_s;
-        let r = track.reference_at(t, st.theta_rad);
+        let r = reference.unwrap_or_else(|| track.reference_at(t, st.theta_rad));
         let (i_d, i_q) = dq_currents(st.theta_rad, track.n_r, st.i_a_a, st.i_b_a);
         let k_m = track.k_m;
         let rec = StateRecord {

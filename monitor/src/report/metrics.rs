@@ -7,9 +7,11 @@ use crate::report::outcome::{
 };
 use crate::report::setpoints::SetpointHistory;
 use serde::Serialize;
+use std::collections::VecDeque;
 use stepdrive_shared::axis::{axis_faults, request_flags, AxisAck, AxisStatus, RequestKind};
 use stepdrive_shared::frames::dq_currents;
 use stepdrive_shared::messages::{fault_bits, state_flags, DriveState, TorqueSetpoint};
+use stepdrive_shared::services::MONITOR_BUFFER;
 use stepdrive_shared::trajectory::{Reference, Trapezoid};
 use stepdrive_shared::{Method, Scenario};
 
@@ -286,17 +288,194 @@ pub struct AxisFaultEvent {
     pub following_error_rad: f64,
 }
 
-/// States wait here until a setpoint from a later sample arrives: a state is graded against
-/// the newest setpoint computed from a sample at or before it, carried on to its time.
+/// A commanded run's reference and moves, graded on the stack's timeline. The monitor takes
+/// states, setpoints, answers and statuses from separate queues, in whatever order its
+/// drains meet them; what a state is graded against, and which move its figures go to, must
+/// not depend on that. So a state waits until every control up to its sample has come: the
+/// position loop publishes a tick's answers and setpoint before that tick's status, and the
+/// supervisor takes the statuses first ([`Metrics::controls_taken`] after them), so a status
+/// of a tick at or after the state's sample says so. The answers and statuses are then
+/// applied in their ticks' order between the states: a command taken at a tick after the
+/// states before that tick's sample and before the state of that sample (whose setpoint
+/// carries the command out).
 #[derive(Debug, Clone)]
 struct ProgramReference {
     setpoints: SetpointHistory,
-    pending: std::collections::VecDeque<DriveState>,
+    pending: VecDeque<DriveState>,
+    /// Commands taken, and what the statuses told, not yet applied (in their ticks' order).
+    commands: VecDeque<Taken>,
+    told: VecDeque<Told>,
+    /// The newest status's tick time, and the one of the last complete take of the
+    /// controls: every control up to it has come.
+    newest_status_s: f64,
+    known_s: f64,
     moves: Vec<MoveWatch>,
+    /// The move the samples' figures go to (playing, or settling after its end), and one
+    /// queued "after the current move".
+    current: Option<usize>,
+    queued: Option<usize>,
 }
 
-/// States kept waiting for their setpoint at most (then graded against the newest known).
+/// Told each state as it is graded, with the θ_d, ω_d, α_d it was graded against (`None`:
+/// no setpoint was known), in the states' order.
+pub type Graded<'a> = dyn FnMut(&DriveState, Option<Reference>) + 'a;
+
+/// States kept waiting for their tick's controls at most (then graded against the newest
+/// known).
 const PENDING_STATES: usize = 16_384;
+/// Commands kept waiting to be applied at most (then applied at once).
+const PENDING_COMMANDS: usize = 1024;
+/// Statuses kept waiting at most: one a tick, over the states' queue and some.
+const PENDING_STATUSES: usize = MONITOR_BUFFER + 64;
+
+/// A command the axis took, as the moves need it.
+#[derive(Debug, Clone, Copy)]
+struct Taken {
+    t: f64,
+    kind: RequestKind,
+    flags: u32,
+    seq: u64,
+    target: f64,
+}
+
+/// What a status told: at its tick, the axis's last command and target.
+#[derive(Debug, Clone, Copy)]
+struct Told {
+    t: f64,
+    last_kind: u32,
+    last_seq: u64,
+    target: f64,
+}
+
+impl ProgramReference {
+    /// The move taking the samples is still under way (not at its target, not replaced).
+    fn busy(&self) -> bool {
+        self.current
+            .and_then(|i| self.moves.get(i))
+            .is_some_and(|m| m.end_s.is_none() && m.retargeted_s.is_none())
+    }
+
+    /// A command taken at its tick: a move starts (or waits "after the current move"), and
+    /// a move, a jog, a stop, a quick stop, a disable or a stream replaces the move under
+    /// way and discards the queued one.
+    fn apply(&mut self, c: &Taken) {
+        let replaces = matches!(
+            c.kind,
+            RequestKind::Move
+                | RequestKind::Jog
+                | RequestKind::Stop
+                | RequestKind::QuickStop
+                | RequestKind::Shutdown
+                | RequestKind::DisableVoltage
+                | RequestKind::DisableOperation
+                | RequestKind::StreamStart
+        );
+        if !replaces {
+            return;
+        }
+        let busy = self.busy();
+        let after =
+            c.kind == RequestKind::Move && busy && c.flags & request_flags::AFTER_CURRENT != 0;
+        if let Some(q) = self.queued.take() {
+            self.moves[q].replaced(c.t, c.kind, true);
+        }
+        if !after {
+            if let Some(m) = self.current.take().and_then(|i| self.moves.get_mut(i)) {
+                if busy {
+                    m.replaced(c.t, c.kind, false);
+                }
+            }
+        }
+        if c.kind != RequestKind::Move {
+            return;
+        }
+        // The move's target until the axis's status tells it (a relative move counts from
+        // the target before it, or from where the axis stands): the last move's plus the
+        // step.
+        let base = self.moves.last().map_or(0.0, |m| m.target);
+        let target = if c.flags & request_flags::RELATIVE != 0 {
+            base + c.target
+        } else {
+            c.target
+        };
+        let i = self.moves.len();
+        self.moves.push(MoveWatch {
+            start_s: c.t,
+            target,
+            seq: c.seq,
+            // A queued move's target is its command's: the status names the axis's
+            // target, the playing move's until the queued one starts.
+            target_told: after,
+            end_s: None,
+            peak: 0.0,
+            samples: 0,
+            last_outside: None,
+            last_seen: c.t,
+            retargeted_s: None,
+            replaced_by: None,
+            discarded: false,
+        });
+        match after {
+            true => self.queued = Some(i),
+            false => self.current = Some(i),
+        }
+    }
+
+    /// A status: the target of the move its tick took, if the move's command did not say.
+    fn tell(&mut self, s: &Told) {
+        if s.last_kind != RequestKind::Move as u32 {
+            return;
+        }
+        if let Some(m) = self.moves.last_mut() {
+            if !m.target_told && s.last_seq == m.seq {
+                m.target = s.target;
+                m.target_told = true;
+            }
+        }
+    }
+
+    /// Applies the commands and statuses of ticks up to `t` s (all: `None`), in their
+    /// ticks' order (a tick's commands before its status).
+    fn apply_until(&mut self, t: Option<f64>) {
+        let due = |at: f64| t.is_none_or(|t| at <= t);
+        loop {
+            let command = self.commands.front().map(|c| c.t).filter(|&at| due(at));
+            let status = self.told.front().map(|s| s.t).filter(|&at| due(at));
+            match (command, status) {
+                (Some(c), s) if s.is_none_or(|s| c <= s) => {
+                    if let Some(c) = self.commands.pop_front() {
+                        self.apply(&c);
+                    }
+                }
+                (_, Some(_)) => {
+                    if let Some(s) = self.told.pop_front() {
+                        self.tell(&s);
+                    }
+                }
+                _ => return,
+            }
+        }
+    }
+
+    /// A sample of the rotor at `t` graded against `r`: into the figures of the move under
+    /// way (a queued move starts where the one before it reaches its target).
+    fn grade(&mut self, t: f64, theta: f64, r: &Reference) {
+        if let (Some(c), Some(q)) = (self.current, self.queued) {
+            if let Some(end) = self.moves[c].end_s {
+                self.moves[q].start_s = end;
+                self.current = Some(q);
+                self.queued = None;
+            }
+        }
+        if let Some(m) = self
+            .current
+            .and_then(|i| self.moves.get_mut(i))
+            .filter(|m| t >= m.start_s)
+        {
+            m.push(t, theta, r);
+        }
+    }
+}
 
 /// One move of a program: from the tick that took it to the next move or the run's end.
 #[derive(Debug, Clone, Copy)]
@@ -309,13 +488,16 @@ struct MoveWatch {
     /// The trajectory reached the target (θ_d on it, ω_d zero).
     end_s: Option<f64>,
     peak: f64,
+    samples: u64,
     /// After the end: the last sample outside the settle window, and the last seen.
     last_outside: Option<f64>,
     last_seen: f64,
-    /// Taken "after the current move" while one played: starts where that one ends.
-    queued: bool,
-    /// Replaced by a later move ("change immediately") before it ended, at this time.
+    /// Replaced by a later command (a "change immediately" move, a jog, a stop, ...) before
+    /// it ended, at this time, and by which; discarded: queued, and replaced before it
+    /// started.
     retargeted_s: Option<f64>,
+    replaced_by: Option<RequestKind>,
+    discarded: bool,
 }
 
 /// One move's figures.
@@ -326,10 +508,17 @@ pub struct MoveReport {
     /// From the command (a queued move: from the end of the one before it) to the trajectory
     /// at its target, s (null: never got there).
     pub duration_s: Option<f64>,
-    /// A later move replaced it before it got there, at this time, s (null: it was not).
+    /// A later command replaced it before it got there, at this time, s (null: none did).
     pub retargeted_at_s: Option<f64>,
-    /// max |θ_d − θ| over the move, rad.
-    pub peak_abs_error_rad: f64,
+    /// That command: `move` (a "change immediately" move), `jog`, `stop`, `quick-stop`,
+    /// `disable-voltage`, `stream-start`, ...
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub replaced_by: Option<&'static str>,
+    /// Queued "after the current move", and replaced before it started: it never played.
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    pub discarded: bool,
+    /// max |θ_d − θ| over the move, rad (null: no sample of it was seen).
+    pub peak_abs_error_rad: Option<f64>,
     /// From the trajectory's end until |target − θ| stays within [`RECOVERED_RAD`], s (null:
     /// not settled before the next move or the run's end).
     pub settle_s: Option<f64>,
@@ -341,6 +530,7 @@ impl MoveWatch {
         if e.is_nan() || e > self.peak {
             self.peak = e;
         }
+        self.samples += 1;
         if self.end_s.is_none() && r.theta == self.target && r.omega == 0.0 {
             self.end_s = Some(t);
         }
@@ -351,6 +541,13 @@ impl MoveWatch {
             }
         }
         self.last_seen = t;
+    }
+
+    /// Replaced at `t` by a command of `kind`; `discarded`: it waited queued.
+    fn replaced(&mut self, t: f64, kind: RequestKind, discarded: bool) {
+        self.retargeted_s = Some(t);
+        self.replaced_by = Some(kind);
+        self.discarded = discarded;
     }
 
     fn report(&self, period: f64) -> MoveReport {
@@ -365,7 +562,9 @@ impl MoveWatch {
             target_rad: self.target,
             duration_s: self.end_s.map(|e| e - self.start_s),
             retargeted_at_s: self.retargeted_s,
-            peak_abs_error_rad: self.peak,
+            replaced_by: self.replaced_by.map(RequestKind::name),
+            discarded: self.discarded,
+            peak_abs_error_rad: (self.samples > 0).then_some(self.peak),
             settle_s,
         }
     }
@@ -422,8 +621,14 @@ impl Metrics {
             first_missed: None,
             program: (!s.runs_profile()).then(|| ProgramReference {
                 setpoints: SetpointHistory::for_scenario(s),
-                pending: std::collections::VecDeque::with_capacity(PENDING_STATES),
+                pending: VecDeque::with_capacity(PENDING_STATES),
+                commands: VecDeque::with_capacity(PENDING_COMMANDS),
+                told: VecDeque::with_capacity(PENDING_STATUSES),
+                newest_status_s: f64::NEG_INFINITY,
+                known_s: f64::NEG_INFINITY,
                 moves: Vec::with_capacity(s.program.len()),
+                current: None,
+                queued: None,
             }),
             first_stale: None,
             cleared_at: None,
@@ -457,118 +662,131 @@ impl Metrics {
         }
     }
 
-    /// One state sample: graded at once against the scenario's profile, or, in a program's
-    /// run, once the setpoint that covers it is known ([`Self::setpoint`]).
+    /// [`Self::push_graded`], for the figures alone.
     pub fn push(&mut self, s: &DriveState) {
+        self.push_graded(s, &mut |_, _| {});
+    }
+
+    /// One state sample: graded at once against the scenario's profile, or, in a commanded
+    /// run, once the controls of its tick have come ([`ProgramReference`]). `graded` is told
+    /// each state graded and its θ_d, ω_d, α_d (`None`: no setpoint known), in order.
+    pub fn push_graded(&mut self, s: &DriveState, graded: &mut Graded) {
         let Some(p) = self.program.as_mut() else {
             let reference = self.trajectory.at(s.sample_time_s);
             self.account(s, reference);
+            graded(s, Some(reference));
             return;
         };
         if p.pending.len() == PENDING_STATES {
-            if let Some(old) = p.pending.pop_front() {
-                let r = p.setpoints.at(old.sample_time_s).unwrap_or_default();
-                self.account(&old, r);
-            }
+            self.grade_front(graded);
         }
-        let newest = match self.program.as_mut() {
-            Some(p) => {
-                p.pending.push_back(*s);
-                p.setpoints.newest_time()
-            }
-            None => None,
-        };
-        // A state that arrives after setpoints from later samples is graded now.
-        if let Some(t) = newest {
-            self.grade_pending(Some(t));
+        if let Some(p) = self.program.as_mut() {
+            p.pending.push_back(*s);
         }
+        self.grade_pending(false, graded);
     }
 
-    /// A program's run: the position loop's setpoint, the reference from its sample on.
-    /// The states before it are graded (they cannot be covered by a later one).
+    /// A commanded run: the position loop's setpoint, the reference from its sample on.
     pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
         if let Some(p) = self.program.as_mut() {
             p.setpoints.push(sp);
         }
-        self.grade_pending(Some(sp.sample_time_s));
     }
 
-    /// Grades the waiting states sampled before `until` s (all: `None`), in order.
-    fn grade_pending(&mut self, until: Option<f64>) {
+    /// The controls that had come have all been taken, the statuses first: every control
+    /// up to the newest status's tick is in, and the states up to it are graded.
+    pub fn controls_taken(&mut self, graded: &mut Graded) {
+        if let Some(p) = self.program.as_mut() {
+            p.known_s = p.newest_status_s;
+        }
+        self.grade_pending(false, graded);
+    }
+
+    /// Grades the oldest waiting state, after the controls of the ticks up to its sample.
+    fn grade_front(&mut self, graded: &mut Graded) {
+        let Some(p) = self.program.as_mut() else {
+            return;
+        };
+        let Some(st) = p.pending.pop_front() else {
+            return;
+        };
+        p.apply_until(Some(st.sample_time_s));
+        let r = p.setpoints.at(st.sample_time_s);
+        self.account(&st, r.unwrap_or_default());
+        graded(&st, r);
+    }
+
+    /// Grades the waiting states whose ticks' controls have all come (`all`: every one,
+    /// and then every control left: the run is over), in order.
+    fn grade_pending(&mut self, all: bool, graded: &mut Graded) {
         loop {
             let Some(p) = self.program.as_mut() else {
                 return;
             };
+            let known = p.known_s;
             let due = p
                 .pending
                 .front()
-                .is_some_and(|st| until.is_none_or(|u| st.sample_time_s < u));
+                .is_some_and(|st| all || st.sample_time_s <= known);
             if !due {
+                if all {
+                    p.apply_until(None);
+                }
                 return;
             }
-            let Some(st) = p.pending.pop_front() else {
-                return;
-            };
-            let r = p.setpoints.at(st.sample_time_s).unwrap_or_default();
-            self.account(&st, r);
+            self.grade_front(graded);
         }
     }
 
-    /// Grades every state still waiting (the run is over).
+    /// [`Self::flush_graded`], for the figures alone.
     pub fn flush(&mut self) {
-        self.grade_pending(None);
+        self.flush_graded(&mut |_, _| {});
     }
 
-    /// A program's command taken: a move starts its figures.
+    /// Grades every state still waiting (the run is over, its controls all taken).
+    pub fn flush_graded(&mut self, graded: &mut Graded) {
+        self.grade_pending(true, graded);
+    }
+
+    /// A commanded run's answer to a command: a taken one is applied at its tick (a move
+    /// starts its figures).
     pub fn ack(&mut self, ack: &AxisAck) {
         let Some(p) = self.program.as_mut() else {
             return;
         };
-        if ack.taken() && ack.request.kind == RequestKind::Move as u32 {
-            // The move's target until the axis's status tells it (a relative move counts
-            // from the axis's target, which an enable resets to where the rotor stands):
-            // the previous target plus the step.
-            let base = p.moves.last().map_or(0.0, |m| m.target);
-            let playing = p
-                .moves
-                .last()
-                .is_some_and(|m| m.end_s.is_none() && m.retargeted_s.is_none());
-            let queued = playing && ack.request.flags & request_flags::AFTER_CURRENT != 0;
-            if playing && !queued {
-                if let Some(m) = p.moves.last_mut() {
-                    m.retargeted_s = Some(ack.t_s);
-                }
+        let Some(kind) = RequestKind::from_u32(ack.request.kind).filter(|_| ack.taken()) else {
+            return;
+        };
+        if p.commands.len() == PENDING_COMMANDS {
+            if let Some(c) = p.commands.pop_front() {
+                p.apply(&c);
             }
-            let target = if ack.request.flags & request_flags::RELATIVE != 0 {
-                base + ack.request.target_rad
-            } else {
-                ack.request.target_rad
-            };
-            p.moves.push(MoveWatch {
-                start_s: ack.t_s,
-                target,
-                seq: ack.request.seq,
-                // A queued move's target is its command's: the status names the axis's
-                // target, the playing move's until the queued one starts (and the monitor
-                // may read a status after the state that starts it).
-                target_told: queued,
-                end_s: None,
-                peak: 0.0,
-                last_outside: None,
-                last_seen: ack.t_s,
-                queued,
-                retargeted_s: None,
-            });
         }
+        p.commands.push_back(Taken {
+            t: ack.t_s,
+            kind,
+            flags: ack.request.flags,
+            seq: ack.request.seq,
+            target: ack.request.target_rad,
+        });
     }
 
-    /// The axis's status: its first fault is the run's.
+    /// The axis's status: its first fault is the run's; its tick's controls have all been
+    /// published (see [`ProgramReference`]).
     pub fn status(&mut self, st: &AxisStatus) {
-        if let Some(m) = self.program.as_mut().and_then(|p| p.moves.last_mut()) {
-            if !m.target_told && st.last_seq == m.seq {
-                m.target = st.target_rad;
-                m.target_told = true;
+        if let Some(p) = self.program.as_mut() {
+            if p.told.len() == PENDING_STATUSES {
+                if let Some(s) = p.told.pop_front() {
+                    p.tell(&s);
+                }
             }
+            p.told.push_back(Told {
+                t: st.t_s,
+                last_kind: st.last_kind,
+                last_seq: st.last_seq,
+                target: st.target_rad,
+            });
+            p.newest_status_s = p.newest_status_s.max(st.t_s);
         }
         if st.contour_rad.is_finite() {
             self.contour_peak = Some(
@@ -630,26 +848,7 @@ impl Metrics {
             w.push(t, abs);
         }
         if let Some(p) = self.program.as_mut() {
-            let n = p.moves.len();
-            // A queued move starts where the one before it reaches its target; until then
-            // that one is the move playing.
-            if n >= 2 && p.moves[n - 1].queued {
-                if let Some(end) = p.moves[n - 2].end_s {
-                    p.moves[n - 1].start_s = end;
-                    p.moves[n - 1].queued = false;
-                }
-            }
-            let playing = match p.moves.last() {
-                Some(m) if m.queued => n.checked_sub(2),
-                Some(_) => n.checked_sub(1),
-                None => None,
-            };
-            if let Some(m) = playing
-                .and_then(|i| p.moves.get_mut(i))
-                .filter(|m| t >= m.start_s && m.retargeted_s.is_none())
-            {
-                m.push(t, s.theta_rad, &reference);
-            }
+            p.grade(t, s.theta_rad, &reference);
         }
         if s.flags & state_flags::SETPOINT_STALE != 0 && self.first_stale.is_none() {
             self.first_stale = Some((s.seq, t));
@@ -868,6 +1067,7 @@ pub fn axis_fault_names(bits: u32) -> Vec<&'static str> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use stepdrive_shared::axis::AxisRequest;
 
     fn state(s: &Scenario, k: u64) -> DriveState {
         let t = k as f64 / s.rates.current_loop_hz;
@@ -878,6 +1078,146 @@ mod tests {
             theta_rad: Trapezoid::new(&s.trajectory).at(t).theta,
             ..Default::default()
         }
+    }
+
+    /// A commanded run's stream as the stack publishes it, tick by tick (ratio 10): the
+    /// states of the tick's samples, then its answers, setpoint and status. The setpoints
+    /// ramp θ_d from 0 to 1 rad from tick 2 to tick 12 and stand at 1 rad after; the rotor
+    /// 1e-6 rad behind. A move to 1 at tick 2, one to 2 queued after it at
+    /// tick 5, a jog at tick 8 (replacing the first, discarding the queued one), a move to
+    /// 1 at tick 20 that gets there at once.
+    struct Stream {
+        ticks: Vec<(Vec<DriveState>, Vec<AxisAck>, TorqueSetpoint, AxisStatus)>,
+    }
+
+    fn program_stream() -> (Scenario, Stream) {
+        let s = Scenario::from_toml_str(
+            "[[program]]\nat_s = 0.0\ncommand = \"enable\"\n[run]\nduration_s = 0.0149",
+        )
+        .expect("a program");
+        let period = s.sample_period_s();
+        let ratio = 10u64;
+        let tick_s = period * ratio as f64;
+        let theta_d = |t: f64| (t / tick_s - 2.0).clamp(0.0, 10.0) / 10.0;
+        let omega_d = |t: f64| match (2.0..12.0).contains(&(t / tick_s)) {
+            true => 0.1 / tick_s,
+            false => 0.0,
+        };
+        let command = |tick: u64, kind: RequestKind, flags: u32, target: f64| AxisAck {
+            request: AxisRequest {
+                kind: kind as u32,
+                seq: tick,
+                flags,
+                target_rad: target,
+                ..Default::default()
+            },
+            tick,
+            t_s: tick as f64 * tick_s,
+            ..Default::default()
+        };
+        let ticks = (0..=s.sample_count() / ratio)
+            .map(|tick| {
+                let t = tick as f64 * tick_s;
+                let states = (tick * ratio..((tick + 1) * ratio).min(s.sample_count()))
+                    .map(|k| {
+                        let ts = k as f64 * period;
+                        DriveState {
+                            seq: k,
+                            sample_time_s: ts,
+                            theta_rad: theta_d(ts) - 1e-6,
+                            ..Default::default()
+                        }
+                    })
+                    .collect();
+                let acks = match tick {
+                    2 => vec![command(2, RequestKind::Move, 0, 1.0)],
+                    5 => vec![command(
+                        5,
+                        RequestKind::Move,
+                        request_flags::AFTER_CURRENT,
+                        2.0,
+                    )],
+                    8 => vec![command(8, RequestKind::Jog, 0, 0.0)],
+                    20 => vec![command(20, RequestKind::Move, 0, 1.0)],
+                    _ => Vec::new(),
+                };
+                let setpoint = TorqueSetpoint {
+                    seq: tick,
+                    sample_time_s: t,
+                    theta_d_rad: theta_d(t),
+                    omega_d_rad_s: omega_d(t),
+                    ..Default::default()
+                };
+                let status = AxisStatus {
+                    tick,
+                    t_s: t,
+                    last_kind: acks.last().map_or(0, |a| a.request.kind),
+                    last_seq: tick,
+                    target_rad: 1.0,
+                    ..Default::default()
+                };
+                (states, acks, setpoint, status)
+            })
+            .collect();
+        (s, Stream { ticks })
+    }
+
+    /// Feeds `stream` as a monitor whose states lag the controls by `lag` ticks takes it:
+    /// at each drain the statuses, then the answers and setpoints, then the states.
+    fn drained(s: &Scenario, stream: &Stream, lag: usize) -> Vec<MoveReport> {
+        let mut m = Metrics::new(s);
+        let n = stream.ticks.len();
+        for i in 0..n + lag {
+            if let Some((_, acks, sp, st)) = stream.ticks.get(i) {
+                m.status(st);
+                acks.iter().for_each(|a| m.ack(a));
+                m.setpoint(sp);
+                m.controls_taken(&mut |_, _| {});
+            }
+            if let Some((states, ..)) = i.checked_sub(lag).and_then(|j| stream.ticks.get(j)) {
+                states.iter().for_each(|st| m.push(st));
+            }
+        }
+        m.flush();
+        m.finish(Method::Proposed, "lockstep", 0.0).moves
+    }
+
+    /// A program's moves are graded on the stack's timeline: the states before a command's
+    /// tick go to the move before it, whether the monitor took the command before or after
+    /// those states (before, a move replaced a tick later than it was, or not at all, by
+    /// how the drains fell). A jog replaces the move under way and discards the one queued
+    /// after it, which never played.
+    #[test]
+    fn a_programs_moves_are_the_same_whatever_order_the_drains_take_them_in() {
+        let (s, stream) = program_stream();
+        let prompt = drained(&s, &stream, 0);
+        for lag in [1, 2, 7, 40] {
+            assert_eq!(
+                drained(&s, &stream, lag),
+                prompt,
+                "states {lag} ticks behind"
+            );
+        }
+        let tick = 10.0 * s.sample_period_s();
+        assert_eq!(prompt.len(), 3, "{prompt:?}");
+        let (first, queued, last) = (&prompt[0], &prompt[1], &prompt[2]);
+        assert_eq!(first.retargeted_at_s, Some(8.0 * tick), "{first:?}");
+        assert_eq!(first.replaced_by, Some("jog"));
+        assert!(!first.discarded && first.duration_s.is_none(), "{first:?}");
+        // The samples of ticks 2 … 7: the rotor 1e-6 behind.
+        assert!(
+            first
+                .peak_abs_error_rad
+                .is_some_and(|p| (p - 1e-6).abs() < 1e-9),
+            "{first:?}"
+        );
+        assert!(queued.discarded, "{queued:?}");
+        assert_eq!(queued.retargeted_at_s, Some(8.0 * tick));
+        assert_eq!(
+            queued.peak_abs_error_rad, None,
+            "it never played: {queued:?}"
+        );
+        assert_eq!(last.duration_s, Some(0.0), "{last:?}");
     }
 
     #[test]

@@ -4,7 +4,9 @@
 //!
 //! Why a history and not the newest setpoint: a reader drains setpoints and states from
 //! separate queues, so a state may arrive after setpoints computed from later samples; in
-//! lockstep the states' queue lags by as much as it holds ([`MONITOR_BUFFER`] samples).
+//! lockstep the states' queue lags by as much as it holds ([`MONITOR_BUFFER`] samples). A
+//! state is graded (and recorded) once every control of its tick has come (see
+//! `metrics::ProgramReference`), never against a setpoint that has not.
 
 use stepdrive_shared::messages::TorqueSetpoint;
 use stepdrive_shared::scenario::Scenario;
@@ -44,12 +46,6 @@ impl SetpointHistory {
         let len = self.ring.len();
         self.ring[self.seen % len] = (sp.sample_time_s, sp.reference());
         self.seen += 1;
-    }
-
-    /// The sample time of the newest setpoint.
-    pub fn newest_time(&self) -> Option<f64> {
-        let len = self.ring.len();
-        (self.seen > 0).then(|| self.ring[(self.seen - 1) % len].0)
     }
 
     /// θ_d, ω_d, α_d at `t`: the last setpoint at or before `t` carried on to it (the
@@ -98,7 +94,6 @@ mod tests {
             h.push(&moving(f64::from(k), f64::from(k) * 10.0, 1.0));
         }
         // Kept: 6, 7, 8, 9.
-        assert_eq!(h.newest_time(), Some(9.0));
         assert_eq!(h.at(7.0).map(|r| r.theta), Some(70.0));
         assert_eq!(h.at(7.5).map(|r| r.theta), Some(70.5));
         assert_eq!(h.at(12.0).map(|r| r.theta), Some(93.0));

@@ -74,6 +74,18 @@ fn sci(v: f64) -> String {
     }
 }
 
+/// What replaced a move before it got there, in the moves table: a move re-targets it.
+fn replaced_word(kind: Option<&str>) -> &str {
+    match kind {
+        Some("move") | None => "re-targeted",
+        Some("stop") => "stopped",
+        Some("quick-stop") => "quick stop",
+        Some("shutdown" | "disable-voltage" | "disable-operation") => "disabled",
+        Some("stream-start") => "stream",
+        Some(other) => other,
+    }
+}
+
 /// `v` to `digits` decimals, or `n/a` for a figure the run never reached (a run with a
 /// program has no cruise window).
 fn fixed(v: f64, digits: usize) -> String {
@@ -280,11 +292,12 @@ pub fn table(s: &Scenario, runs: &[RunReport]) -> String {
                 number,
                 m.start_s,
                 m.target_rad,
-                match m.retargeted_at_s {
-                    Some(t) => format!("re-targeted {t:.4}"),
-                    None => or_na(m.duration_s, &|d| format!("{d:.4}")),
+                match (m.retargeted_at_s, m.discarded) {
+                    (Some(t), true) => format!("discarded {t:.4}"),
+                    (Some(t), false) => format!("{} {t:.4}", replaced_word(m.replaced_by)),
+                    (None, _) => or_na(m.duration_s, &|d| format!("{d:.4}")),
                 },
-                sci(m.peak_abs_error_rad),
+                m.peak_abs_error_rad.map_or("n/a".into(), sci),
                 or_na(m.settle_s, &|d| format!("{:.1}", d * 1e3)),
             );
         }

@@ -189,15 +189,17 @@ impl Node for StateSink {
 
     fn poll(&mut self, ports: &mut Self::Ports, _cx: &mut Cx) -> Result<Poll, RunError> {
         let observer = &mut self.observer;
+        // The statuses first, as the supervisor takes them (its `take_controls`).
+        while let Some(st) = ports.status.receive()? {
+            observer.status(&st);
+        }
         while let Some(a) = ports.acks.receive()? {
             observer.ack(&a);
         }
         while let Some(sp) = ports.setpoints.receive()? {
             observer.setpoint(&sp);
         }
-        while let Some(st) = ports.status.receive()? {
-            observer.status(&st);
-        }
+        observer.controls_taken();
         let mut broken = None;
         ports.states.drain(&mut |st| {
             if broken.is_none() {

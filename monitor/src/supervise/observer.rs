@@ -14,7 +14,7 @@
 //!   first), and its report says the recording is incomplete.
 
 use crate::record::recording::Recording;
-use crate::report::metrics::{Metrics, RunReport};
+use crate::report::metrics::{Graded, Metrics, RunReport};
 use crate::report::outcome::Outcome;
 use stepdrive_shared::axis::{AxisAck, AxisStatus};
 use stepdrive_shared::messages::{
@@ -22,6 +22,7 @@ use stepdrive_shared::messages::{
 };
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::stats::StatsReport;
+use stepdrive_shared::trajectory::Reference;
 use stepdrive_shared::{Method, Scenario};
 
 /// Why watching a stack stopped before its last sample.
@@ -162,12 +163,34 @@ impl<'r> Observer<'r> {
         self.last_seq = Some(st.seq);
         self.first_ns.get_or_insert(st.publish_time_ns);
         self.last_ns = st.publish_time_ns;
-        self.metrics.push(st);
-        let axis = self.axis;
-        self.record(|r| r.state(axis, st));
+        self.grading(|m, graded| m.push_graded(st, graded));
         self.last_seen |= st.flags & state_flags::LAST != 0;
         self.last_fault = st.fault;
         Ok(())
+    }
+
+    /// Runs `f` on the metrics, recording each state it grades with the θ_d it was graded
+    /// against (so the file's θ_d is the figures', whatever order the drains met the
+    /// states and setpoints in).
+    fn grading(&mut self, f: impl FnOnce(&mut Metrics, &mut Graded)) {
+        let axis = self.axis;
+        let mut failed = None;
+        let recording = &mut self.recording;
+        let mut record = |st: &DriveState, r: Option<Reference>| {
+            if let (None, Some(rec)) = (&failed, recording.as_deref_mut()) {
+                failed = rec.state(axis, st, r).err();
+            }
+        };
+        f(&mut self.metrics, &mut record);
+        if let Some(e) = failed {
+            self.give_up_recording(e.to_string());
+        }
+    }
+
+    /// Every control that had come has been taken, the statuses first: the states their
+    /// ticks cover are graded (and recorded).
+    pub fn controls_taken(&mut self) {
+        self.grading(|m, graded| m.controls_taken(graded));
     }
 
     pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
@@ -252,7 +275,7 @@ impl<'r> Observer<'r> {
         wall_s: f64,
         stop: Option<Stop>,
     ) -> RunReport {
-        self.metrics.flush();
+        self.grading(|m, graded| m.flush_graded(graded));
         let mut report = match stop {
             None => self.metrics.finish(method, mode, wall_s),
             Some(s) => self

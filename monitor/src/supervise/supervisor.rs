@@ -291,10 +291,14 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             .iter_mut()
             .map(|a| {
                 let wall = a.observer.wall_s();
+                // With the recording lent: its last states are graded (and recorded) now.
+                let report = self
+                    .observer
+                    .lending(&mut a.observer, |o| o.report(method, mode, wall, None));
                 AxisRun {
                     axis: a.feed.axis,
                     name: a.name.clone(),
-                    report: a.observer.report(method, mode, wall, None),
+                    report,
                 }
             })
             .collect()
@@ -718,11 +722,19 @@ impl Progress {
     }
 }
 
-/// Takes the setpoints, commands, plans, answers and statuses that arrived into `o`.
+/// Takes the statuses, answers, setpoints, commands and plans that arrived into `o`. The
+/// statuses first: the position loop publishes a tick's answers and setpoint before its
+/// status, so every control up to the newest status taken is in when the rest have been
+/// taken after it, and the states up to that tick can be graded (`Observer::controls_taken`).
 fn take_controls(
     c: &mut Controls,
     o: &mut Observer,
 ) -> Result<(), stepdrive_runtime::port::PortError> {
+    if let Some(sub) = c.status.as_mut() {
+        while let Some(st) = sub.receive()? {
+            o.status(&st);
+        }
+    }
     if let Some(sub) = c.acks.as_mut() {
         while let Some(a) = sub.receive()? {
             o.ack(&a);
@@ -743,10 +755,6 @@ fn take_controls(
             o.plan(&p);
         }
     }
-    if let Some(sub) = c.status.as_mut() {
-        while let Some(st) = sub.receive()? {
-            o.status(&st);
-        }
-    }
+    o.controls_taken();
     Ok(())
 }

@@ -534,15 +534,44 @@ fn move_together(
 /// command started) is halted at its move limits; the exit is 130, and the headline says
 /// where each stood.
 fn halted(axes: &mut [(&mut Axis, u32)], seq: u64) -> anyhow::Error {
+    let mut halting = Vec::new();
     let mut said = Vec::new();
-    for (axis, index) in axes.iter_mut() {
-        said.push(match axis.halt_if_still(seq) {
-            Ok(Some(s)) => format!(
-                "axis {index} halted at θ {:.6} rad, ω {:.4} rad/s (a stop at its move limits)",
-                s.theta_rad, s.omega_rad_s
+    for (k, (axis, index)) in axes.iter_mut().enumerate() {
+        match axis.halt_if_still(seq) {
+            Ok(Some(_)) => halting.push(k),
+            Ok(None) => said.push(format!(
+                "axis {index}: another command had taken it over, left alone"
+            )),
+            Err(e) => said.push(format!("axis {index}: could not halt it: {e}")),
+        }
+    }
+    // Where each halted axis came to rest: its setpoint at rest, within a bound far above
+    // any stop at the move limits.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    for k in halting {
+        let (axis, index) = &mut axes[k];
+        let mut last = None;
+        while Instant::now() < deadline {
+            match axis.status() {
+                Ok(s) if s.omega_d_rad_s == 0.0 => {
+                    last = Some((s, true));
+                    break;
+                }
+                Ok(s) => last = Some((s, false)),
+                Err(_) => break,
+            }
+            std::thread::sleep(Duration::from_millis(10));
+        }
+        said.push(match last {
+            Some((s, true)) => format!(
+                "axis {index} halted, at rest at θ {:.6} rad (a stop at its move limits)",
+                s.theta_rad
             ),
-            Ok(None) => format!("axis {index}: another command had taken it over, left alone"),
-            Err(e) => format!("axis {index}: could not halt it: {e}"),
+            Some((s, false)) => format!(
+                "axis {index} halting, still at ω {:.4} rad/s at θ {:.6} rad after 5 s",
+                s.omega_rad_s, s.theta_rad
+            ),
+            None => format!("axis {index} halting; no status since"),
         });
     }
     Exit {

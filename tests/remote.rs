@@ -337,18 +337,20 @@ fn a_client_that_does_the_minimum_cannot_leave_the_motor_running() {
     assert_eq!(refusal, 16, "{why}");
     assert_eq!(ask(enable, id, 0.0).0, 0);
     assert_eq!(ask(jog, id, 2.0).0, 0);
-    let jogged = Instant::now();
-    // Silent from here on, its session open: no token ever said it was there.
-    let mut stopped = None;
-    while jogged.elapsed() < Duration::from_secs(8) {
-        let st = local_status();
-        if st.contains("Quick stop active") && warnings(&st) & 0x20 != 0 {
-            stopped = Some(jogged.elapsed());
-            break;
+    // How long after `since` the axis stood in Quick stop active with warning `bit` set.
+    let quick_stopped = |since: Instant, bit: u32| {
+        while since.elapsed() < Duration::from_secs(8) {
+            let st = local_status();
+            if st.contains("Quick stop active") && warnings(&st) & bit != 0 {
+                return Some(since.elapsed());
+            }
+            std::thread::sleep(Duration::from_millis(10));
         }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let stopped = stopped.unwrap_or_else(|| panic!("the jog ran on: {}", local_status()));
+        None
+    };
+    // Silent from here on, its session open: no token ever said it was there.
+    let stopped = quick_stopped(Instant::now(), 0x20)
+        .unwrap_or_else(|| panic!("the jog ran on: {}", local_status()));
     assert!(
         stopped < Duration::from_secs(3),
         "stopped {stopped:?} after the jog"
@@ -359,17 +361,8 @@ fn a_client_that_does_the_minimum_cannot_leave_the_motor_running() {
     // timeout, not the local lead (0.05 s) the client's default would have given it.
     assert_eq!(ask(enable, id, 0.0).0, 0);
     assert_eq!(ask(stream_start, id, 0.0).0, 0);
-    let started = Instant::now();
-    let mut lost = None;
-    while started.elapsed() < Duration::from_secs(8) {
-        let st = local_status();
-        if st.contains("Quick stop active") && warnings(&st) & 0x10 != 0 {
-            lost = Some(started.elapsed());
-            break;
-        }
-        std::thread::sleep(Duration::from_millis(10));
-    }
-    let lost = lost.unwrap_or_else(|| panic!("the stream was never stopped: {}", local_status()));
+    let lost = quick_stopped(Instant::now(), 0x10)
+        .unwrap_or_else(|| panic!("the stream was never stopped: {}", local_status()));
     assert!(
         lost > Duration::from_millis(450) && lost < Duration::from_secs(3),
         "the pointless stream stopped after {lost:?}"

@@ -513,20 +513,26 @@ mod tests {
         }
     }
 
-    /// Three axes with their own move limits, no brake delay, enabled at t = 0 where their
-    /// rotors stand (`at`).
-    fn three(policy: StopPolicy, at: [f64; 3]) -> (AxisGroup, Vec<AxisParams>, [Measured; 3]) {
+    /// Axes with these move limits (v, a, j), no brake delay.
+    fn with_move_limits(limits: [(f64, f64, f64); 3]) -> Vec<AxisParams> {
         let mut params = vec![AxisParams::default(); 3];
-        for (p, (v, a, j)) in params.iter_mut().zip([
-            (5.0, 50.0, 2000.0),
-            (10.0, 100.0, 5000.0),
-            (3.0, 20.0, 500.0),
-        ]) {
+        for (p, (v, a, j)) in params.iter_mut().zip(limits) {
             p.brake_release_s = 0.0;
             p.move_v_rad_s = v;
             p.move_a_rad_s2 = a;
             p.move_j_rad_s3 = j;
         }
+        params
+    }
+
+    /// Three axes with their own move limits, no brake delay, enabled at t = 0 where their
+    /// rotors stand (`at`).
+    fn three(policy: StopPolicy, at: [f64; 3]) -> (AxisGroup, Vec<AxisParams>, [Measured; 3]) {
+        let params = with_move_limits([
+            (5.0, 50.0, 2000.0),
+            (10.0, 100.0, 5000.0),
+            (3.0, 20.0, 500.0),
+        ]);
         let mut g = AxisGroup::new(&params, T, policy).expect("three axes");
         let m = at.map(|theta| Measured {
             theta,
@@ -817,17 +823,11 @@ mod tests {
             10, 10, 9, 9, 10, 10, 9, 6, 11, 1, 9, 5, 8, 1, 10, 7, 4, 9, 1, 9, 10, 4, 9, 9, 3, 1, 1,
             1, 9, 9, 9, 9, 9, 9, 7, 3,
         ];
-        let mut params = vec![AxisParams::default(); 3];
-        for (p, (v, a, j)) in params.iter_mut().zip([
+        let params = with_move_limits([
             (5.0, 50.0, 2000.0),
             (10.0, 100.0, 5000.0),
             (8.0, 40.0, 1000.0),
-        ]) {
-            p.brake_release_s = 0.0;
-            p.move_v_rad_s = v;
-            p.move_a_rad_s2 = a;
-            p.move_j_rad_s3 = j;
-        }
+        ]);
         let mut axes: Vec<Axis> = params.iter().map(|p| Axis::new(p, T)).collect();
         let mut group = Coordinator::new(T, StopPolicy::All);
         let mut m = [Measured::default(); 3];

@@ -262,17 +262,27 @@ fn open_stopper(
 /// The stop's words after why supervision ended; a stop that failed makes the run's
 /// outcome a dead (stuck) process.
 fn amend(stop: &mut Stop, w: &WoundDown) {
+    // The processes were stopped after the motor: said in that order.
+    let (why, then) = match stop.because.strip_suffix(STOPPED_ALL) {
+        Some(why) => (
+            why.to_string(),
+            "; then all stack processes were stopped".to_string(),
+        ),
+        None => (stop.because.clone(), String::new()),
+    };
     if w.ok() {
-        stop.because = format!("{}; {}", stop.because, w.text());
+        stop.because = format!("{why}; {}{then}", w.text());
     } else {
         stop.outcome = Outcome::ProcessDied;
         stop.because = format!(
-            "{}; the motor was NOT brought to a standstill: {}",
-            stop.because,
+            "{why}; the motor was NOT brought to a standstill: {}{then}",
             w.text()
         );
     }
 }
+
+/// How the supervisor's word on an interruption ends when it stops the processes.
+const STOPPED_ALL: &str = "; all stack processes were stopped";
 
 /// Supervises a launched stack to its last sample and stops its children; returns how it
 /// ended and the children's failures. Ended early on the wall clock, the axes are brought to

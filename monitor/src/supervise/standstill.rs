@@ -91,8 +91,11 @@ impl StopLimits {
             setpoint_age_s: f64::from(own.axis.setpoint_age_ticks) / own.rates.position_loop_hz,
             watchdog_s: f64::from(watchdog_periods) / own.rates.current_loop_hz,
             // The plant fits the brake to a commanded stack only (the paper's experiment
-            // runs without one).
-            brake_decel_rad_s2: (mode == Mode::Realtime && !own.runs_profile() && brake > 0.0)
+            // runs without one). A served stack's axes are commanded: `serve` marks the
+            // whole scenario, after its axes' own were read.
+            brake_decel_rad_s2: (mode == Mode::Realtime
+                && !(s.runs_profile() && own.runs_profile())
+                && brake > 0.0)
                 .then(|| brake / own.motor.inertia_kg_m2),
             device_delay_s: f64::from(own.rates.compute_delay_periods + 2)
                 / own.rates.current_loop_hz,
@@ -442,6 +445,13 @@ mod tests {
             StopLimits::of(&served, 0, Mode::Hardware, 1000).braking(1.0),
             None
         );
+        // Each axis of a served stack has the brake, though its own scenario was read
+        // before `serve` marked the whole one.
+        let two = "[[axis]]\nname = \"x\"\n[[axis]]\nname = \"y\"\n";
+        let mut two = Scenario::from_toml_str(two).expect("two axes");
+        assert!(!StopLimits::of(&two, 1, Mode::Realtime, 1000).brake());
+        two.run.until_stopped = true;
+        assert!(StopLimits::of(&two, 1, Mode::Realtime, 1000).brake());
     }
 
     #[test]

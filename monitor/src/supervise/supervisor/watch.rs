@@ -614,7 +614,13 @@ impl Supervisor<'_, '_> {
                                         braking[axis].as_secs_f64()
                                     )
                                 }
-                                (_, true) => {}
+                                (_, true) => {
+                                    let omega =
+                                        self.newest_state(axis).map_or(0.0, |s| s.omega_rad_s);
+                                    if omega.abs() > STANDSTILL_RAD_S {
+                                        how += ", the rotor turning on freely (no holding brake)";
+                                    }
+                                }
                             }
                             (how, true)
                         }

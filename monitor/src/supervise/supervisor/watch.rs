@@ -232,9 +232,14 @@ impl Supervisor<'_, '_> {
     /// stack's processes go: every axis brought to a standstill and its outputs off, or, if
     /// a process died, the survivors given the time their stand-in needs. `None` when there
     /// is nothing to stop: a reader, a lockstep stack (it takes no commands and moves no
-    /// real motor), or a run that ended at its last sample.
+    /// real motor), a run that ended at its last sample, or a stack that never ran.
     pub fn wind_down(&mut self, ending: &Ending) -> anyhow::Result<Option<WoundDown>> {
         if self.stopper.is_none() || matches!(ending, Ending::Last) {
+            return Ok(None);
+        }
+        // A stack that never published a state never moved: nothing to stop, and its own
+        // headline (it did not start) says enough.
+        if (0..self.axis_count()).all(|a| self.newest_state(a).is_none()) {
             return Ok(None);
         }
         self.observer.wind_down();

@@ -353,6 +353,39 @@ fn a_killed_gateway_is_logged_at_once_its_remote_motion_stopped_and_it_is_restar
     assert!(processes_with(&inst).is_empty());
 }
 
+/// Item 5, bounded: a gateway that keeps dying is restarted three times, and its fourth
+/// death stops the stack as Ctrl-C does (the axes brought to a standstill), exit 5 naming
+/// it.
+#[test]
+fn a_gateway_that_keeps_dying_is_restarted_three_times_then_the_stack_stops() {
+    let _turn = one_stack_at_a_time();
+    let inst = instance("gwagain");
+    let endpoint = format!("tcp/127.0.0.1:{}", free_tcp_port());
+    let (mut serve, log) = serve_job(&inst, &["--gateway", &endpoint]);
+    let mut axis = axis_of(&inst, &mut serve);
+    cruise(&mut axis);
+    let mut killed = Vec::new();
+    for death in 1..=4 {
+        let pid = wait_until(Duration::from_secs(10), || {
+            pid_of_role(&inst, "gateway").is_some_and(|p| !killed.contains(&p))
+        })
+        .then(|| pid_of_role(&inst, "gateway"))
+        .flatten()
+        .unwrap_or_else(|| panic!("no gateway to kill for death {death}:\n{}", log.text()));
+        killed.push(pid);
+        signal(pid, libc::SIGKILL);
+    }
+    let status = wait_or_explain(&mut serve, Duration::from_secs(30), &inst);
+    let stdout = stdout_of(&mut serve);
+    assert_eq!(status.code(), Some(5), "{stdout}\n{}", log.text());
+    let line = served_line(&stdout);
+    assert!(line.contains("restarted 3 times already"), "{line}");
+    assert!(line.contains("stood still"), "{line}");
+    assert!(line.contains("Switch on disabled"), "{line}");
+    assert_still(&line);
+    assert!(processes_with(&inst).is_empty());
+}
+
 /// Item 5, the RT-throttling guard (root only: it writes sched_rt_runtime_us). Before:
 /// killed, nothing was logged, and a launcher killed afterwards left throttling lifted for
 /// good. Now its death is logged at once and a new guard holds the saved value: throttling

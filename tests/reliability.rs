@@ -142,7 +142,9 @@ fn rt_throttling_is_lifted_for_the_run_and_restored_even_after_a_sigkill() {
     );
 
     // Round 3, finding 5: the guard itself killed. Before: throttling stayed lifted (-1)
-    // after the run ended with exit 0, and nothing said so. Now the launcher restores it.
+    // after the run ended with exit 0, and nothing said so. Then the launcher restored it at
+    // its end; now (issue 44, item 5) the death is logged at once and a new guard holds the
+    // saved value, which it restores when the run is over.
     // On an instance of its own: the killed stack's services can outlive it for a moment,
     // and a plant that counts its dead position loop as a peer starts before the new one
     // (seen in CI: STEPPED OUT at 0.0406 s, the rotor unpowered until the loop came).
@@ -185,7 +187,14 @@ fn rt_throttling_is_lifted_for_the_run_and_restored_even_after_a_sigkill() {
     let stderr = stderr_of(&mut run);
     assert!(status.success(), "{stderr}");
     assert_eq!(read(), Some(before), "{stderr}");
-    assert!(stderr.contains("restored here"), "{stderr}");
+    assert!(
+        stderr.contains("the RT-throttling guard exited with signal: 9"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains("a new RT-throttling guard holds it"),
+        "{stderr}"
+    );
 }
 
 /// Finding 2: a child's death and Ctrl-C keep what was gathered: the table (marked

@@ -15,6 +15,7 @@ use stepdrive_monitor::report::outcome::Outcome;
 use stepdrive_monitor::report::table::{document, headlines, overall, table};
 use stepdrive_monitor::studies::simulate::{simulate as simulate_run, simulate_stalls};
 use stepdrive_monitor::supervise::attach::{attach_reader, watch, ResetResult};
+use stepdrive_monitor::supervise::helpers::{Helper, Helpers};
 use stepdrive_monitor::supervise::launcher::{run_stack, LaunchOptions};
 use stepdrive_monitor::supervise::throttling::ThrottlingLifted;
 use stepdrive_runtime::deploy::Deployment;
@@ -498,7 +499,12 @@ pub fn run(a: RunArgs) -> Result<()> {
         (None, Some(view)) => Some(Recording::live_only(view, &s)),
         (None, None) => None,
     };
-    let _throttling = throttling_guard(&a.stack, &deployment, a.mode)?;
+    // The guard is watched with each method's stack (restarted if it dies), and restores
+    // throttling when the last one is over.
+    let mut helpers = Helpers {
+        guard: throttling_guard(&a.stack, &deployment, a.mode)?,
+        ..Helpers::default()
+    };
     let opts = LaunchOptions {
         instance: a.stack.instance.clone(),
         mode: a.mode,
@@ -511,7 +517,7 @@ pub fn run(a: RunArgs) -> Result<()> {
             a.mode.as_str(),
             s.duration_s()
         );
-        let report = match run_stack(&s, *method, &opts, recording.as_mut()) {
+        let report = match run_stack(&s, *method, &opts, recording.as_mut(), Some(&mut helpers)) {
             Ok(report) => report,
             Err(e) => {
                 // The stack could not start: keep what the earlier methods gathered.
@@ -585,55 +591,36 @@ pub fn gateway(a: GatewayArgs) -> Result<()> {
 }
 
 /// `serve --gateway`: the gateway as a child process, started beside the stack (it waits
-/// for the stack's services) and stopped with it.
-struct GatewayChild(std::process::Child);
-
-impl GatewayChild {
-    /// `priority`: the gateway's SCHED_FIFO priority; 0 when the stack's loops run at
-    /// ordinary priority, so that the gateway never goes before them. `cpus`: the stack's
-    /// helper CPUs (empty: any).
-    fn start(endpoint: &str, instance: &str, priority: u8, cpus: &[usize]) -> Result<Self> {
-        if !endpoint.starts_with("tcp/") {
-            anyhow::bail!("--gateway {endpoint}: give tcp/HOST:PORT");
-        }
-        // A busy or foreign address is refused before the stack starts.
-        let addr = &endpoint["tcp/".len()..];
-        std::net::TcpListener::bind(addr)
-            .with_context(|| format!("--gateway {endpoint}: cannot listen there"))?;
-        let exe = std::env::current_exe().context("the stepdrive executable")?;
-        let priority = priority.to_string();
-        let cpus = match cpus {
-            [] => "any".to_string(),
-            cpus => stepdrive_runtime::rt::cpu_list(cpus),
-        };
-        let mut child = std::process::Command::new(exe)
-            .args(["gateway", "--instance", instance, "--listen", endpoint])
-            .args(["--priority", &priority, "--cpus", &cpus])
-            .stdin(std::process::Stdio::null())
-            .spawn()
-            .context("starting the gateway")?;
-        // What fails at once (a priority refused, a bad option) fails `serve` at once.
-        std::thread::sleep(std::time::Duration::from_millis(300));
-        if let Some(status) = child.try_wait().context("the gateway")? {
-            anyhow::bail!("--gateway: the gateway exited at once ({status}); its error is above");
-        }
-        Ok(Self(child))
+/// for the stack's services), watched with it (a death is logged at once, the motion of its
+/// remote clients quick-stopped and the gateway restarted: `Helpers`) and stopped with it.
+/// `priority`: the gateway's SCHED_FIFO priority; 0 when the stack's loops run at ordinary
+/// priority, so that the gateway never goes before them. `cpus`: the stack's helper CPUs
+/// (empty: any).
+fn start_gateway(endpoint: &str, instance: &str, priority: u8, cpus: &[usize]) -> Result<Helper> {
+    if !endpoint.starts_with("tcp/") {
+        anyhow::bail!("--gateway {endpoint}: give tcp/HOST:PORT");
     }
-}
-
-impl Drop for GatewayChild {
-    fn drop(&mut self) {
-        if let Ok(Some(status)) = self.0.try_wait() {
-            tracing::error!(
-                "the gateway had stopped before the stack ({status}): remote clients lost \
-                 their link then (its error is above)"
-            );
-            return;
-        }
-        // SAFETY: signalling our own child, by its pid.
-        unsafe { libc::kill(self.0.id() as libc::pid_t, libc::SIGTERM) };
-        let _ = self.0.wait();
+    // A busy or foreign address is refused before the stack starts.
+    let addr = &endpoint["tcp/".len()..];
+    std::net::TcpListener::bind(addr)
+        .with_context(|| format!("--gateway {endpoint}: cannot listen there"))?;
+    let cpus = match cpus {
+        [] => "any".to_string(),
+        cpus => stepdrive_runtime::rt::cpu_list(cpus),
+    };
+    let args = ["gateway", "--instance", instance, "--listen", endpoint]
+        .into_iter()
+        .map(String::from)
+        .chain(["--priority".to_string(), priority.to_string()])
+        .chain(["--cpus".to_string(), cpus])
+        .collect();
+    let mut gateway = Helper::spawn("gateway", args).context("starting the gateway")?;
+    // What fails at once (a priority refused, a bad option) fails `serve` at once.
+    std::thread::sleep(std::time::Duration::from_millis(300));
+    if let Some(status) = gateway.poll_exit()? {
+        anyhow::bail!("--gateway: the gateway exited at once ({status}); its error is above");
     }
+    Ok(gateway)
 }
 
 pub fn serve(a: ServeArgs) -> Result<()> {
@@ -655,7 +642,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     };
     let deployment = a.stack.deployment(mode)?;
     let mut live = a.live.start()?.map(|view| Recording::live_only(view, &s));
-    let _gateway = a
+    let gateway = a
         .gateway
         .as_deref()
         .map(|endpoint| {
@@ -663,7 +650,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
                 Some(0) => 0,
                 _ => stepdrive_client::STREAM_PRIORITY,
             };
-            GatewayChild::start(
+            start_gateway(
                 endpoint,
                 &a.stack.instance,
                 priority,
@@ -672,7 +659,11 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         })
         .transpose()?;
     check_drive_count(&s, &deployment)?;
-    let _throttling = throttling_guard(&a.stack, &deployment, mode)?;
+    let mut helpers = Helpers {
+        gateway,
+        guard: throttling_guard(&a.stack, &deployment, mode)?,
+        ..Helpers::default()
+    };
     let opts = LaunchOptions {
         instance: a.stack.instance.clone(),
         mode,
@@ -685,11 +676,23 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         mode.as_str(),
         opts.instance
     );
-    let r = stepdrive_monitor::supervise::launcher::serve_stack(&s, &opts, live.as_mut())?;
+    let r = stepdrive_monitor::supervise::launcher::serve_stack(
+        &s,
+        &opts,
+        live.as_mut(),
+        Some(&mut helpers),
+    )?;
     drop(live);
+    let events = std::mem::take(&mut helpers.events);
+    // The gateway stopped, then throttling restored, before the last line.
+    drop(helpers);
+    let because = match events.is_empty() {
+        true => r.because.clone(),
+        false => format!("{}; {}", r.because, events.join("; ")),
+    };
     println!(
-        "served {:.1} s ({} samples, {} deadline misses): {}",
-        r.served_s, r.samples, r.misses, r.because
+        "served {:.1} s ({} samples, {} deadline misses): {because}",
+        r.served_s, r.samples, r.misses
     );
     if r.outcome == Outcome::Ok {
         return Ok(());
@@ -697,10 +700,9 @@ pub fn serve(a: ServeArgs) -> Result<()> {
     Err(Exit {
         code: r.outcome.exit_code(),
         headline: format!(
-            "{} (exit {}): the served stack {}",
+            "{} (exit {}): the served stack {because}",
             r.outcome.title(),
             r.outcome.exit_code(),
-            r.because
         ),
     }
     .into())

@@ -109,7 +109,12 @@ enum Cmd {
     IdentifyNode(roles::IdentifyNodeArgs),
     /// Lifts RT throttling and restores it when its stdin closes (`run` starts one).
     #[command(hide = true)]
-    RtThrottlingGuard,
+    RtThrottlingGuard {
+        /// Restore this value (a guard that takes over from one that died), not the one
+        /// found.
+        #[arg(long, value_name = "US", allow_negative_numbers = true)]
+        restore: Option<i64>,
+    },
 }
 
 fn init_logging() {
@@ -162,7 +167,9 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Cmd::Latency(a) => commands::latency(a),
         Cmd::EmulateDrive(a) => roles::emulate_drive(a),
         Cmd::Pingpong(a) => roles::pingpong(a),
-        Cmd::RtThrottlingGuard => stepdrive_monitor::supervise::throttling::guard(),
+        Cmd::RtThrottlingGuard { restore } => {
+            stepdrive_monitor::supervise::throttling::guard(restore)
+        }
     }
 }
 

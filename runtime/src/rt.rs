@@ -216,6 +216,15 @@ impl RtThrottlingOff {
         Ok(Some(Self { previous }))
     }
 
+    /// Turns RT throttling off (whatever it is now) until dropped, then sets `previous`:
+    /// a guard that takes over from one that died, and restores the value that one saved.
+    pub fn hold(previous: i64) -> Result<Self, RtError> {
+        if rt_runtime_us() != Some(-1) {
+            std::fs::write(RT_RUNTIME, "-1").map_err(RtError::WriteThrottling)?;
+        }
+        Ok(Self { previous })
+    }
+
     /// The value restored when dropped.
     pub fn previous(&self) -> i64 {
         self.previous

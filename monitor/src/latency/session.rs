@@ -191,7 +191,8 @@ pub fn run_latency(s: &Scenario, o: &LatencyOptions) -> Result<LatencyReport> {
         o.baseline_duration.as_secs_f64()
     );
     let started = Instant::now();
-    let run = run_stack(s, Method::Proposed, &o.launch, None).context("the stack run failed")?;
+    let run =
+        run_stack(s, Method::Proposed, &o.launch, None, None).context("the stack run failed")?;
     let timing = run
         .timing
         .as_ref()

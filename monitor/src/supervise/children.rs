@@ -1,6 +1,7 @@
 //! The stack's processes as children of the launcher: each is this same binary with its
-//! role's sub-command, terminated and reaped on every exit path (drop guard), dying with
-//! the launcher (PR_SET_PDEATHSIG). The scenario and deployment they read are files of the
+//! role's sub-command, in a process group of its own (signals for the stack go to the
+//! launcher), terminated and reaped on every exit path (drop guard), dying with the
+//! launcher (PR_SET_PDEATHSIG). The scenario and deployment they read are files of the
 //! run ([`RunFiles`]), removed as soon as every child has read them.
 
 use anyhow::{Context, Result};
@@ -40,6 +41,10 @@ impl Supervised {
         if std::env::var_os("RUST_LOG").is_none() {
             cmd.env("RUST_LOG", "warn");
         }
+        // Its own process group: a terminal's Ctrl-C goes to the launcher alone, which
+        // brings the axes to a standstill before it stops the loops; sent to the loops too,
+        // they would all stop at once and leave the motor to whatever the device does then.
+        cmd.process_group(0);
         // SAFETY: prctl is async-signal-safe and touches no memory of the parent.
         unsafe {
             cmd.pre_exec(|| {

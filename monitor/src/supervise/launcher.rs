@@ -11,7 +11,9 @@ use crate::supervise::children::{
     free_loopback_ports, path_arg, spawn_emulated_drive, RunFiles, Supervised,
 };
 use crate::supervise::cpus;
-use crate::supervise::observer::Observer;
+use crate::supervise::helpers::Helpers;
+use crate::supervise::observer::{Observer, Stop};
+use crate::supervise::standstill::{AxisLine, StopLimits, Stopper, WoundDown};
 use crate::supervise::supervisor::{AxisFeed, Controls, Ending, Feeds, Supervisor, Until};
 use anyhow::{Context, Result};
 use std::path::PathBuf;
@@ -51,6 +53,9 @@ struct Launched {
     truth: Option<PathBuf>,
     /// Taken by the supervisor.
     feeds: Option<Feeds>,
+    /// On the wall clock, a stack with a position loop: the lines to its axes that stop
+    /// them before its processes go. Taken by the supervisor.
+    stopper: Option<Stopper>,
     /// The monitor's iceoryx2 node: its subscribers must outlive the run.
     _bus: IpcBus,
     /// Realtime and hardware: the CPUs of its loops, held for the run.
@@ -170,6 +175,12 @@ fn launch(
         });
     }
     bus.set_axis(0);
+    let stopper = match (mode, stack.node(Role::PositionLoop)) {
+        (Mode::Realtime | Mode::Hardware, Some(_)) => {
+            Some(open_stopper(&mut bus, s, mode, &d, &controls, &axes)?)
+        }
+        _ => None,
+    };
 
     let mut children = Vec::with_capacity(stack.nodes.len() + 1);
     // Only an emulated drive knows where the rotor really is; it writes that beside the
@@ -201,6 +212,7 @@ fn launch(
             controls,
             axes,
         }),
+        stopper,
         _bus: bus,
         _cpu_claim: cpu_claim,
         _wakeups: match mode {
@@ -211,14 +223,77 @@ fn launch(
     })
 }
 
+/// One client of each axis's command service, and the axis's status where the supervisor's
+/// controls do not read it: what stops the axes before the stack's processes go. Held for
+/// the stack's life (a client of the 8 the service takes, so that a stop never finds it
+/// full).
+fn open_stopper(
+    bus: &mut IpcBus,
+    s: &Scenario,
+    mode: Mode,
+    d: &Deployment,
+    controls: &Option<Controls>,
+    axes: &[AxisFeed],
+) -> Result<Stopper> {
+    let mut lines = Vec::with_capacity(s.axis_count());
+    for axis in 0..s.axis_count() {
+        bus.set_axis(axis as u32);
+        let read = match axis {
+            0 => controls.as_ref(),
+            n => axes.get(n - 1).and_then(|a| a.controls.as_ref()),
+        }
+        .is_some_and(|c| c.status.is_some());
+        lines.push(AxisLine {
+            commands: bus
+                .command_client()
+                .context("the launcher's client of the axis command service")?,
+            status: match read {
+                true => None,
+                false => Some(bus.subscriber(4)?),
+            },
+            newest: None,
+            limits: StopLimits::of(s, axis, mode, d.watchdog_periods),
+        });
+    }
+    bus.set_axis(0);
+    Ok(Stopper::new(lines))
+}
+
+/// The stop's words after why supervision ended; a stop that failed makes the run's
+/// outcome a dead (stuck) process.
+fn amend(stop: &mut Stop, w: &WoundDown) {
+    // The processes were stopped after the motor: said in that order.
+    let (why, then) = match stop.because.strip_suffix(STOPPED_ALL) {
+        Some(why) => (
+            why.to_string(),
+            "; then all stack processes were stopped".to_string(),
+        ),
+        None => (stop.because.clone(), String::new()),
+    };
+    if w.ok() {
+        stop.because = format!("{why}; {}{then}", w.text());
+    } else {
+        stop.outcome = Outcome::ProcessDied;
+        stop.because = format!(
+            "{why}; the motor was NOT brought to a standstill: {}{then}",
+            w.text()
+        );
+    }
+}
+
+/// How the supervisor's word on an interruption ends when it stops the processes.
+const STOPPED_ALL: &str = "; all stack processes were stopped";
+
 /// Supervises a launched stack to its last sample and stops its children; returns how it
-/// ended and the children's failures.
+/// ended and the children's failures. Ended early on the wall clock, the axes are brought to
+/// a standstill (or a dead process's survivors stop them) first, and the ending says how.
 fn supervise<'a, 'r>(
     l: &'a mut Launched,
     s: &'a Scenario,
     mode: Mode,
     label: &str,
     observer: Observer<'r>,
+    helpers: Option<&'a mut Helpers>,
 ) -> Result<(Ending, Vec<String>, Supervisor<'a, 'r>)> {
     let timeouts = (l.deployment.startup_timeout(), l.deployment.peer_timeout());
     let feeds = l
@@ -235,8 +310,15 @@ fn supervise<'a, 'r>(
         Some(&l.files),
         timeouts,
     )
-    .watching_axes();
-    let ending = sup.run(Until::LastSample)?;
+    .watching_axes()
+    .stopping_with(l.stopper.take())
+    .with_helpers(helpers);
+    let mut ending = sup.run(Until::LastSample)?;
+    if let Some(w) = sup.wind_down(&ending)? {
+        if let Ending::Stopped(stop) = &mut ending {
+            amend(stop, &w);
+        }
+    }
     let mut failures = Vec::new();
     if ending == Ending::Last {
         failures = sup.stop_children(l.emulated)?;
@@ -253,12 +335,14 @@ fn supervise<'a, 'r>(
 /// outcome saying which. An error only when the stack could not be started at all.
 ///
 /// With `recording`, every state sample the monitor sees and every statistics report go to
-/// the file too (on channels of their own for this method).
+/// the file too (on channels of their own for this method). `helpers` (the RT-throttling
+/// guard) are watched with the stack.
 pub fn run_stack(
     s: &Scenario,
     method: Method,
     opts: &LaunchOptions,
     recording: Option<&mut Recording>,
+    helpers: Option<&mut Helpers>,
 ) -> Result<RunReport> {
     let mode = opts.mode;
     let stack = stack(mode, Purpose::Control);
@@ -269,7 +353,8 @@ pub fn run_stack(
     let mut l = launch(&stack, s, opts, recording.is_some(), &method_arg)?;
     let observer = Observer::new(s.for_axis(0).unwrap_or(s), mode).recording(recording, method);
     let truth = l.truth.clone();
-    let (ending, failures, mut sup) = supervise(&mut l, s, mode, method.as_str(), observer)?;
+    let (ending, failures, mut sup) =
+        supervise(&mut l, s, mode, method.as_str(), observer, helpers)?;
     let wall = sup.observer.wall_s();
     let stop = match ending {
         Ending::Last => None,
@@ -319,13 +404,17 @@ pub struct ServeReport {
 
 /// `stepdrive serve`: brings the stack up (the axis disabled, waiting for commands) and
 /// keeps it up, supervised like any run, until Ctrl-C or until it breaks (a process dies
-/// or goes silent). Ctrl-C is how a served stack is meant to end: its outcome is then ok,
-/// unless the device has a fault latched at that moment. With `live` (a live view), what
-/// the stack does goes to it as to a recording, on the proposed method's channels.
+/// or goes silent). Ctrl-C is how a served stack is meant to end: every axis is brought to
+/// a standstill with its outputs off before the processes go, and the outcome is ok unless
+/// the device has a fault latched at that moment or an axis could not be stopped. A
+/// process that died leaves its survivors the time to stop the motor. `helpers` (the
+/// gateway, the RT-throttling guard) are watched with the stack. With `live` (a live view),
+/// what the stack does goes to it as to a recording, on the proposed method's channels.
 pub fn serve_stack(
     s: &Scenario,
     opts: &LaunchOptions,
     live: Option<&mut Recording>,
+    helpers: Option<&mut Helpers>,
 ) -> Result<ServeReport> {
     let mode = opts.mode;
     let stack = stack(mode, Purpose::Control);
@@ -345,14 +434,16 @@ pub fn serve_stack(
         Some(&l.files),
         timeouts,
     )
-    .watching_axes();
+    .watching_axes()
+    .stopping_with(l.stopper.take())
+    .with_helpers(helpers);
     let ending = sup.run(Until::Interrupted)?;
     // Any axis's device with a fault latched at the end makes the served stack's verdict.
     let latched = sup.last_faults() & crate::report::outcome::LATCHED;
     let served_s = sup.observer.metrics().sim_time_s();
     let samples = sup.observer.metrics().samples();
     let misses = sup.finals.device_misses();
-    let (outcome, because) = match ending {
+    let (outcome, because) = match ending.clone() {
         Ending::Stopped(stop) if stop.outcome == Outcome::Interrupted => match latched {
             0 => (Outcome::Ok, "stopped (SIGINT/SIGTERM)".to_string()),
             bits => (
@@ -366,9 +457,14 @@ pub fn serve_stack(
         Ending::Stopped(stop) => (stop.outcome, stop.because),
         Ending::Last => (Outcome::Ok, "the stack ended its run".to_string()),
     };
+    let mut stop = Stop::new(outcome, because);
+    if let Some(w) = sup.wind_down(&ending)? {
+        amend(&mut stop, &w);
+    }
     drop(sup);
     drop(l);
     cleanup_dead_nodes();
+    let Stop { outcome, because } = stop;
     Ok(ServeReport {
         outcome,
         because,
@@ -425,7 +521,8 @@ pub fn run_identify(
         _ => Vec::new(),
     };
     let mut l = launch(&stack, s, opts, false, &extra)?;
-    let (ending, _, mut sup) = supervise(&mut l, s, mode, "identify", Observer::new(s, mode))?;
+    let (ending, _, mut sup) =
+        supervise(&mut l, s, mode, "identify", Observer::new(s, mode), None)?;
     if let Ending::Stopped(stop) = ending {
         // A child that died says why, with its own verdict (a drive's fault: exit 3).
         for child in sup.children_mut() {

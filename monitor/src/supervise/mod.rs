@@ -6,7 +6,9 @@
 pub mod attach;
 pub mod children;
 pub mod cpus;
+pub mod helpers;
 pub mod launcher;
 pub mod observer;
+pub mod standstill;
 pub mod supervisor;
 pub mod throttling;

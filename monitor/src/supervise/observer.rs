@@ -58,6 +58,12 @@ pub struct Observer<'r> {
     last_fault: u32,
     /// The axis it watches: the one whose channels it records on.
     axis: u32,
+    /// The newest state and status taken, whatever is graded (a stop at the end reads them).
+    newest_state: Option<DriveState>,
+    newest_status: Option<AxisStatus>,
+    /// The run is over and the stack is being stopped: what comes is recorded, not graded
+    /// (an interrupted profile's quick stop is not the profile's following error).
+    winding_down: bool,
 }
 
 impl<'r> Observer<'r> {
@@ -75,7 +81,19 @@ impl<'r> Observer<'r> {
             last_seen: false,
             last_fault: 0,
             axis: 0,
+            newest_state: None,
+            newest_status: None,
+            winding_down: false,
         }
+    }
+
+    /// From now on what comes is recorded (and checked) but no longer graded: the run is
+    /// over and the stack is being brought to a standstill.
+    pub fn wind_down(&mut self) {
+        // The states waiting for their ticks' statuses are the run's: graded (and recorded)
+        // with what has come, before what follows is only recorded.
+        self.grading(|m, graded| m.flush_graded(graded));
+        self.winding_down = true;
     }
 
     /// Watches axis `axis` of a multi-axis stack (`s` is that axis's scenario).
@@ -163,7 +181,15 @@ impl<'r> Observer<'r> {
         self.last_seq = Some(st.seq);
         self.first_ns.get_or_insert(st.publish_time_ns);
         self.last_ns = st.publish_time_ns;
-        self.grading(|m, graded| m.push_graded(st, graded));
+        self.newest_state = Some(*st);
+        if self.winding_down {
+            // The stop at the end is recorded, not graded (an interrupted profile's quick
+            // stop is no following error).
+            let axis = self.axis;
+            self.record(|r| r.state(axis, st, None));
+        } else {
+            self.grading(|m, graded| m.push_graded(st, graded));
+        }
         self.last_seen |= st.flags & state_flags::LAST != 0;
         self.last_fault = st.fault;
         Ok(())
@@ -194,21 +220,28 @@ impl<'r> Observer<'r> {
     }
 
     pub fn setpoint(&mut self, sp: &TorqueSetpoint) {
-        self.metrics.setpoint(sp);
+        if !self.winding_down {
+            self.metrics.setpoint(sp);
+        }
         let axis = self.axis;
         self.record(|r| r.setpoint(axis, sp));
     }
 
     /// An axis command's answer (a program's move starts its figures).
     pub fn ack(&mut self, ack: &AxisAck) {
-        self.metrics.ack(ack);
+        if !self.winding_down {
+            self.metrics.ack(ack);
+        }
         let axis = self.axis;
         self.record(|r| r.ack(axis, ack));
     }
 
     /// The axis's status (its first fault is the run's).
     pub fn status(&mut self, st: &AxisStatus) {
-        self.metrics.status(st);
+        self.newest_status = Some(*st);
+        if !self.winding_down {
+            self.metrics.status(st);
+        }
         let axis = self.axis;
         self.record(|r| r.status(axis, st));
     }
@@ -235,6 +268,16 @@ impl<'r> Observer<'r> {
     /// The fault bits of the newest state seen.
     pub fn last_fault(&self) -> u32 {
         self.last_fault
+    }
+
+    /// The newest state taken.
+    pub fn newest_state(&self) -> Option<&DriveState> {
+        self.newest_state.as_ref()
+    }
+
+    /// The newest axis status taken (none when the controls are not read).
+    pub fn newest_status(&self) -> Option<&AxisStatus> {
+        self.newest_status.as_ref()
     }
 
     /// The run's last state has been seen.

@@ -8,7 +8,9 @@
 use crate::report::metrics::AxisRun;
 use crate::report::timing::{rss_kib, Resources, Rss, TimingReport};
 use crate::supervise::children::{RunFiles, Supervised};
+use crate::supervise::helpers::Helpers;
 use crate::supervise::observer::{Observer, Stop};
+use crate::supervise::standstill::Stopper;
 use std::time::{Duration, Instant};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::port::Subscribe;
@@ -18,6 +20,8 @@ use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::stack::{Role, Slot};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
+
+mod watch;
 
 /// The supervisor's nap between drains, realtime: ~20 states at the default 20 kHz.
 const REALTIME_NAP: Duration = Duration::from_millis(1);
@@ -237,6 +241,14 @@ pub struct Supervisor<'a, 'r> {
     peer_timeout: Duration,
     resource: Resource,
     axes: Vec<AxisWatch<'r>>,
+    /// A launched stack on the wall clock: its lines to the axes, to stop them before its
+    /// processes go ([`Self::wind_down`]).
+    stopper: Option<Stopper>,
+    /// The processes beside the stack (the gateway, the RT-throttling guard), watched with
+    /// it.
+    helpers: Option<&'a mut Helpers>,
+    /// The stack's process whose death ended the supervision.
+    died: Option<stepdrive_shared::stack::Role>,
 }
 
 impl<'a, 'r> Supervisor<'a, 'r> {
@@ -264,7 +276,22 @@ impl<'a, 'r> Supervisor<'a, 'r> {
             peer_timeout: timeouts.1,
             resource: Resource::default(),
             axes: Vec::new(),
+            stopper: None,
+            helpers: None,
+            died: None,
         }
+    }
+
+    /// Stops the axes through `stopper` before the stack's processes go.
+    pub fn stopping_with(mut self, stopper: Option<Stopper>) -> Self {
+        self.stopper = stopper;
+        self
+    }
+
+    /// Watches `helpers` with the stack.
+    pub fn with_helpers(mut self, helpers: Option<&'a mut Helpers>) -> Self {
+        self.helpers = helpers;
+        self
     }
 
     /// Watches the feeds' other axes, each with its own observer (built from its axis's
@@ -492,6 +519,9 @@ impl<'a, 'r> Supervisor<'a, 'r> {
                     what,
                 ));
             }
+            if let Some(stop) = self.watch_helpers()? {
+                break Ending::Stopped(stop);
+            }
             let limit = if self.observer.metrics().samples() == 0 {
                 self.startup_timeout
             } else {
@@ -560,6 +590,7 @@ impl<'a, 'r> Supervisor<'a, 'r> {
     fn dead_child(&mut self) -> anyhow::Result<Option<Stop>> {
         for child in self.children.iter_mut() {
             if let Some(status) = child.poll_exit()? {
+                self.died = Some(child.role());
                 return Ok(Some(Stop::new(
                     crate::report::outcome::Outcome::ProcessDied,
                     child.describe_failure(status),

@@ -11,7 +11,8 @@
 
 use anyhow::{bail, Context, Result};
 use std::io::{BufRead, BufReader, Write};
-use std::process::{Child, Command, Stdio};
+use std::os::unix::process::CommandExt;
+use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::poll::termination_requested;
 use stepdrive_runtime::rt::{RtThrottlingOff, RT_RUNTIME};
@@ -25,12 +26,30 @@ pub struct ThrottlingLifted {
 impl ThrottlingLifted {
     /// Starts a guard that lifts RT throttling. `Ok(None)`: it was already off.
     pub fn engage() -> Result<Option<Self>> {
+        let (child, said) = Self::spawn(None)?;
+        match said {
+            Said::Lifted(previous) => Ok(Some(Self { child, previous })),
+            Said::Unchanged => Ok(None),
+            Said::Refused(why) => bail!("cannot lift RT throttling: {why}"),
+        }
+    }
+
+    /// A guard process; with `restore`, one that restores that value (it takes over from
+    /// one that died) instead of the one it finds.
+    fn spawn(restore: Option<i64>) -> Result<(Child, Said)> {
         let exe = std::env::current_exe().context("cannot locate the stepdrive executable")?;
-        let mut child = Command::new(exe)
-            .arg("rt-throttling-guard")
+        let mut cmd = Command::new(exe);
+        cmd.arg("rt-throttling-guard");
+        if let Some(v) = restore {
+            cmd.args(["--restore", &v.to_string()]);
+        }
+        let mut child = cmd
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
+            // Its own process group: a terminal's Ctrl-C goes to the launcher, which stops
+            // the axes before throttling is restored, not to the guard at the same time.
+            .process_group(0)
             .spawn()
             .context("cannot start the RT throttling guard")?;
         let line = child
@@ -44,22 +63,52 @@ impl ThrottlingLifted {
             .context("the RT throttling guard said nothing")?
             .unwrap_or_default();
         let mut words = line.split_whitespace();
-        match (words.next(), words.next().and_then(|v| v.parse().ok())) {
-            (Some("lifted"), Some(previous)) => Ok(Some(Self { child, previous })),
-            (Some("unchanged"), _) => {
-                let _ = child.wait();
-                Ok(None)
-            }
-            _ => {
-                let _ = child.wait();
-                bail!("cannot lift RT throttling: {}", line.trim())
-            }
+        let said = match (words.next(), words.next().and_then(|v| v.parse().ok())) {
+            (Some("lifted"), Some(previous)) => Said::Lifted(previous),
+            (Some("unchanged"), _) => Said::Unchanged,
+            _ => Said::Refused(line.trim().to_string()),
+        };
+        if !matches!(said, Said::Lifted(_)) {
+            let _ = child.wait();
         }
+        Ok((child, said))
     }
 
     pub fn previous(&self) -> i64 {
         self.previous
     }
+
+    /// The guard's exit, if it has exited (it never does by itself while the launcher
+    /// lives: its death is news).
+    pub fn poll_exit(&mut self) -> Option<ExitStatus> {
+        self.child.try_wait().ok().flatten()
+    }
+
+    /// A guard in the place of one that died, holding the value that one saved: throttling
+    /// stays lifted for the stack, and is restored however the launcher ends.
+    pub fn restart(&mut self) -> Result<()> {
+        let (child, said) = Self::spawn(Some(self.previous))?;
+        match said {
+            Said::Lifted(_) => {
+                self.child = child;
+                Ok(())
+            }
+            Said::Unchanged => bail!("the new guard found nothing to hold"),
+            Said::Refused(why) => bail!("the new guard refused: {why}"),
+        }
+    }
+
+    /// Puts the saved value back now (the guard is dead and no other can be started).
+    pub fn restore_now(&self) {
+        self.restore_if_left_lifted();
+    }
+}
+
+/// What a guard said on its first line.
+enum Said {
+    Lifted(i64),
+    Unchanged,
+    Refused(String),
 }
 
 impl Drop for ThrottlingLifted {
@@ -106,9 +155,14 @@ impl ThrottlingLifted {
 }
 
 /// The guard process's body: lift, report, hold until stdin closes or a termination signal,
-/// restore (when the guard is dropped).
-pub fn guard() -> Result<()> {
-    let lifted = match RtThrottlingOff::engage() {
+/// restore (when the guard is dropped). With `restore`, it takes over from a guard that
+/// died: it lifts throttling whatever it is now and restores that value.
+pub fn guard(restore: Option<i64>) -> Result<()> {
+    let engaged = match restore {
+        Some(previous) => RtThrottlingOff::hold(previous).map(Some),
+        None => RtThrottlingOff::engage(),
+    };
+    let lifted = match engaged {
         Ok(Some(g)) => g,
         Ok(None) => {
             println!("unchanged -1");

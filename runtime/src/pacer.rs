@@ -15,7 +15,9 @@ pub enum WaitStrategy {
     Sleep,
     /// Busy-wait: microsecond-exact, one whole core. On 2 cores only one process can.
     Spin,
-    /// Sleep until `margin_ns` before the deadline, then spin.
+    /// Sleep until `margin_ns` before the deadline, then spin. An input-paced loop whose
+    /// margin is already past when it is done rests a few µs all the same, if its next
+    /// input is still far enough off ([`crate::runner::hybrid_sleep_target`]).
     Hybrid { margin_ns: u64 },
     /// Block until the input's producer raises an event (hardware mode: the current loop,
     /// woken by the bridge). A clock-paced loop treats it as `Sleep`.

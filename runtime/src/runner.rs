@@ -87,6 +87,36 @@ pub const RINGS_PER_PERIOD: usize = 1;
 /// core comes within ~1–3 µs, ~30–60 polls; a futex wake-up costs 3–8 µs on top.
 const DOORBELL_SPIN_POLLS: u32 = 200;
 
+/// A `hybrid` wait for an input due at `due_ns`, at `now_ns`: the time it sleeps to
+/// (`now_ns` or before: it polls at once). It sleeps to `margin_ns` before the input; when
+/// that is past, or so close that the sleep would end before the kernel switches away, it
+/// rests for [`REST_SLEEP_NS`] after all, provided the rest ends [`REST_MARGIN_NS`] before
+/// the input is due. An input already due is never slept for: a multi-axis node whose
+/// other axes' inputs of this sample are still to come polls on.
+///
+/// Why the rest: a node that answers late in its period (a current loop of several axes
+/// answers every axis first; the bridge forwards the answers) found its margin already past
+/// and polled through to the next input without a break, every period. Beside an ordinary
+/// task on its CPU (`taskset -c 1 yes`) the kernel's fair server then ran that task ahead
+/// of SCHED_FIFO for ~50 ms at a time, past the plant's or drive's watchdog.
+/// docs/design.md (wait strategies) and docs/measurements.md have the figures.
+pub fn hybrid_sleep_target(now_ns: u64, due_ns: u64, margin_ns: u64) -> u64 {
+    let ordinary = due_ns.saturating_sub(margin_ns);
+    let rest = now_ns
+        .saturating_add(REST_SLEEP_NS)
+        .min(due_ns.saturating_sub(REST_MARGIN_NS));
+    ordinary.max(rest)
+}
+
+/// The shortest sleep of a `hybrid` wait that gives the CPU away: the current loop's
+/// ~7 µs sleeps of one axis do (an ordinary task on its CPU gets its share between
+/// samples), ~2 µs ones return before the kernel switches.
+pub const REST_SLEEP_NS: u64 = 7_000;
+/// How long before its input is due a rest of a `hybrid` wait ends at the latest: the
+/// timer's wake-up (p99 ~12 µs here) then still finds the input not yet published, or only
+/// just (a plant publishes after its deadline, a drive's sample lands after it is sent).
+pub const REST_MARGIN_NS: u64 = 10_000;
+
 /// A node that ran to the end of its run, and its final statistics.
 pub struct Finished<N> {
     pub node: N,
@@ -527,8 +557,8 @@ impl<N: Node> Runner<N> {
         let mut wake = Wake::default();
         let mut hybrid_sleep = Slept::default();
         if let (WaitStrategy::Hybrid { margin_ns }, Some(due)) = (wait, due) {
-            let target = due.saturating_sub(margin_ns);
             let now = monotonic_ns();
+            let target = hybrid_sleep_target(now, due, margin_ns);
             if target > now {
                 if let Some(m) = &mut self.steal {
                     m.before_sleep();
@@ -660,5 +690,36 @@ impl<N: Node> Runner<N> {
         if w.unseen > 0 {
             tracing::debug!(window = ?w, "states skipped");
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const US: u64 = 1_000;
+
+    /// The current loop's `hybrid:35` at 20 kHz: its next sample is due 50 µs after this
+    /// one's deadline (t = 0 here, so due at 50 µs).
+    fn target(now_us: u64, due_us: u64) -> u64 {
+        hybrid_sleep_target(now_us * US, due_us * US, 35 * US)
+    }
+
+    #[test]
+    fn a_hybrid_wait_rests_when_its_margin_is_past_but_never_for_an_input_already_due() {
+        // One axis, answered 8 µs into the period: 35 µs before the next sample, as before.
+        assert_eq!(target(8, 50), 15 * US);
+        // Answered 13 µs in, the 2 µs left to the margin would not switch: 7 µs instead.
+        assert_eq!(target(13, 50), 20 * US);
+        // Several axes, all answered 30 µs in: a rest of 7 µs, past the margin.
+        assert_eq!(target(30, 50), 37 * US);
+        // Answered 36 µs in: the rest ends 10 µs before the next sample.
+        assert_eq!(target(36, 50), 40 * US);
+        // 41 µs in, no time to rest: it polls at once.
+        assert!(target(41, 50) <= 41 * US);
+        // An axis of this sample still to answer (its input due at 0, now 20 µs in): the
+        // other axes' answers come first, with no sleep between them.
+        assert!(target(20, 0) <= 20 * US);
+        assert!(target(5, 0) <= 5 * US);
     }
 }

@@ -226,12 +226,29 @@ fn small_input_and_exit_findings() {
 /// 3600 samples) and ended UNOBSERVED (exit 6): it subscribed to the states only after the
 /// device had announced itself and started publishing. It now subscribes as soon as the
 /// stack's services exist, and sees every sample.
+///
+/// The run here is all ordinary scheduling on the CI machine's two cores; when the host
+/// held the run's own monitor past its queue (the run ends UNOBSERVED, exit 6: the host
+/// could not vouch for it), it is tried once more. The bug this guards against left the
+/// run `ok` and the recorder short, so a retry cannot hide it.
 #[test]
 fn a_recorder_started_before_the_stack_sees_every_sample() {
     let _turn = one_stack_at_a_time();
-    let dir = TempDir::new("recordfirst");
+    for attempt in 1..=2 {
+        match record_a_run_from_its_start(attempt) {
+            Ok(()) => return,
+            Err(unobserved) if attempt == 1 => eprintln!("retrying once: {unobserved}"),
+            Err(unobserved) => panic!("unobserved twice: {unobserved}"),
+        }
+    }
+}
+
+/// Records a 2 s realtime run with `record` started first, and asserts it saw all of it;
+/// `Err` (the run's report) when the run itself ended UNOBSERVED.
+fn record_a_run_from_its_start(attempt: u32) -> Result<(), String> {
+    let dir = TempDir::new(&format!("recordfirst{attempt}"));
     let scenario = dir.file("short.toml", &format!("{SHORT}\n[run]\nduration_s = 2.0\n"));
-    let inst = instance("recordfirst");
+    let inst = instance(&format!("recordfirst{attempt}"));
     let mcap = dir.path("first.mcap");
     let json = dir.path("first.json");
     let mut record = spawn_run(&[
@@ -246,15 +263,16 @@ fn a_recorder_started_before_the_stack_sees_every_sample() {
     let mut args = vec!["run", "--mode", "realtime", "--method", "proposed"];
     args.extend(realtime_test_args(&scenario, &inst, "2.0"));
     let run = stepdrive(&args);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stdout)
-    );
+    let report = String::from_utf8_lossy(&run.stdout).into_owned();
     let status = wait_with_timeout(&mut record, Duration::from_secs(30));
     let out = stdout_of(&mut record);
+    if run.status.code() == Some(6) {
+        return Err(report);
+    }
+    assert!(run.status.success(), "{report}");
     assert!(status.success(), "{out}");
     let r = run_of(&read_json(&json), "proposed").clone();
     assert_eq!(num(&r, "missed_samples"), 0.0, "{r}");
     assert_eq!(num(&r, "samples"), 40_001.0, "{r}");
+    Ok(())
 }

@@ -489,8 +489,7 @@ impl Track {
     }
 
     /// The setpoint at time `t` (see `trajectory`): the last one taken at or before `t`
-    /// carried on to `t` (the oldest kept, if all are later); before the first setpoint,
-    /// the rotor's `theta` at rest.
+    /// carried on to `t`; before the oldest kept, the rotor's `theta` at rest.
     fn reference_at(&self, t: f64, theta: f64) -> Reference {
         if let Some(profile) = &self.trajectory {
             return profile.at(t);

@@ -80,6 +80,11 @@ pub struct RunReport {
     pub wall_time_s: f64,
     /// Samples the monitor saw (the figures come from these alone).
     pub samples: u64,
+    /// Samples seen that a commanded run's reader could not grade: sampled before the
+    /// oldest setpoint it had (it attached before its controls' queues opened). They count
+    /// for everything but |θ_d − θ|.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub ungraded_samples: u64,
     /// Samples up to the last one seen that the monitor never saw (gaps in the index): lost
     /// on the wire, skipped by the bridge, or overwritten in the monitor's queue while it
     /// had no CPU.
@@ -240,6 +245,8 @@ pub struct Metrics {
     max_abs_voltage: f64,
     cruise_max_abs_voltage: f64,
     samples: u64,
+    /// Samples with no setpoint known from before them (see [`RunReport::ungraded_samples`]).
+    ungraded: u64,
     limited: u64,
     faults: u64,
     silent: u64,
@@ -600,6 +607,7 @@ impl Metrics {
             max_abs_voltage: 0.0,
             cruise_max_abs_voltage: 0.0,
             samples: 0,
+            ungraded: 0,
             limited: 0,
             faults: 0,
             silent: 0,
@@ -673,7 +681,7 @@ impl Metrics {
     pub fn push_graded(&mut self, s: &DriveState, graded: &mut Graded) {
         let Some(p) = self.program.as_mut() else {
             let reference = self.trajectory.at(s.sample_time_s);
-            self.account(s, reference);
+            self.account(s, Some(reference));
             graded(s, Some(reference));
             return;
         };
@@ -712,7 +720,7 @@ impl Metrics {
         };
         p.apply_until(Some(st.sample_time_s));
         let r = p.setpoints.at(st.sample_time_s);
-        self.account(&st, r.unwrap_or_default());
+        self.account(&st, r);
         graded(&st, r);
     }
 
@@ -804,7 +812,11 @@ impl Metrics {
         }
     }
 
-    fn account(&mut self, s: &DriveState, reference: Reference) {
+    /// One state into the figures. `reference`: θ_d, ω_d, α_d at its sample; `None` in a
+    /// commanded run when the reader has no setpoint from before it (it attached, or its
+    /// controls' queues opened, after the state's): then the sample counts for everything
+    /// but the following error, which nobody can tell.
+    fn account(&mut self, s: &DriveState, reference: Option<Reference>) {
         let expected = match self.last_seq {
             Some(q) => q + 1,
             None if self.endless => s.seq,
@@ -817,24 +829,39 @@ impl Metrics {
         }
         self.last_seq = Some(self.last_seq.map_or(s.seq, |q| q.max(s.seq)));
         let t = s.sample_time_s;
-        let error = reference.theta - s.theta_rad;
+        let error = reference.map(|r| r.theta - s.theta_rad);
         let i = [s.i_a_a, s.i_b_a];
         // The cruise window applies to every pass of a repeating move; on the way back the
         // torque and i_q are negative, so they are taken along the direction of motion.
         let (tau, mirrored) = self.trajectory.phase(t);
         let direction = if mirrored { -1.0 } else { 1.0 };
-        // NaN-safe: a NaN error must show up, not be skipped by `max`.
-        let abs = error.abs();
-        if abs.is_nan() || abs > self.max_abs_error {
-            self.max_abs_error = abs;
-        }
-        if self.stepped_out_at.is_none() && (abs.is_nan() || abs > self.step_out_rad) {
-            self.stepped_out_at = Some(t);
-        }
-        if tau >= self.cruise.0 && tau <= self.cruise.1 {
-            if abs.is_nan() || abs > self.cruise_max_abs_error {
+        let cruise = tau >= self.cruise.0 && tau <= self.cruise.1;
+        if let (Some(error), Some(reference)) = (error, reference.as_ref()) {
+            // NaN-safe: a NaN error must show up, not be skipped by `max`.
+            let abs = error.abs();
+            if abs.is_nan() || abs > self.max_abs_error {
+                self.max_abs_error = abs;
+            }
+            if self.stepped_out_at.is_none() && (abs.is_nan() || abs > self.step_out_rad) {
+                self.stepped_out_at = Some(t);
+            }
+            if cruise && (abs.is_nan() || abs > self.cruise_max_abs_error) {
                 self.cruise_max_abs_error = abs;
             }
+            if let Some(w) = self.step.as_mut() {
+                w.push(t, abs);
+            }
+            if let Some(p) = self.program.as_mut() {
+                p.grade(t, s.theta_rad, reference);
+            }
+            if t >= self.final_from {
+                self.final_sum_error += error;
+                self.final_n += 1;
+            }
+        } else {
+            self.ungraded += 1;
+        }
+        if cruise {
             let (id, iq) = dq_currents(s.theta_rad, self.n_r, i[0], i[1]);
             self.cruise_sum_id += id;
             self.cruise_sum_iq += direction * iq;
@@ -844,18 +871,8 @@ impl Metrics {
                 .max(s.v_a_v.abs())
                 .max(s.v_b_v.abs());
         }
-        if let Some(w) = self.step.as_mut() {
-            w.push(t, abs);
-        }
-        if let Some(p) = self.program.as_mut() {
-            p.grade(t, s.theta_rad, &reference);
-        }
         if s.flags & state_flags::SETPOINT_STALE != 0 && self.first_stale.is_none() {
             self.first_stale = Some((s.seq, t));
-        }
-        if t >= self.final_from {
-            self.final_sum_error += error;
-            self.final_n += 1;
         }
         // The voltage in this sample was applied over the interval that ends here: average
         // power over the interval by the trapezoid rule on the currents at its ends.
@@ -1023,6 +1040,7 @@ impl Metrics {
             sim_time_s: self.last_time,
             wall_time_s,
             samples: self.samples,
+            ungraded_samples: self.ungraded,
             missed_samples: self.missed,
             cruise_samples: self.cruise_n,
             cruise_missed_samples: self.cruise_missed,
@@ -1048,6 +1066,10 @@ impl Metrics {
             axes: Vec::new(),
         }
     }
+}
+
+fn is_zero(n: &u64) -> bool {
+    *n == 0
 }
 
 /// The axis's fault bits by name.
@@ -1218,6 +1240,145 @@ mod tests {
             "it never played: {queued:?}"
         );
         assert_eq!(last.duration_s, Some(0.0), "{last:?}");
+    }
+
+    /// A reader attached to a served stack takes the states from its attach on, but its
+    /// setpoints, answers and statuses only from when those queues opened: here 0.05 s
+    /// into a move, the setpoint then at ω_d 5 rad/s and α_d 100 rad/s². The rotor follows
+    /// θ_d exactly. The states before the first setpoint have no θ_d the reader can tell:
+    /// they are counted, not graded. Before, they were graded against that setpoint
+    /// carried back along its ω_d and α_d (0.5 rad at the attach, where θ_d was 0) and the
+    /// reader reported STEPPED OUT for a move the axis made to 2.2e-6 rad.
+    #[test]
+    fn states_from_before_a_readers_first_setpoint_are_not_graded_against_it_carried_back() {
+        let s = Scenario::from_toml_str(
+            "[[program]]\nat_s = 0.0\ncommand = \"enable\"\n[run]\nduration_s = 0.2",
+        )
+        .expect("a program");
+        let period = s.sample_period_s();
+        let ratio = 10u64;
+        let tick_s = period * ratio as f64;
+        // The move from 0.1 s on, accelerating at 100 rad/s².
+        let (start, alpha) = (0.1, 100.0);
+        let reference = |t: f64| {
+            let dt = (t - start).max(0.0);
+            let a = if t >= start { alpha } else { 0.0 };
+            Reference {
+                theta: 0.5 * alpha * dt * dt,
+                omega: alpha * dt,
+                alpha: a,
+            }
+        };
+        let (setpoints_from, statuses_from) = (0.15, 0.16);
+        let mut m = Metrics::new(&s);
+        // The move's answer is the acks' history: the newest when that queue opened.
+        let mut ack_pending = true;
+        for tick in 0..s.sample_count() / ratio {
+            let t = tick as f64 * tick_s;
+            if t >= statuses_from {
+                m.status(&AxisStatus {
+                    tick,
+                    t_s: t,
+                    last_kind: RequestKind::Move as u32,
+                    last_seq: 7,
+                    target_rad: 1.0,
+                    ..Default::default()
+                });
+            }
+            if t >= setpoints_from {
+                if std::mem::take(&mut ack_pending) {
+                    m.ack(&AxisAck {
+                        request: AxisRequest {
+                            kind: RequestKind::Move as u32,
+                            seq: 7,
+                            target_rad: 1.0,
+                            ..Default::default()
+                        },
+                        tick: (start / tick_s).round() as u64,
+                        t_s: start,
+                        ..Default::default()
+                    });
+                }
+                let r = reference(t);
+                m.setpoint(&TorqueSetpoint {
+                    seq: tick,
+                    sample_time_s: t,
+                    theta_d_rad: r.theta,
+                    omega_d_rad_s: r.omega,
+                    alpha_d_rad_s2: r.alpha,
+                    ..Default::default()
+                });
+            }
+            m.controls_taken(&mut |_, _| {});
+            for k in tick * ratio..(tick + 1) * ratio {
+                let ts = k as f64 * period;
+                m.push(&DriveState {
+                    seq: k,
+                    sample_time_s: ts,
+                    theta_rad: reference(ts).theta,
+                    ..Default::default()
+                });
+            }
+        }
+        m.flush();
+        let report = m.finish(Method::Proposed, "realtime", 0.0);
+        assert_eq!(report.stepped_out_at_s, None, "{report:?}");
+        assert!(report.max_abs_error_rad < 1e-9, "{report:?}");
+        assert_ne!(report.outcome, Outcome::SteppedOut, "{report:?}");
+        let before = (setpoints_from / period).round() as u64;
+        assert_eq!(report.ungraded_samples, before, "{report:?}");
+        assert_eq!(
+            report.samples,
+            s.sample_count() / ratio * ratio,
+            "{report:?}"
+        );
+        // The move's figures come from the states it has a θ_d for.
+        assert_eq!(report.moves.len(), 1, "{report:?}");
+        assert!(
+            report.moves[0].peak_abs_error_rad.is_some_and(|p| p < 1e-9),
+            "{report:?}"
+        );
+    }
+
+    /// A rotor that really slipped is still caught by a reader with a late first setpoint:
+    /// the states it can grade carry the error.
+    #[test]
+    fn a_readers_late_first_setpoint_still_catches_a_slipped_rotor() {
+        let s = Scenario::from_toml_str(
+            "[[program]]\nat_s = 0.0\ncommand = \"enable\"\n[run]\nduration_s = 0.1",
+        )
+        .expect("a program");
+        let period = s.sample_period_s();
+        let mut m = Metrics::new(&s);
+        for k in 0..s.sample_count() {
+            let t = k as f64 * period;
+            if k % 10 == 0 && k >= 1000 {
+                m.status(&AxisStatus {
+                    tick: k / 10,
+                    t_s: t,
+                    ..Default::default()
+                });
+                m.setpoint(&TorqueSetpoint {
+                    seq: k / 10,
+                    sample_time_s: t,
+                    theta_d_rad: 1.0,
+                    ..Default::default()
+                });
+                m.controls_taken(&mut |_, _| {});
+            }
+            // The rotor slipped a quarter turn behind θ_d = 1 before the reader's first
+            // setpoint and stays there.
+            m.push(&DriveState {
+                seq: k,
+                sample_time_s: t,
+                theta_rad: 0.75 - 1.0,
+                ..Default::default()
+            });
+        }
+        m.flush();
+        let report = m.finish(Method::Proposed, "realtime", 0.0);
+        assert_eq!(report.outcome, Outcome::SteppedOut, "{report:?}");
+        assert_eq!(report.stepped_out_at_s, Some(1000.0 * period), "{report:?}");
     }
 
     #[test]

@@ -48,8 +48,10 @@ impl SetpointHistory {
         self.seen += 1;
     }
 
-    /// θ_d, ω_d, α_d at `t`: the last setpoint at or before `t` carried on to it (the
-    /// oldest kept carried back, if all are later); `None` before the first setpoint.
+    /// θ_d, ω_d, α_d at `t`: the last setpoint at or before `t` carried on to it; `None`
+    /// before the oldest kept. A setpoint is never carried back: θ_d before it is not told
+    /// by its ω_d and α_d (a reader whose first setpoint is mid-move would name a θ_d the
+    /// axis never had for the states before it, the rotor standing still).
     pub fn at(&self, t: f64) -> Option<Reference> {
         let len = self.ring.len();
         let kept = self.seen.min(len);
@@ -68,7 +70,7 @@ impl SetpointHistory {
                 hi = mid;
             }
         }
-        let (t0, r) = at(lo.saturating_sub(1));
+        let (t0, r) = at(lo.checked_sub(1)?);
         Some(r.after(t - t0))
     }
 }
@@ -97,8 +99,9 @@ mod tests {
         assert_eq!(h.at(7.0).map(|r| r.theta), Some(70.0));
         assert_eq!(h.at(7.5).map(|r| r.theta), Some(70.5));
         assert_eq!(h.at(12.0).map(|r| r.theta), Some(93.0));
-        // Older than any kept: the oldest, carried back.
-        assert_eq!(h.at(5.0).map(|r| r.theta), Some(59.0));
+        // Older than any kept: unknown (carried back along ω_d it would be 59).
+        assert!(h.at(5.0).is_none());
+        assert!(h.at(5.999).is_none());
         h.clear();
         assert!(h.at(7.0).is_none());
     }

@@ -85,21 +85,10 @@ fn a_drive_fault_exits_3_naming_the_drive() {
 /// (Before: throttling stayed on unless asked, and a killed launcher never restored it.)
 #[test]
 fn rt_throttling_is_lifted_for_the_run_and_restored_even_after_a_sigkill() {
-    let path = "/proc/sys/kernel/sched_rt_runtime_us";
-    let read = || {
-        std::fs::read_to_string(path)
-            .ok()
-            .and_then(|s| s.trim().parse::<i64>().ok())
-    };
-    let Some(before) = read().filter(|&v| v != -1) else {
-        eprintln!("RT throttling already off or unreadable here: nothing to check");
+    let read = rt_runtime_us;
+    let Some(before) = rt_throttling_to_check() else {
         return;
     };
-    // Only root may write it; probe by writing the same value back.
-    if std::fs::write(path, before.to_string()).is_err() {
-        eprintln!("not root: nothing to check");
-        return;
-    }
     let _turn = one_stack_at_a_time();
     let dir = TempDir::new("throttle");
     let scenario = dir.file("short.toml", SHORT);

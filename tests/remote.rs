@@ -225,12 +225,20 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
     .stderr(Stdio::piped())
     .spawn()
     .expect("spawn the jog");
-    assert!(
-        wait_until(Duration::from_secs(10), || field(&local_status(), "ω")
-            .is_some_and(|w| (w - 1.0).abs() < 0.05)),
-        "the jog did not reach 1 rad/s: {}",
-        local_status()
-    );
+    if !wait_until(Duration::from_secs(10), || {
+        field(&local_status(), "ω").is_some_and(|w| (w - 1.0).abs() < 0.05)
+    }) {
+        let st = local_status();
+        signal(serve.id(), libc::SIGINT);
+        let _ = wait_with_timeout(&mut serve, Duration::from_secs(30));
+        let _ = jog.kill();
+        let jogged = jog.wait_with_output().expect("the jog's output");
+        panic!(
+            "the jog did not reach 1 rad/s: {st}\nthe jog said: {}\nserve said: {}",
+            text(&jogged),
+            stderr_of(&mut serve)
+        );
+    }
     let cut = Instant::now();
     link.cut();
     let mut stopped = None;

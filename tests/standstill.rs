@@ -392,20 +392,10 @@ fn a_gateway_that_keeps_dying_is_restarted_three_times_then_the_stack_stops() {
 /// stays lifted for the stack and is restored when the launcher is killed.
 #[test]
 fn a_killed_rt_throttling_guard_is_replaced_and_throttling_is_still_restored() {
-    let path = "/proc/sys/kernel/sched_rt_runtime_us";
-    let read = || {
-        std::fs::read_to_string(path)
-            .ok()
-            .and_then(|s| s.trim().parse::<i64>().ok())
-    };
-    let Some(before) = read().filter(|&v| v != -1) else {
-        eprintln!("RT throttling already off or unreadable here: nothing to check");
+    let read = rt_runtime_us;
+    let Some(before) = rt_throttling_to_check() else {
         return;
     };
-    if std::fs::write(path, before.to_string()).is_err() {
-        eprintln!("not root: nothing to check");
-        return;
-    }
     let _turn = one_stack_at_a_time();
     let inst = instance("guardkill");
     // SCHED_FIFO 1 without spinning or pinning: gentle on a shared machine; a stack with
@@ -451,7 +441,7 @@ fn a_killed_rt_throttling_guard_is_replaced_and_throttling_is_still_restored() {
         let restored = wait_until(Duration::from_secs(5), || read() == Some(before));
         let now = read();
         // Whatever happened, the machine keeps its setting.
-        let _ = std::fs::write(path, before.to_string());
+        restore_rt_runtime_us(before);
         assert!(replaced, "no new guard:\n{}", log.text());
         let said = said.unwrap_or_else(|| panic!("the guard's death not logged:\n{}", log.text()));
         assert!(
@@ -465,7 +455,7 @@ fn a_killed_rt_throttling_guard_is_replaced_and_throttling_is_still_restored() {
             log.text()
         );
     } else {
-        let _ = std::fs::write(path, before.to_string());
+        restore_rt_runtime_us(before);
         panic!(
             "RT throttling was not lifted for the stack:\n{}",
             log.text()

@@ -8,7 +8,7 @@ use clap::{Args, Subcommand};
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 use stepdrive_client::{
-    Axis, AxisMode, AxisState, AxisStatus, ClientError, Group, Limits, RequestKind,
+    Axis, AxisAck, AxisMode, AxisState, AxisStatus, ClientError, Group, Limits, RequestKind,
 };
 use stepdrive_monitor::report::outcome::Outcome;
 use stepdrive_shared::axis::{
@@ -429,9 +429,9 @@ pub fn axis(a: AxisArgs) -> Result<()> {
             limits,
             duration,
         } => {
-            axis.jog(velocity, limits.limits()).map_err(failed)?;
+            let taken = axis.jog(velocity, limits.limits()).map_err(failed)?;
             println!("jogging at {velocity} rad/s");
-            hold_jog(&mut axis, limits.limits(), duration)?;
+            hold_jog(&mut axis, &taken, limits.limits(), duration)?;
         }
         Verb::Stop { limits } => {
             axis.stop(limits.limits()).map_err(failed)?;
@@ -587,8 +587,15 @@ const RENEW_EVERY: Duration = Duration::from_millis(100);
 
 /// A jog lasts while its command runs: the axis quick-stops a jog whose client stops
 /// renewing it, so this holds the jog (renewing it) until Ctrl-C or `duration`, then stops
-/// the axis (a deceleration at the jog's limits). Exit 3 if the axis faults.
-fn hold_jog(axis: &mut Axis, limits: Limits, duration: Option<Duration>) -> Result<()> {
+/// the axis (a deceleration at the jog's limits). Exit 3 if the axis faults. The jog has
+/// ended only by a status of a tick after the jog's (`taken`'s): a remote status is
+/// relayed at the gateway's rate and one from before the jog still says "hold".
+fn hold_jog(
+    axis: &mut Axis,
+    taken: &AxisAck,
+    limits: Limits,
+    duration: Option<Duration>,
+) -> Result<()> {
     println!("the jog lasts while this command runs; Ctrl-C stops it");
     let started = Instant::now();
     while !stepdrive_runtime::poll::termination_requested()
@@ -597,7 +604,7 @@ fn hold_jog(axis: &mut Axis, limits: Limits, duration: Option<Duration>) -> Resu
         let ack = axis.renew().map_err(failed)?;
         let s = axis.status().map_err(failed)?;
         stepdrive_client::faulted(&s).map_err(failed)?;
-        if AxisMode::from_u32(s.mode) != Some(AxisMode::ProfileVelocity) {
+        if s.tick > taken.tick && AxisMode::from_u32(s.mode) != Some(AxisMode::ProfileVelocity) {
             // Stopped by another command, a quick stop or its soft limit: nothing to hold.
             let state = AxisState::from_u32(ack.state).map_or("?", |x| x.name());
             anyhow::bail!(

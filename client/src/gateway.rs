@@ -121,6 +121,7 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
             status_in: bus.subscriber_of::<AxisStatus>(16)?,
             points_out: bus.publisher_of::<AxisStreamPoint>()?,
             newest: None,
+            commanded_by: None,
         });
     }
     bus.set_axis(0);
@@ -280,7 +281,12 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                     continue;
                 }
                 match local.commands.request(&r, LOCAL_ANSWER) {
-                    Ok(ack) => ack,
+                    Ok(ack) => {
+                        if ack.taken() && r.kind != RequestKind::Status as u32 {
+                            local.commanded_by = Some(r.client);
+                        }
+                        ack
+                    }
                     Err(e) => {
                         // The stack starting or stalled: this command fails, the gateway
                         // goes on (a stack that stopped shows as a silent status below).
@@ -358,10 +364,18 @@ pub fn run(o: &GatewayOptions) -> Result<GatewaySummary, GatewayError> {
                 SampleKind::Delete => {
                     sum.leases_lost += 1;
                     buckets.remove(&client);
-                    // Every axis still in a stream or jog the client started stops.
+                    // Every axis still in a stream or jog the client started stops: told by
+                    // the newest status, unless a later command of another client was taken.
                     let mut stopped = false;
                     for local in &mut locals {
-                        let Some(s) = local.newest.filter(|s| started_motion(s, client)) else {
+                        while let Some(s) = local.status_in.newest()? {
+                            local.newest = Some(s);
+                        }
+                        let Some(s) = local
+                            .newest
+                            .filter(|s| started_motion(s, client))
+                            .filter(|_| local.commanded_by.is_none_or(|c| c == client))
+                        else {
                             continue;
                         };
                         own_seq += 1;
@@ -406,6 +420,10 @@ struct Local {
     status_in: IpcSubscriber<AxisStatus>,
     points_out: IpcPublisher<AxisStreamPoint>,
     newest: Option<AxisStatus>,
+    /// The client of the newest remote command (a status request aside) this gateway saw
+    /// the axis take: a lease lost after another client took the axis over stops nothing,
+    /// even when the newest status still names the old one (statuses lag a command).
+    commanded_by: Option<u32>,
 }
 
 /// The stack's axis count, from the scenario it announces (a gateway started with its

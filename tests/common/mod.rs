@@ -307,6 +307,32 @@ pub fn signal(pid: u32, sig: libc::c_int) {
     unsafe { libc::kill(pid as libc::pid_t, sig) };
 }
 
+/// RT throttling's budget (`/proc/sys/kernel/sched_rt_runtime_us`; −1: lifted).
+pub fn rt_runtime_us() -> Option<i64> {
+    std::fs::read_to_string("/proc/sys/kernel/sched_rt_runtime_us")
+        .ok()
+        .and_then(|s| s.trim().parse::<i64>().ok())
+}
+
+/// RT throttling's budget as it is, if a test of lifting and restoring it can run here:
+/// throttling on, and this process root (probed by writing the same value back).
+pub fn rt_throttling_to_check() -> Option<i64> {
+    let Some(before) = rt_runtime_us().filter(|&v| v != -1) else {
+        eprintln!("RT throttling already off or unreadable here: nothing to check");
+        return None;
+    };
+    if std::fs::write("/proc/sys/kernel/sched_rt_runtime_us", before.to_string()).is_err() {
+        eprintln!("not root: nothing to check");
+        return None;
+    }
+    Some(before)
+}
+
+/// Puts RT throttling's budget back (a test that found the stack had not).
+pub fn restore_rt_runtime_us(value: i64) {
+    let _ = std::fs::write("/proc/sys/kernel/sched_rt_runtime_us", value.to_string());
+}
+
 /// A process started by hand without real-time settings: the deployment's defaults
 /// (SCHED_FIFO, pinned) are for a machine the run has to itself, not for tests that share
 /// the CI machine's two cores.

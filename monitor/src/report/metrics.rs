@@ -959,6 +959,16 @@ impl Metrics {
                 self.longest_gap_from as f64 / self.sample_hz
             ));
         }
+        // A following error told by fewer than half the samples seen is not the run's.
+        let graded = self.samples.saturating_sub(self.ungraded);
+        if self.ungraded > 0 && (graded as f64) < MIN_SEEN_FRACTION * self.samples as f64 {
+            return Some(format!(
+                "the reader could grade {graded} of the {} samples it saw: it had no setpoint \
+                 from before the others (at least {:.0} % needed)",
+                self.samples,
+                100.0 * MIN_SEEN_FRACTION
+            ));
+        }
         let first = self.first_missed_s().unwrap_or(f64::NAN);
         windows
             .into_iter()
@@ -1324,7 +1334,15 @@ mod tests {
         let report = m.finish(Method::Proposed, "realtime", 0.0);
         assert_eq!(report.stepped_out_at_s, None, "{report:?}");
         assert!(report.max_abs_error_rad < 1e-9, "{report:?}");
-        assert_ne!(report.outcome, Outcome::SteppedOut, "{report:?}");
+        // Three quarters of it ungraded: no following error stands for the run.
+        assert_eq!(report.outcome, Outcome::Unobserved, "{report:?}");
+        assert!(
+            report
+                .unobserved
+                .as_deref()
+                .is_some_and(|u| u.contains("could grade 1000 of the 4000")),
+            "{report:?}"
+        );
         let before = (setpoints_from / period).round() as u64;
         assert_eq!(report.ungraded_samples, before, "{report:?}");
         assert_eq!(

@@ -1311,7 +1311,13 @@ fn draw_panel<DB: DrawingBackend>(
 where
     DB::ErrorType: 'static,
 {
-    let Some((x0, x1, y0, y1)) = bounds(p) else {
+    // A window the recording has no sample in (a reader that missed that stretch) is drawn
+    // empty and says so, rather than costing the other figures.
+    let empty = bounds(p).is_none();
+    let Some((x0, x1, y0, y1)) = bounds(p).or_else(|| {
+        let (a, b) = p.window;
+        (a.is_finite() && b.is_finite() && a < b).then_some((a, b, -1.0, 1.0))
+    }) else {
         return Err("no finite point".into());
     };
     // 5 % of room above and below; a constant gets ±5 % of itself, a constant 0 ±1.
@@ -1388,6 +1394,15 @@ where
         .light_line_style(RGBColor(238, 238, 238))
         .draw()
         .map_err(err)?;
+    if empty {
+        chart
+            .draw_series(std::iter::once(Text::new(
+                "no sample recorded in this window",
+                (0.5 * (x0 + x1), 0.0),
+                TextStyle::from((FAMILY, 15).into_font()).pos(Pos::new(HPos::Center, VPos::Center)),
+            )))
+            .map_err(err)?;
+    }
     // A cruise window's edges over the grid, so that an edge on a grid line still shows.
     for &(a, b, kind, _) in &visible {
         if *kind == SpanKind::Cruise {
@@ -2100,5 +2115,36 @@ mod tests {
         let position = &figures[0].panels[0].series;
         assert_eq!(position.len(), 2);
         assert!(matches!(position[1].stroke, Stroke::Dashed { .. }));
+    }
+}
+
+#[cfg(test)]
+mod empty_window {
+    use super::*;
+
+    /// A zoomed window the recording has no sample in (a reader that missed that stretch)
+    /// is drawn empty and says so: it used to fail the whole `plot` ("no finite point").
+    #[test]
+    fn a_window_without_samples_is_drawn_empty_and_says_so() {
+        let p = Panel {
+            title: None,
+            y_label: "current [A]".into(),
+            series: Vec::new(),
+            window: (0.2, 0.22),
+            zoomed: true,
+            log: false,
+        };
+        let mut svg = String::new();
+        {
+            let area = SVGBackend::with_string(&mut svg, (640, 360)).into_drawing_area();
+            draw_panel(&area, &p, &[], 1).expect("an empty window is drawn");
+        }
+        assert!(svg.contains("no sample recorded in this window"), "{svg}");
+        let nothing = Panel {
+            window: (f64::NAN, f64::NAN),
+            ..p
+        };
+        let area = SVGBackend::with_string(&mut svg, (640, 360)).into_drawing_area();
+        assert!(draw_panel(&area, &nothing, &[], 1).is_err());
     }
 }

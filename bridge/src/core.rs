@@ -994,7 +994,7 @@ impl BridgeCore {
 
     /// The PLAN frame to send now, if the newest plan is `plan_every` samples newer than
     /// the last one sent (none while silent, or when the drive keeps no plans).
-    pub fn plan_frame(&mut self, now: u64) -> Option<Frame> {
+    pub fn plan_frame(&mut self, now: u64) -> Option<&Frame> {
         let every = u64::from(self.settings.plan_every.max(1));
         let due = self
             .plan_sent

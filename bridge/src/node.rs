@@ -384,7 +384,7 @@ impl BridgeNode {
         let core = &mut self.core;
         ports.plans.drain(&mut |p| core.offer_plan(p))?;
         if let Some(f) = self.core.plan_frame(cx.now()) {
-            Self::send(ports, &f);
+            Self::send(ports, f);
         }
         Ok(())
     }

@@ -27,9 +27,16 @@ pub(crate) const PLAN_EVERY: u64 = 10;
 
 /// Whether the command answering `seq` is followed by a plan: every [`PLAN_EVERY`]-th,
 /// `phase` samples after axis 0's, and the first after a gap (`last`: the sample answered
-/// before), the newest state being news.
-pub(crate) fn plans_after(seq: u64, last: Option<u64>, phase: u64) -> bool {
-    last.is_none_or(|l| seq != l + 1) || (seq + phase).is_multiple_of(PLAN_EVERY)
+/// before), the newest state being news, unless the last plan (answering `planned`) is
+/// younger than half [`PLAN_EVERY`]. Why the limit: on a host that loses samples because
+/// it is busy, a plan after every gap made more work (each plan ~9 µs here, and 4 KB the
+/// bridge encodes and the drive decodes) and so lost more samples: beside an ordinary task
+/// on CPU 1 the loops then left it less than the kernel's fair server guarantees, which
+/// took CPU 1 from them for tens of milliseconds at once.
+pub(crate) fn plans_after(seq: u64, last: Option<u64>, planned: Option<u64>, phase: u64) -> bool {
+    let gap = last.is_none_or(|l| seq != l + 1);
+    let stale = planned.is_none_or(|p| seq >= p + PLAN_EVERY / 2);
+    (gap && stale) || (seq + phase).is_multiple_of(PLAN_EVERY)
 }
 
 /// What the current loop reads and writes.
@@ -83,6 +90,8 @@ pub struct CurrentLoopNode {
     state: Option<DriveState>,
     skipped: u64,
     last_seq: Option<u64>,
+    /// The sample the last plan's command answered.
+    planned_seq: Option<u64>,
     due_ns: Option<u64>,
     /// A plan follows this cycle's command ([`Node::after_answers`]).
     plan_due: bool,
@@ -118,6 +127,7 @@ impl CurrentLoopNode {
             state: None,
             skipped: 0,
             last_seq: None,
+            planned_seq: None,
             due_ns: None,
             plan_due: false,
             plan_phase: 0,
@@ -323,7 +333,11 @@ impl Node for CurrentLoopNode {
         // After the command (every axis's, in a multi-axis loop), so that planning never
         // delays one; after a gap at once, the newest state being news.
         self.plan_due = ports.plans.is_some()
-            && (switched || plans_after(state.seq, self.last_seq, self.plan_phase));
+            && (switched
+                || plans_after(state.seq, self.last_seq, self.planned_seq, self.plan_phase));
+        if self.plan_due {
+            self.planned_seq = Some(state.seq);
+        }
         self.last_seq = Some(state.seq);
         self.due_ns = (state.deadline_ns > 0).then(|| state.deadline_ns + self.period_ns);
         Ok(if state.flags & state_flags::LAST != 0 {
@@ -452,7 +466,7 @@ mod tests {
             for seq in 100..200 {
                 let planning: Vec<u64> = (0..axes)
                     .filter(|&a| {
-                        let p = plans_after(seq, last[a as usize], a);
+                        let p = plans_after(seq, last[a as usize], Some(seq - 5), a);
                         last[a as usize] = Some(seq);
                         p
                     })
@@ -465,8 +479,24 @@ mod tests {
             }
             assert_eq!(plans, axes * 100 / PLAN_EVERY);
         }
-        // After a gap every axis plans at once: the newest state is news.
-        assert!((0..4).all(|a| plans_after(205, Some(200), a)));
-        assert!(plans_after(0, None, 3));
+        // After a gap every axis plans at once (the newest state is news), unless its last
+        // plan is younger than half the interval: a host losing sample after sample must
+        // not plan after each.
+        assert!((0..4).all(|a| plans_after(205, Some(200), Some(199), a)));
+        assert!(plans_after(0, None, None, 3));
+        assert!(!plans_after(203, Some(201), Some(200), 0));
+        assert!(plans_after(205, Some(203), Some(200), 1));
+        let (mut last, mut planned, mut plans) = (None, None, 0);
+        for seq in (0..1000).step_by(2) {
+            if plans_after(seq, last, planned, 0) {
+                planned = Some(seq);
+                plans += 1;
+            }
+            last = Some(seq);
+        }
+        assert_eq!(
+            plans, 200,
+            "every other sample lost: a plan every fifth sample"
+        );
     }
 }

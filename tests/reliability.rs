@@ -936,6 +936,51 @@ fn an_ordinary_task_busy_on_the_bridges_cpu_does_not_trip_the_drives_watchdog() 
     beside_a_hog_on_cpu_1("hoghw", "", &["--mode", "hardware"]);
 }
 
+/// `stepdrive deploy` prints the realtime waits; given to a hardware run, its current loop
+/// would poll CPU 1 above the bridge it waits for and the stack stalled at its first sample
+/// (and its launcher, reaping the killed bridge at SCHED_FIFO, spun in the kernel for
+/// minutes). Refused before anything starts, naming the setting; the hardware file passes.
+#[test]
+fn a_hardware_run_refuses_a_deployment_whose_current_loop_would_starve_the_bridge() {
+    let dir = TempDir::new("starve");
+    let printed = stepdrive(&["deploy", "--mode", "realtime"]);
+    assert!(printed.status.success(), "{}", text(&printed));
+    let file = dir.file("realtime.toml", &String::from_utf8_lossy(&printed.stdout));
+    let file = file.to_str().expect("utf-8 path");
+    let inst = instance("starve");
+    let started = Instant::now();
+    let out = stepdrive(&[
+        "run",
+        "--mode",
+        "hardware",
+        "--deploy",
+        file,
+        "--instance",
+        &inst,
+        "--duration",
+        "1",
+    ]);
+    let said = text(&out);
+    assert!(!out.status.success(), "taken: {said}");
+    assert!(said.contains("current_loop.wait"), "{said}");
+    assert!(
+        processes_with(&inst).is_empty() && started.elapsed() < Duration::from_secs(10),
+        "something started: {said}"
+    );
+    let checked = stepdrive(&["deploy", "--check", file, "--mode", "hardware"]);
+    assert!(!checked.status.success(), "{}", text(&checked));
+    let hardware = stepdrive(&["deploy", "--mode", "hardware"]);
+    let hw_file = dir.file("hardware.toml", &String::from_utf8_lossy(&hardware.stdout));
+    let checked = stepdrive(&[
+        "deploy",
+        "--check",
+        hw_file.to_str().expect("utf-8 path"),
+        "--mode",
+        "hardware",
+    ]);
+    assert!(checked.status.success(), "{}", text(&checked));
+}
+
 /// Runs the proposed method for 5 s with the default deployment on `scenario`, a thread
 /// pinned to CPU 1 spinning beside it, and asserts the run ended ok with no faulted sample
 /// on any axis.

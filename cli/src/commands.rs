@@ -298,7 +298,7 @@ pub struct DeployArgs {
     #[command(flatten)]
     check: CheckArgs,
     /// The mode whose wait strategies the printed defaults spell out (the current loop's
-    /// differs in hardware mode).
+    /// differs in hardware mode), and that `--check` checks the file for.
     #[arg(long, value_enum, default_value_t = Mode::Realtime)]
     mode: Mode,
 }
@@ -869,8 +869,10 @@ pub fn scenario(a: CheckArgs) -> Result<()> {
 pub fn deploy(a: DeployArgs) -> Result<()> {
     match a.check.check {
         Some(path) => {
-            Deployment::from_toml_file(&path)?;
-            println!("{}: valid", path.display());
+            Deployment::from_toml_file(&path)?
+                .validate_for(a.mode)
+                .with_context(|| format!("{} for --mode {}", path.display(), a.mode.as_str()))?;
+            println!("{}: valid for --mode {}", path.display(), a.mode.as_str());
         }
         None => print!(
             "{}",

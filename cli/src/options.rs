@@ -425,7 +425,7 @@ impl StackArgs {
         if let (Mode::Hardware, Some(addr)) = (mode, &d.drive.address) {
             check_drive_address(addr)?;
         }
-        d.validate().context("command-line options")?;
+        d.validate_for(mode).context("command-line options")?;
         Ok(d)
     }
 

@@ -326,9 +326,59 @@ pub fn cpu_list(cpus: &[usize]) -> String {
         .join(",")
 }
 
+/// Runs `f` with the calling thread at ordinary scheduling (SCHED_OTHER, nice unchanged),
+/// then gives it back its real-time policy. For reaping children: wait4 of a zombie
+/// releases its /proc entries and can spin in the kernel until a task on the same CPU has
+/// run; a launcher at SCHED_FIFO 1 with RT throttling lifted starves that task, and spun
+/// so for minutes, unkillable, until it was made ordinary by hand (three runs of three whose
+/// bridge was killed, 2026-11-28).
+pub fn ordinarily<T>(f: impl FnOnce() -> T) -> T {
+    // SAFETY: sched_getscheduler/sched_getparam/sched_setscheduler on the calling thread
+    // (pid 0) with a valid sched_param.
+    let policy = unsafe { libc::sched_getscheduler(0) };
+    let mut param = libc::sched_param { sched_priority: 0 };
+    let realtime = matches!(policy, libc::SCHED_FIFO | libc::SCHED_RR)
+        && unsafe { libc::sched_getparam(0, &mut param) } == 0;
+    let ordinary = libc::sched_param { sched_priority: 0 };
+    let lowered =
+        realtime && unsafe { libc::sched_setscheduler(0, libc::SCHED_OTHER, &ordinary) } == 0;
+    let out = f();
+    if lowered && unsafe { libc::sched_setscheduler(0, policy, &param) } != 0 {
+        tracing::warn!(
+            priority = param.sched_priority,
+            error = %std::io::Error::last_os_error(),
+            "could not take back the real-time priority after reaping a child"
+        );
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Inside, the thread is ordinary; after, it has its real-time priority back. Needs the
+    /// right to SCHED_FIFO (root): without it there is nothing to give up, and `f` runs as is.
+    #[test]
+    fn a_reaping_thread_is_ordinary_and_gets_its_priority_back() {
+        let policy = || unsafe { libc::sched_getscheduler(0) };
+        let fifo = libc::sched_param { sched_priority: 1 };
+        // SAFETY: sched_setscheduler on the calling thread with a valid sched_param.
+        if unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &fifo) } != 0 {
+            assert_eq!(ordinarily(policy), policy());
+            return;
+        }
+        assert_eq!(ordinarily(policy), libc::SCHED_OTHER);
+        assert_eq!(policy(), libc::SCHED_FIFO);
+        let mut p = libc::sched_param { sched_priority: 0 };
+        assert_eq!(unsafe { libc::sched_getparam(0, &mut p) }, 0);
+        assert_eq!(p.sched_priority, 1);
+        let other = libc::sched_param { sched_priority: 0 };
+        assert_eq!(
+            unsafe { libc::sched_setscheduler(0, libc::SCHED_OTHER, &other) },
+            0
+        );
+    }
 
     fn own_nice() -> i32 {
         // SAFETY: getpriority of the calling thread; errno is not needed (-1 is a valid

@@ -12,9 +12,33 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::deploy::Deployment;
+use stepdrive_runtime::rt::ordinarily;
 use stepdrive_shared::scenario::Mode;
 use stepdrive_shared::stack::Role;
 use stepdrive_shared::Scenario;
+
+/// `child.try_wait()` that reaps at ordinary scheduling ([`ordinarily`] says why): a
+/// child still running is told apart first without reaping (waitid with WNOWAIT), so the
+/// launcher's real-time priority is given up only when there is a child to reap.
+pub fn try_reap(child: &mut Child) -> std::io::Result<Option<ExitStatus>> {
+    // SAFETY: waitid on our own child's pid into a zeroed siginfo_t.
+    let exited = unsafe {
+        let mut info: libc::siginfo_t = std::mem::zeroed();
+        let rc = libc::waitid(
+            libc::P_PID,
+            child.id() as libc::id_t,
+            &mut info,
+            libc::WEXITED | libc::WNOHANG | libc::WNOWAIT,
+        );
+        // Not ours to peek at (reaped already, an error): std's wait says what it is.
+        rc != 0 || info.si_pid() != 0
+    };
+    if exited {
+        ordinarily(|| child.try_wait())
+    } else {
+        Ok(None)
+    }
+}
 
 /// A child process that is terminated and reaped when dropped.
 pub struct Supervised {
@@ -87,9 +111,7 @@ impl Supervised {
 
     pub fn poll_exit(&mut self) -> Result<Option<ExitStatus>> {
         if self.status.is_none() {
-            self.status = self
-                .child
-                .try_wait()
+            self.status = try_reap(&mut self.child)
                 .with_context(|| format!("cannot query the {} process", self.role.id()))?;
         }
         Ok(self.status)
@@ -115,7 +137,7 @@ impl Supervised {
         let exited = |c: &mut Child, within: Duration| -> Option<ExitStatus> {
             let deadline = Instant::now() + within;
             loop {
-                match c.try_wait() {
+                match try_reap(c) {
                     Ok(Some(status)) => return Some(status),
                     Ok(None) if Instant::now() < deadline => {
                         std::thread::sleep(Duration::from_millis(2))
@@ -130,7 +152,7 @@ impl Supervised {
                 self.signal(libc::SIGTERM);
                 exited(&mut self.child, Duration::from_secs(1)).or_else(|| {
                     let _ = self.child.kill();
-                    self.child.wait().ok()
+                    ordinarily(|| self.child.wait()).ok()
                 })
             });
         }
@@ -164,13 +186,13 @@ impl Drop for Supervised {
             self.signal(libc::SIGTERM);
             let deadline = Instant::now() + Duration::from_secs(2);
             while Instant::now() < deadline {
-                if let Ok(Some(_)) = self.child.try_wait() {
+                if let Ok(Some(_)) = try_reap(&mut self.child) {
                     return;
                 }
                 std::thread::sleep(Duration::from_millis(5));
             }
             let _ = self.child.kill();
-            let _ = self.child.wait();
+            let _ = ordinarily(|| self.child.wait());
         }
     }
 }

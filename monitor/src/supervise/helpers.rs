@@ -3,11 +3,13 @@
 //! with the loops: a death is logged at once and answered ([`Helpers`]), and each is
 //! restarted at most [`MAX_RESTARTS`] times.
 
+use super::children::try_reap;
 use crate::supervise::throttling::ThrottlingLifted;
 use anyhow::{Context, Result};
 use std::os::unix::process::CommandExt;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
+use stepdrive_runtime::rt::ordinarily;
 
 /// Restarts of one helper in a launcher's life; its next death stops the stack. A helper
 /// that keeps dying (a crash its input triggers, a port taken) is not restarted for ever.
@@ -60,9 +62,7 @@ impl Helper {
 
     /// Its exit, if it has exited.
     pub fn poll_exit(&mut self) -> Result<Option<ExitStatus>> {
-        self.child
-            .try_wait()
-            .with_context(|| format!("cannot query the {}", self.name))
+        try_reap(&mut self.child).with_context(|| format!("cannot query the {}", self.name))
     }
 
     /// Starts it again with the same arguments; the restarts so far.
@@ -78,20 +78,20 @@ impl Helper {
 
     /// SIGTERM, then SIGKILL if it has not exited within 5 s.
     pub fn stop(&mut self) -> Option<ExitStatus> {
-        if let Ok(Some(status)) = self.child.try_wait() {
+        if let Ok(Some(status)) = try_reap(&mut self.child) {
             return Some(status);
         }
         // SAFETY: signalling our own, not yet reaped child by its pid.
         unsafe { libc::kill(self.child.id() as libc::pid_t, libc::SIGTERM) };
         let deadline = Instant::now() + Duration::from_secs(5);
         while Instant::now() < deadline {
-            if let Ok(Some(status)) = self.child.try_wait() {
+            if let Ok(Some(status)) = try_reap(&mut self.child) {
                 return Some(status);
             }
             std::thread::sleep(Duration::from_millis(5));
         }
         let _ = self.child.kill();
-        self.child.wait().ok()
+        ordinarily(|| self.child.wait()).ok()
     }
 }
 

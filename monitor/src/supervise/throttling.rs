@@ -9,12 +9,14 @@
 //! says so on stdout, and restores the previous value when its stdin closes — which the
 //! kernel does when the launcher exits, however it exits — or on SIGINT/SIGTERM.
 
+use super::children::try_reap;
 use anyhow::{bail, Context, Result};
 use std::io::{BufRead, BufReader, Write};
 use std::os::unix::process::CommandExt;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 use stepdrive_runtime::poll::termination_requested;
+use stepdrive_runtime::rt::ordinarily;
 use stepdrive_runtime::rt::{RtThrottlingOff, RT_RUNTIME};
 
 /// The launcher's end of a guard process: dropping it restores throttling.
@@ -69,7 +71,7 @@ impl ThrottlingLifted {
             _ => Said::Refused(line.trim().to_string()),
         };
         if !matches!(said, Said::Lifted(_)) {
-            let _ = child.wait();
+            let _ = ordinarily(|| child.wait());
         }
         Ok((child, said))
     }
@@ -81,7 +83,7 @@ impl ThrottlingLifted {
     /// The guard's exit, if it has exited (it never does by itself while the launcher
     /// lives: its death is news).
     pub fn poll_exit(&mut self) -> Option<ExitStatus> {
-        self.child.try_wait().ok().flatten()
+        try_reap(&mut self.child).ok().flatten()
     }
 
     /// A guard in the place of one that died, holding the value that one saved: throttling
@@ -117,7 +119,7 @@ impl Drop for ThrottlingLifted {
         drop(self.child.stdin.take());
         let deadline = Instant::now() + Duration::from_secs(5);
         while Instant::now() < deadline {
-            if let Ok(Some(_)) = self.child.try_wait() {
+            if let Ok(Some(_)) = try_reap(&mut self.child) {
                 self.restore_if_left_lifted();
                 return;
             }

@@ -2,6 +2,7 @@
 //! drawn from a recording ([`plot`]), the live terminal scope ([`scope`]) and the live view
 //! in Foxglove ([`live`]).
 
+pub mod file;
 pub mod live;
 pub mod plot;
 pub mod recording;

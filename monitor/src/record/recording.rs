@@ -2,8 +2,9 @@
 //! Lichtblick and PlotJuggler open as is.
 //!
 //! It runs in the monitor, outside every loop: the monitor already drains the state stream
-//! for its metrics, and writes each sample it sees. A sample it never saw (it is the one
-//! reader allowed to fall behind) is counted, and the file says how many.
+//! for its metrics, and records each sample it sees; [`super::file`] writes them on a thread
+//! of its own. A sample it never saw (it is the one reader allowed to fall behind) is
+//! counted, and the file says how many.
 //!
 //! Layout: one channel per method and kind, `/<method>/state` (every sample, SI units, with
 //! the reference and the derived d/q currents and torque), `/<method>/stats` (each loop's
@@ -19,6 +20,7 @@
 //! loops' statistics are per process, on axis 0's `stats`. [`Recorded::axes`] reads the
 //! other axes back, each as a recording of its own.
 
+use super::file::{FileWriter, Queued, Record};
 use super::live::{Every, LiveView};
 use crate::report::setpoints::SetpointHistory;
 use mcap::records::{MessageHeader, Metadata};
@@ -425,6 +427,23 @@ fn schema(title: &str, fields: &[&str]) -> String {
     )
 }
 
+impl Channels {
+    fn has_channel(&self, id: u16) -> bool {
+        [
+            self.state,
+            self.stats,
+            self.fault,
+            self.setpoint,
+            self.command,
+            self.plan,
+            self.ack,
+            self.status,
+        ]
+        .contains(&id)
+            || self.truth == Some(id)
+    }
+}
+
 struct Channels {
     method: Method,
     axis: u32,
@@ -440,6 +459,8 @@ struct Channels {
     truth: Option<u16>,
     written: u64,
     lost: u64,
+    /// Messages of any kind the writer's full queue dropped.
+    dropped: u64,
     last_fault: u32,
     last_t: f64,
 }
@@ -447,8 +468,8 @@ struct Channels {
 /// An MCAP file being written. Finished (summary and indexes written) by [`Self::finish`],
 /// or when dropped on any other path.
 pub struct Recording {
-    /// The file (none once finished, or for a live view alone).
-    writer: Option<mcap::Writer<BufWriter<File>>>,
+    /// The file's writer thread (none once finished, or for a live view alone).
+    writer: Option<FileWriter>,
     /// The Foxglove live view the same messages go to, decimated.
     live: Option<LiveView>,
     /// The channel ids of a live view without a file.
@@ -526,9 +547,9 @@ fn topic(method: Method, axis: u32, kind: &str) -> String {
 /// How a recording's chunks are written.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
 pub enum Chunks {
-    /// zstd level 1, in the monitor's own thread: 3.8× smaller than the messages (a minute
-    /// of the default run's topics, 840 MB, becomes 221 MB; docs/recording.md has the
-    /// figures), and the compressor starts no threads of its own beside the realtime loops.
+    /// zstd level 1, on the recording's one writer thread: 3.8× smaller than the messages
+    /// (a minute of the default run's topics, 840 MB, becomes 221 MB; docs/recording.md has
+    /// the figures); zstd's own worker threads cost more CPU than they save.
     #[default]
     Zstd,
     /// As the messages are: for tools that read MCAP but not its compression.
@@ -568,6 +589,10 @@ impl Recording {
                 metadata: BTreeMap::from([("toml".to_string(), toml)]),
             })
             .map_err(wrap)?;
+        let writer = FileWriter::start(writer).map_err(|source| RecordError::Create {
+            path: path.to_path_buf(),
+            source,
+        })?;
         Ok(Self::new(Some(writer), path, schemas, s))
     }
 
@@ -583,12 +608,7 @@ impl Recording {
         self
     }
 
-    fn new(
-        writer: Option<mcap::Writer<BufWriter<File>>>,
-        path: &Path,
-        schemas: [u16; 9],
-        s: &Scenario,
-    ) -> Self {
+    fn new(writer: Option<FileWriter>, path: &Path, schemas: [u16; 9], s: &Scenario) -> Self {
         Self {
             writer,
             live: None,
@@ -602,6 +622,20 @@ impl Recording {
             sequence: 0,
             buf: Vec::with_capacity(512),
         }
+    }
+
+    /// Whether a full queue to the file's writer makes the monitor wait (lockstep: nothing
+    /// waits on the clock) or drops the message from the file (the default: the monitor's
+    /// draining of the stack comes first).
+    pub fn set_lossless(&mut self, lossless: bool) {
+        if let Some(w) = self.writer.as_mut() {
+            w.set_lossless(lossless);
+        }
+    }
+
+    /// Messages the file lacks because its writer fell behind, over every run so far.
+    pub fn dropped(&self) -> u64 {
+        self.channels.iter().map(|c| c.dropped).sum()
     }
 
     /// Whether it writes a file (not a live view alone).
@@ -651,6 +685,7 @@ impl Recording {
             truth: None,
             written: 0,
             lost: 0,
+            dropped: 0,
             last_fault: 0,
             last_t: 0.0,
         });
@@ -670,7 +705,7 @@ impl Recording {
         let name = topic(method, axis, kind);
         let id = match self.writer.as_mut() {
             Some(w) => w
-                .add_channel(self.schemas[schema], &name, "json", &BTreeMap::new())
+                .add_channel(self.schemas[schema], &name)
                 .map_err(write_error(&self.path))?,
             None => {
                 self.next_channel += 1;
@@ -706,17 +741,19 @@ impl Recording {
         self.tracks.get(axis as usize)
     }
 
-    fn put(&mut self, channel: u16, t: f64, json: &impl Serialize) -> Result<(), RecordError> {
+    /// Sends a message to the live view (when due there) and to the file's writer: whether
+    /// the file will have it.
+    fn put(&mut self, channel: u16, t: f64, record: Record) -> Result<Queued, RecordError> {
         let ns = (t.max(0.0) * 1e9).round() as u64;
-        if self.writer.is_none() && !self.live.as_ref().is_some_and(|l| l.due(channel, ns)) {
-            return Ok(());
-        }
-        self.buf.clear();
-        // Serialising plain numbers into a Vec cannot fail.
-        let _ = serde_json::to_writer(&mut self.buf, json);
-        if let Some(live) = self.live.as_mut() {
+        if let Some(live) = self.live.as_mut().filter(|l| l.due(channel, ns)) {
+            self.buf.clear();
+            // Serialising plain numbers and text into a Vec cannot fail.
+            let _ = serde_json::to_writer(&mut self.buf, &record);
             live.put(channel, ns, &self.buf);
         }
+        let Some(w) = self.writer.as_mut() else {
+            return Ok(Queued::Yes);
+        };
         self.sequence = self.sequence.wrapping_add(1);
         let header = MessageHeader {
             channel_id: channel,
@@ -724,11 +761,17 @@ impl Recording {
             log_time: ns,
             publish_time: ns,
         };
-        let Some(w) = self.writer.as_mut() else {
-            return Ok(());
-        };
-        w.write_to_known_channel(&header, &self.buf)
-            .map_err(write_error(&self.path))
+        let queued = w.message(header, record).map_err(write_error(&self.path))?;
+        if queued == Queued::Dropped {
+            let start = self.run_start();
+            if let Some(ch) = self.channels[start..]
+                .iter_mut()
+                .find(|c| c.has_channel(channel))
+            {
+                ch.dropped += 1;
+            }
+        }
+        Ok(queued)
     }
 
     /// One state sample of `axis` in the current method's run, with the θ_d, ω_d, α_d the
@@ -767,17 +810,20 @@ impl Recording {
             flags: st.flags,
             fault: st.fault,
         };
-        self.put(state_ch, t, &rec)?;
+        let queued = self.put(state_ch, t, Record::State(rec))?;
         if st.fault != last_fault {
             let f = FaultRecord {
                 t,
                 seq: st.seq,
                 fault: st.fault,
             };
-            self.put(fault_ch, t, &f)?;
+            self.put(fault_ch, t, Record::Fault(f))?;
         }
         if let Some(ch) = self.current_mut(axis) {
-            ch.written += 1;
+            match queued {
+                Queued::Yes => ch.written += 1,
+                Queued::Dropped => ch.lost += 1,
+            }
             ch.last_fault = st.fault;
             ch.last_t = t;
         }
@@ -801,7 +847,8 @@ impl Recording {
             torque: sp.torque_nm,
             load_estimate: sp.load_estimate_nm,
         };
-        self.put(ch.setpoint, sp.sample_time_s, &rec)
+        self.put(ch.setpoint, sp.sample_time_s, Record::Setpoint(rec))
+            .map(drop)
     }
 
     /// An answer to a command to `axis`, at the tick that took it.
@@ -829,7 +876,8 @@ impl Recording {
                 .map_or("?", |x| x.name())
                 .to_string(),
         };
-        self.put(ch.ack, a.t_s, &rec)
+        self.put(ch.ack, a.t_s, Record::Ack(Box::new(rec)))
+            .map(drop)
     }
 
     /// `axis`'s status at a tick.
@@ -857,7 +905,7 @@ impl Recording {
             last_seq: st.last_seq,
             stream_time: st.stream_time_s.is_finite().then_some(st.stream_time_s),
         };
-        self.put(ch.status, st.t_s, &rec)
+        self.put(ch.status, st.t_s, Record::Status(rec)).map(drop)
     }
 
     /// A command to `axis` in the current method's run, at the time of the sample it
@@ -876,7 +924,8 @@ impl Recording {
             i_a_ref: c.i_a_ref_a,
             i_b_ref: c.i_b_ref_a,
         };
-        self.put(ch.command, c.sample_time_s, &rec)
+        self.put(ch.command, c.sample_time_s, Record::Command(rec))
+            .map(drop)
     }
 
     /// A voltage plan for `axis` in the current method's run (its first four entries), at
@@ -902,7 +951,7 @@ impl Recording {
             v_a_3: e(3, 0),
             v_b_3: e(3, 1),
         };
-        self.put(ch.plan, t, &rec)
+        self.put(ch.plan, t, Record::Plan(rec)).map(drop)
     }
 
     /// The emulated drive's true rotor state over the current method's run (axis 0's).
@@ -917,13 +966,21 @@ impl Recording {
             Some(c) => c,
             None => {
                 let name = topic(ch.method, 0, "truth");
-                let c = w
-                    .add_channel(self.schemas[4], &name, "json", &BTreeMap::new())
-                    .map_err(wrap)?;
+                let c = w.add_channel(self.schemas[4], &name).map_err(wrap)?;
                 ch.truth = Some(c);
                 c
             }
         };
+        // Written after the run: nothing waits on the clock, so every row goes in.
+        let realtime = w.set_lossless(true);
+        let written = self.truth_rows(channel, rows);
+        if let Some(w) = self.writer.as_mut() {
+            w.set_lossless(realtime);
+        }
+        written
+    }
+
+    fn truth_rows(&mut self, channel: u16, rows: &[TruthRow]) -> Result<(), RecordError> {
         for r in rows {
             let rec = TruthRecord {
                 t: r.t_s,
@@ -937,7 +994,7 @@ impl Recording {
                 i_a: r.i_a_a,
                 i_b: r.i_b_a,
             };
-            self.put(channel, r.t_s, &rec)?;
+            self.put(channel, r.t_s, Record::Truth(rec))?;
         }
         Ok(())
     }
@@ -966,7 +1023,7 @@ impl Recording {
             lost: r.lost,
             longest_miss_run: r.longest_miss_run,
         };
-        self.put(channel, t, &rec)
+        self.put(channel, t, Record::Stats(Box::new(rec))).map(drop)
     }
 
     /// Writes what was recorded and lost, then the summary: the file is complete.
@@ -978,7 +1035,14 @@ impl Recording {
         let Some(mut w) = self.writer.take() else {
             return Ok(());
         };
-        let wrap = write_error(&self.path);
+        let dropped = self.dropped();
+        if dropped > 0 {
+            tracing::warn!(
+                "the recording {} lacks {dropped} messages: its writer fell behind the stack \
+                 (the run's figures are the monitor's, from every sample it saw)",
+                self.path.display()
+            );
+        }
         let mut counts = BTreeMap::new();
         for ch in &self.channels {
             let m = match ch.axis {
@@ -987,14 +1051,13 @@ impl Recording {
             };
             counts.insert(format!("{m}.samples_recorded"), ch.written.to_string());
             counts.insert(format!("{m}.samples_lost"), ch.lost.to_string());
+            counts.insert(format!("{m}.messages_dropped"), ch.dropped.to_string());
         }
-        w.write_metadata(&Metadata {
+        w.finish(Metadata {
             name: "recording".into(),
             metadata: counts,
         })
-        .map_err(wrap)?;
-        w.finish().map_err(wrap)?;
-        Ok(())
+        .map_err(write_error(&self.path))
     }
 }
 

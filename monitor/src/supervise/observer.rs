@@ -123,6 +123,7 @@ impl<'r> Observer<'r> {
     /// Records what it takes into `recording`, on the channels of `method`, which begin now.
     pub fn recording(mut self, recording: Option<&'r mut Recording>, method: Method) -> Self {
         if let Some(r) = recording {
+            r.set_lossless(self.synchronous);
             match r.begin(method) {
                 Ok(()) => self.recording = Some(r),
                 Err(e) => self.give_up_recording(e.to_string()),

@@ -1,9 +1,7 @@
 //! The axis through processes: a served stack, commanded by `stepdrive axis` (the client
 //! crate) from other processes, as a user does.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::time::Duration;
 
 /// `serve` keeps a stack up with its axis disabled; another process enables it, moves it
@@ -996,7 +994,7 @@ fn a_three_axis_recording_holds_every_axis_and_exports_and_plots_each() {
 /// Ignored in CI: at ordinary priority on a busy two-core machine the host's first
 /// commands can come later than the drives' 50 ms watchdog (a fresh-clone CI run latched
 /// WATCHDOG on one drive at 0.07 s), which is the drive doing its job, not the stop policy
-/// failing. Run it with `cargo test --release --test axis -- --ignored`.
+/// failing. Run it with `cargo test --release --test stack axis:: -- --ignored`.
 #[test]
 #[ignore = "timing: at ordinary priority the drives' watchdogs can trip at start-up"]
 fn a_drive_fault_on_one_axis_quick_stops_the_other_in_hardware_mode() {

@@ -4,9 +4,7 @@
 //! motor that must stop when its client does (Ctrl-C during a wait, a jogging client killed,
 //! a stream the axis cannot follow).
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::process::Output;
 use std::time::{Duration, Instant};
 

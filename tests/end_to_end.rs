@@ -1,9 +1,7 @@
 //! End-to-end tests: they start the real `stepdrive` binary, whose plant, position loop and
 //! current loop run as separate processes talking through iceoryx2.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use serde_json::Value;
 use std::process::{Command, Stdio};
 use std::time::Duration;

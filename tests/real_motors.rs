@@ -3,9 +3,7 @@
 //! current loop the PI baseline, and all of it reproduces the in-process reference bit for
 //! bit. The robustness command's document is checked against its promises.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::time::Duration;
 
 /// A short move with the plant 20 % off in R and K_m, an unknown load, a step and detent.

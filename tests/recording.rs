@@ -2,9 +2,7 @@
 //! against the run's own JSON figures; a recording cut short by Ctrl-C or a dead child is
 //! still a finished file; the plots and CSVs hold what the recording holds.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 use stepdrive_monitor::record::recording::Recorded;

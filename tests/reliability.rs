@@ -4,9 +4,7 @@
 //! refused before anything runs. Each test is one finding of the reliability issue; each
 //! failed on the code before it.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use serde_json::Value;
 use std::process::Command;
 use std::time::{Duration, Instant};
@@ -901,7 +899,7 @@ fn a_refused_config_is_followed_by_disable() {
 /// realtime run (8 runs of 9): the loop's ~2 µs sleeps never gave CPU 1 away, and the
 /// kernel's fair server ran the starved task ahead of the loop for ~50 ms. This needs the
 /// default deployment (SCHED_FIFO, CPUs 0 and 1) and a machine otherwise idle, so it is
-/// ignored in CI: `cargo test --release --test reliability -- --ignored`.
+/// ignored in CI: `cargo test --release --test stack reliability:: -- --ignored`.
 #[test]
 #[ignore = "timing: the default realtime deployment beside a CPU hog on the current loop's CPU"]
 fn an_ordinary_task_busy_on_the_current_loops_cpu_does_not_trip_the_watchdog() {

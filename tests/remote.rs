@@ -2,9 +2,7 @@
 //! --connect` in another, joined by a veth pair the test makes (nothing leaves the machine).
 //! Needs root and iproute2's `ip` (the CI machine has both).
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 

@@ -1,9 +1,7 @@
 //! Reliability, round 3: what a new user and a stranger's drive still broke. Each test is
 //! one finding of that issue, and failed on the code before its fix.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::time::Duration;
 
 /// Finding 2: `monitor`, `record` and `scope` refused a stack started with `--duration` (the
@@ -250,9 +248,9 @@ fn a_recorder_started_before_the_stack_sees_every_sample() {
 /// Records a 2 s realtime run with `record` started first, and asserts it saw all of it;
 /// `Err` (the run's report) when the run itself ended UNOBSERVED.
 fn record_a_run_from_its_start(attempt: u32) -> Result<(), String> {
-    let dir = TempDir::new(&format!("recordfirst{attempt}"));
+    let dir = TempDir::new(&format!("firstrecord{attempt}"));
     let scenario = dir.file("short.toml", &format!("{SHORT}\n[run]\nduration_s = 2.0\n"));
-    let inst = instance(&format!("recordfirst{attempt}"));
+    let inst = instance(&format!("firstrecord{attempt}"));
     let mcap = dir.path("first.mcap");
     let json = dir.path("first.json");
     let mut record = spawn_run(&[

@@ -6,9 +6,7 @@
 //! gateway restarted; a killed RT-throttling guard is replaced, so that throttling is still
 //! restored when the launcher is killed.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::io::{BufRead, BufReader};
 use std::os::unix::process::CommandExt;
 use std::process::{Command, Stdio};
@@ -180,7 +178,7 @@ fn a_killed_loop_leaves_its_survivors_the_time_to_stop_the_motor() {
         ),
         ("plant", "nothing can move the motor"),
     ] {
-        let inst = instance(&format!("kill-{victim}"));
+        let inst = instance(&format!("stopkill-{victim}"));
         let (mut serve, log) = serve_job(&inst, &[]);
         let mut axis = axis_of(&inst, &mut serve);
         cruise(&mut axis);

@@ -6,9 +6,7 @@
 //! SPEC-QUESTIONS.md. If these runs pass, a stranger could build the other side from the
 //! document.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;

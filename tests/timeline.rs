@@ -3,9 +3,7 @@
 //! whatever order the monitor's drains met its messages in. Each test failed on the code
 //! before its fix.
 
-mod common;
-
-use common::*;
+use crate::common::*;
 use std::path::Path;
 
 /// Item 10: on the wall clock a multi-axis position loop ticks on its own clock, so the

@@ -403,7 +403,7 @@ fn microstep_sequence(
 mod tests {
     use super::*;
     use crate::laws::commutation::commutate;
-    use stepdrive_plant::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
+    use stepdrive_motor::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
 
     const T: f64 = 50e-6;
 

@@ -2,12 +2,11 @@
 //! limited to ±V_bus, and an explicit compute delay: the command computed from sample k is
 //! applied over (t_{k+d}, t_{k+d+1}]. This is the plant's logic; [`crate::node`] runs it.
 
-use crate::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
+use stepdrive_motor::{bus, Disturbance, Motor, MotorState, I_A, I_B, OMEGA, THETA};
 use stepdrive_runtime::cycle::MissRuns;
 use stepdrive_shared::messages::{
     command_flags, fault_bits, state_flags, DriveCommand, DrivePlan, DriveState, NONE_SEQ,
 };
-use stepdrive_shared::plant::Disturbance;
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
@@ -206,12 +205,10 @@ impl PlantSim {
         let mut v = [0.0; 2];
         let mut seq = seq;
         if self.fault == 0 {
-            for (out, raw) in v.iter_mut().zip(requested) {
-                let clamped = raw.clamp(-self.bus_v, self.bus_v);
-                if clamped != raw {
-                    self.flags |= state_flags::VOLTAGE_LIMITED;
-                }
-                *out = clamped;
+            let limited;
+            (v, limited) = bus::limit(requested, self.bus_v);
+            if limited {
+                self.flags |= state_flags::VOLTAGE_LIMITED;
             }
         } else {
             seq = NONE_SEQ;

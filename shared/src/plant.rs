@@ -51,23 +51,9 @@ impl MotorOverride {
     }
 }
 
-/// A change of the load torque at an instant, N·m added from `at_s` on.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct LoadStep {
-    pub at_s: f64,
-    pub torque_nm: f64,
-}
-
-/// A linear change of the load torque: `torque_nm` added gradually between `start_s` and
-/// `end_s`, held after.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct LoadRamp {
-    pub start_s: f64,
-    pub end_s: f64,
-    pub torque_nm: f64,
-}
+/// The motor model's load: the scenario's `[plant.load]` entries are its steps and ramps.
+pub use stepdrive_motor::load::{MAX_RAMPS, MAX_STEPS};
+pub use stepdrive_motor::{Disturbance, LoadRamp, LoadStep};
 
 /// The plant's load, unknown to the controller. Times are from the start of the run (the
 /// first sample; on a drive, from ENABLE).
@@ -185,6 +171,17 @@ impl PlantParams {
         )?;
         let l = &self.load;
         optional("plant.load.torque_nm", l.torque_nm, -1e3, 1e3, "N·m")?;
+        for (field, n, max) in [
+            ("plant.load.steps", l.steps.len(), MAX_STEPS),
+            ("plant.load.ramps", l.ramps.len(), MAX_RAMPS),
+        ] {
+            if n > max {
+                return Err(invalid(
+                    field,
+                    format!("{n} entries; the plant's load holds at most {max}"),
+                ));
+            }
+        }
         for (n, step) in l.steps.iter().enumerate() {
             within("plant.load.steps", step.at_s, 0.0, 1e9, "s (at_s)")
                 .and_then(|()| within("plant.load.steps", step.torque_nm, -1e3, 1e3, "N·m"))
@@ -243,69 +240,6 @@ fn entry(e: ScenarioError, n: usize) -> ScenarioError {
             message: format!("entry {n}: {message}"),
         },
         other => other,
-    }
-}
-
-/// What the mechanical equation needs of the plant's load, evaluated without allocation.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Disturbance {
-    pub constant_nm: f64,
-    pub steps: Vec<LoadStep>,
-    pub ramps: Vec<LoadRamp>,
-    pub coulomb_nm: f64,
-    pub coulomb_smoothing_rad_s: f64,
-    /// T_d, h N_r and φ.
-    pub detent_nm: f64,
-    pub detent_wavenumber: f64,
-    pub detent_phase_rad: f64,
-}
-
-impl Disturbance {
-    /// A constant load torque and nothing else: the paper's plant.
-    pub fn constant(torque_nm: f64) -> Self {
-        Self {
-            constant_nm: torque_nm,
-            steps: Vec::new(),
-            ramps: Vec::new(),
-            coulomb_nm: 0.0,
-            coulomb_smoothing_rad_s: 1.0,
-            detent_nm: 0.0,
-            detent_wavenumber: 0.0,
-            detent_phase_rad: 0.0,
-        }
-    }
-
-    /// The load torque opposing +θ at time `t` (from the run's start), angle θ, speed ω, N·m.
-    /// With only a constant load it returns that constant exactly (the paper's figures stay
-    /// bit for bit).
-    pub fn torque(&self, t: f64, theta: f64, omega: f64) -> f64 {
-        let mut tau = self.constant_nm;
-        for s in &self.steps {
-            if t >= s.at_s {
-                tau += s.torque_nm;
-            }
-        }
-        for r in &self.ramps {
-            if t >= r.start_s {
-                let share = ((t - r.start_s) / (r.end_s - r.start_s)).min(1.0);
-                tau += share * r.torque_nm;
-            }
-        }
-        if self.coulomb_nm != 0.0 {
-            tau += self.coulomb_nm * (omega / self.coulomb_smoothing_rad_s).tanh();
-        }
-        if self.detent_nm != 0.0 {
-            tau += self.detent_nm * (self.detent_wavenumber * theta + self.detent_phase_rad).sin();
-        }
-        tau
-    }
-
-    /// True when the load depends on nothing but a constant.
-    pub fn is_constant(&self) -> bool {
-        self.steps.is_empty()
-            && self.ramps.is_empty()
-            && self.coulomb_nm == 0.0
-            && self.detent_nm == 0.0
     }
 }
 
@@ -368,6 +302,14 @@ mod tests {
                 .contains("coulomb_smoothing_rad_s")
         );
         assert!(err("[plant.detent]\nharmonic = 0").contains("plant.detent.harmonic"));
+        // The motor model holds its load in place (a drive allocates nothing): one more step
+        // than it holds is refused, not dropped.
+        let steps = |n: usize| {
+            let one = "{ at_s = 1.0, torque_nm = 0.001 }";
+            format!("[plant.load]\nsteps = [{}]", vec![one; n].join(", "))
+        };
+        assert!(Scenario::from_toml_str(&steps(super::MAX_STEPS)).is_ok());
+        assert!(err(&steps(super::MAX_STEPS + 1)).contains("plant.load.steps"));
         assert!(err("[control]\nobserver_bandwidth_rad_s = 7000.0").contains("at most π × rates"));
         assert!(err("[control]\nload_compensation = \"guess\"").contains("load_compensation"));
         // The defaults follow the rates, so a slow stack is valid as it is.

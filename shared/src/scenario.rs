@@ -68,6 +68,19 @@ impl MotorParams {
     }
 }
 
+impl From<&MotorParams> for stepdrive_motor::Motor {
+    fn from(p: &MotorParams) -> Self {
+        Self {
+            l: p.inductance_h,
+            r: p.resistance_ohm,
+            j: p.inertia_kg_m2,
+            k_m: p.torque_constant_nm_per_a,
+            n_r: p.n_r(),
+            b: p.viscous_friction_nm_s_per_rad,
+        }
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LoadParams {
@@ -891,16 +904,21 @@ impl Scenario {
     pub fn disturbance(&self) -> Disturbance {
         let l = &self.plant.load;
         let d = &self.plant.detent;
-        Disturbance {
-            constant_nm: l.torque_nm.unwrap_or(self.load.torque_nm),
-            steps: l.steps.clone(),
-            ramps: l.ramps.clone(),
-            coulomb_nm: l.coulomb_nm,
-            coulomb_smoothing_rad_s: l.coulomb_smoothing_rad_s,
-            detent_nm: d.amplitude_nm,
-            detent_wavenumber: f64::from(d.harmonic) * self.motor.n_r(),
-            detent_phase_rad: d.phase_rad,
+        let mut load = Disturbance::constant(l.torque_nm.unwrap_or(self.load.torque_nm));
+        // A valid scenario's steps and ramps fit (`PlantParams::validate`); a scenario built
+        // in code with more keeps the first that do.
+        for &s in &l.steps {
+            let _ = load.add_step(s);
         }
+        for &r in &l.ramps {
+            let _ = load.add_ramp(r);
+        }
+        load.coulomb_nm = l.coulomb_nm;
+        load.coulomb_smoothing_rad_s = l.coulomb_smoothing_rad_s;
+        load.detent_nm = d.amplitude_nm;
+        load.detent_wavenumber = f64::from(d.harmonic) * self.motor.n_r();
+        load.detent_phase_rad = d.phase_rad;
+        load
     }
 
     /// The final window within this run: its last `final_window_s`, or the whole of a

@@ -260,7 +260,7 @@ impl SampledCurrentLaw {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use stepdrive_plant::model::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
+    use stepdrive_motor::{Motor, MotorState, I_A, I_B, OMEGA, THETA};
     use stepdrive_shared::scenario::MotorParams;
 
     const T: f64 = 50e-6;

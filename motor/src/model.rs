@@ -1,9 +1,9 @@
 //! Eq. (1): x = (θ, ω, i_a, i_b), inputs v_a, v_b, load torque τ_L opposing +θ: a
 //! constant, or the plant's [`Disturbance`] (load profile, Coulomb friction, detent).
 
+use crate::load::Disturbance;
+use crate::math;
 use nalgebra::Vector4;
-use stepdrive_shared::plant::Disturbance;
-use stepdrive_shared::scenario::MotorParams;
 
 pub type MotorState = Vector4<f64>;
 
@@ -23,23 +23,10 @@ pub struct Motor {
     pub b: f64,
 }
 
-impl From<&MotorParams> for Motor {
-    fn from(p: &MotorParams) -> Self {
-        Self {
-            l: p.inductance_h,
-            r: p.resistance_ohm,
-            j: p.inertia_kg_m2,
-            k_m: p.torque_constant_nm_per_a,
-            n_r: p.n_r(),
-            b: p.viscous_friction_nm_s_per_rad,
-        }
-    }
-}
-
 impl Motor {
     /// ẋ of eq. (1) for phase voltages `v` and load torque `tau_l`.
     pub fn derivative(&self, x: &MotorState, v: [f64; 2], tau_l: f64) -> MotorState {
-        let (s, c) = (self.n_r * x[THETA]).sin_cos();
+        let (s, c) = math::sin_cos(self.n_r * x[THETA]);
         let omega = x[OMEGA];
         let (i_a, i_b) = (x[I_A], x[I_B]);
         Vector4::new(
@@ -122,7 +109,7 @@ impl Motor {
 
     /// The torque on the rotor but the brake's, N·m: the windings' less friction and load.
     fn torque_on_rotor(&self, y: &MotorState, load: &Disturbance, t: f64) -> f64 {
-        let (s, c) = (self.n_r * y[THETA]).sin_cos();
+        let (s, c) = math::sin_cos(self.n_r * y[THETA]);
         self.k_m * (-y[I_A] * s + y[I_B] * c)
             - self.b * y[OMEGA]
             - load.torque(t, y[THETA], y[OMEGA])
@@ -179,8 +166,16 @@ impl Motor {
 mod tests {
     use super::*;
 
+    /// The paper's Table 1 motor.
     fn table1() -> Motor {
-        Motor::from(&MotorParams::default())
+        Motor {
+            l: 40e-3,
+            r: 14.8,
+            j: 8e-5,
+            k_m: 0.5,
+            n_r: 50.0,
+            b: 5e-3,
+        }
     }
 
     /// Locked rotor (J → ∞ is emulated by holding θ, ω at zero: with ω = 0 the electrical
@@ -300,10 +295,11 @@ mod tests {
         let (period, substeps) = (50e-6, 4);
         for at_s in [1.3e-4, 2.01e-4, 4.49e-4] {
             let mut load = Disturbance::constant(0.0);
-            load.steps.push(stepdrive_shared::plant::LoadStep {
+            load.add_step(crate::LoadStep {
                 at_s,
                 torque_nm: 0.02,
-            });
+            })
+            .expect("room");
             let mut x = MotorState::new(0.0, 10.0, 0.0, 0.0);
             for k in 0..10 {
                 x = m.integrate_loaded(

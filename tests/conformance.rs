@@ -13,7 +13,7 @@ use stepdrive_drive_protocol::{
     crc32, decode, encode, faults, frame_bytes, reseal, status, Action, Command, Config,
     FaultReport, Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
-use stepdrive_emulated_drive::{AlignFault, DriveCore, Reply};
+use stepdrive_emulated_drive::{AlignFault, EmulatedDrive, Reply};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
@@ -108,23 +108,23 @@ fn the_documents_test_vectors_decode_to_what_the_document_says() {
 
 const WATCHDOG: u16 = 20;
 
-fn drive() -> DriveCore {
-    DriveCore::new(&Scenario::default(), WATCHDOG, 8)
+fn drive() -> EmulatedDrive {
+    EmulatedDrive::new(&Scenario::default(), WATCHDOG, 8)
 }
 
 /// The host's frames, numbered from 1 as a host process does.
 struct Host(u32);
 
 impl Host {
-    fn send(&mut self, d: &mut DriveCore, m: Message) -> Option<Reply> {
+    fn send(&mut self, d: &mut EmulatedDrive, m: Message) -> Option<Reply> {
         self.0 += 1;
         d.on_frame(&frame_bytes(self.0, m))
     }
-    fn control(&mut self, d: &mut DriveCore, a: Action) {
+    fn control(&mut self, d: &mut EmulatedDrive, a: Action) {
         self.send(d, Message::Control(a));
     }
     /// C(s, duty) on both phases; returns its frame seq.
-    fn command(&mut self, d: &mut DriveCore, answers: u32, duty: i16) -> u32 {
+    fn command(&mut self, d: &mut EmulatedDrive, answers: u32, duty: i16) -> u32 {
         self.send(
             d,
             Message::Command(Command {
@@ -140,7 +140,7 @@ impl Host {
 /// One period: the drive sends S(k) (which reports the period before) and runs the
 /// period that starts there. Returns k and S(k).
 /// One period, with the FAULT_REPORT the drive sends after S(k), if any.
-fn period_reporting(d: &mut DriveCore) -> (u32, Sample, Option<FaultReport>) {
+fn period_reporting(d: &mut EmulatedDrive) -> (u32, Sample, Option<FaultReport>) {
     let f = d.sample_frame(0);
     let report = d.run_period(f.seq);
     let Message::Sample(s) = f.message else {
@@ -149,12 +149,12 @@ fn period_reporting(d: &mut DriveCore) -> (u32, Sample, Option<FaultReport>) {
     (f.seq, s, report)
 }
 
-fn period(d: &mut DriveCore) -> (u32, Sample) {
+fn period(d: &mut EmulatedDrive) -> (u32, Sample) {
     let (k, s, _) = period_reporting(d);
     (k, s)
 }
 
-fn hello(h: &mut Host, d: &mut DriveCore) -> Config {
+fn hello(h: &mut Host, d: &mut EmulatedDrive) -> Config {
     match h.send(d, Message::Hello) {
         Some(Reply::Config(c)) => c,
         None => panic!("HELLO must be answered with CONFIG"),
@@ -415,7 +415,7 @@ fn d10_the_newest_plan_covers_missing_commands_and_an_equal_one_replaces_it() {
 }
 
 /// An enabled drive following C(k, 1000) for a few periods; returns the host.
-fn following(d: &mut DriveCore) -> Host {
+fn following(d: &mut EmulatedDrive) -> Host {
     let mut h = Host(0);
     hello(&mut h, d);
     h.control(d, Action::Enable);
@@ -593,7 +593,7 @@ fn d17_an_enable_during_align_waits_for_its_end_and_commands_are_not_applied() {
 }
 
 /// Runs periods until the drive's SAMPLE shows ALIGNING clear; returns that SAMPLE.
-fn until_aligned(d: &mut DriveCore) -> (u32, Sample) {
+fn until_aligned(d: &mut EmulatedDrive) -> (u32, Sample) {
     for _ in 0..100_000 {
         let (k, s) = period(d);
         if s.status & status::ALIGNING == 0 {
@@ -1283,7 +1283,7 @@ fn h12_a_drive_never_heard_is_named_within_the_handshake_time() {
 /// The bridge's start-up (§7) against the emulated drive's core, period by period at
 /// 20 kHz, frames both ways (the host's answer to S(k) reaches the drive before period
 /// k + 1). Returns the verdict and every frame the host sent.
-fn start_against(d: &mut DriveCore, c: &mut BridgeCore) -> (Result<(), Refusal>, Vec<Frame>) {
+fn start_against(d: &mut EmulatedDrive, c: &mut BridgeCore) -> (Result<(), Refusal>, Vec<Frame>) {
     let mut stats = StatsReport::default();
     let mut all = Vec::new();
     for k in 0..100_000u64 {

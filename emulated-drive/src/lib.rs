@@ -1,547 +1,129 @@
-//! `stepdrive emulate-drive`: a stand-in driver board. The motor model of eq. (1) behind the
-//! wire protocol of `docs/drive-protocol.md`, in drive units (encoder counts, ADC counts,
-//! duties), with a command watchdog: the drive's logic without sockets or clocks
-//! ([`DriveCore`]), run by the stack's runner on its own sample clock ([`node`]), with fault
+//! `stepdrive emulate-drive`: a stand-in driver board. The drive's logic is
+//! `stepdrive-drive-core`'s [`DriveCore`] (the one copy a firmware runs too), its power
+//! stage the motor model of eq. (1) in drive units (encoder counts, ADC counts, duties:
+//! [`stage`]); it runs on the stack's runner on its own sample clock ([`node`]), with fault
 //! injection for tests as a type of its own ([`inject`]).
 
 pub mod inject;
 pub mod node;
+pub mod stage;
 pub mod truth;
 
 pub use inject::{AlignFault, FaultInjection, Injector};
+use stage::SimulatedStage;
+pub use stepdrive_drive_core::{DriveCore, DriveCounters, Limits, Reply};
 
 use std::net::SocketAddr;
 use std::time::Duration;
 use stepdrive_drive_protocol::transport::Wire;
-use stepdrive_drive_protocol::units::{default_config, volts_for, Scaling};
-use stepdrive_drive_protocol::{
-    decode, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport, Frame,
-    Message, Plan, Sample, MAX_DUTY, MAX_PLAN_ENTRIES,
-};
-use stepdrive_plant::sim::PlantSim;
+use stepdrive_drive_protocol::units::{default_config, Scaling};
+use stepdrive_drive_protocol::{FaultReport, Frame, MAX_DUTY, MAX_PLAN_ENTRIES};
 use stepdrive_runtime::pacer::WaitStrategy;
 use stepdrive_runtime::rt::RtOptions;
 use stepdrive_runtime::runner::{Runner, Settings};
 use stepdrive_runtime::RunError;
-use stepdrive_shared::messages::DriveCommand;
 use stepdrive_shared::Scenario;
 
-/// Counters of what the drive received.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct DriveCounters {
-    pub frames_ok: u64,
-    pub bad_frames: u64,
-    pub crc_errors: u64,
-    pub stale_frames: u64,
-    /// Frames from an address other than the session's host (UDP), a HELLO from one while
-    /// the session is live (§4.6), and frames other than HELLO before there is a session.
-    pub foreign_frames: u64,
-    pub commands_applied: u64,
-    /// COMMANDs discarded because their period had begun (they came too late).
-    pub commands_late: u64,
-    /// CONTROLs without effect in the state they came in (ENABLE or ALIGN while a fault is
-    /// latched).
-    pub ignored_controls: u64,
-    /// Periods without their COMMAND (the watchdog's count), and of those, the ones that
-    /// got a PLAN entry instead of the held duties.
-    pub periods_held: u64,
-    pub periods_planned: u64,
-}
-
-/// The drive's logic, without sockets or clocks: frames in, samples out.
-pub struct DriveCore {
-    pub config: Config,
-    scaling: Scaling,
-    sim: PlantSim,
-    bus_v: f64,
-    enabled: bool,
-    latched: u16,
-    /// Latched bits already sent in a FAULT_REPORT (one report each time new bits latch).
-    reported: u16,
-    /// A HELLO has been taken: before one, nothing but HELLO is acted on.
-    session: bool,
-    last_rx_seq: Option<u32>,
-    pending: Option<Command>,
-    pending_seq: u32,
-    /// The PLAN with the newest `answers_sample`, and its frame's seq.
-    plan: Option<(Plan, u32)>,
-    planned: bool,
-    /// The duties to hold when a period has no COMMAND, and the frame they came from.
-    held_duty: (i16, i16),
-    held_seq: u32,
-    /// What the next SAMPLE reports of the period that ends at it (§4.1: duties, applied
-    /// seq, COMMAND_HELD, COMMAND_PLANNED), fixed when that period started: a DISABLE,
-    /// RESET or HELLO taken within it changes the state bits at once, not this.
-    ended: EndedPeriod,
-    since_command: u32,
-    /// Periods since the last frame accepted from the session's host: a session whose host
-    /// has been silent for the watchdog's periods is no longer live (§4.6).
-    since_host: u32,
-    /// The watchdog counts from the first COMMAND applied after ENABLE (§5).
-    armed: bool,
-    /// Periods of alignment left, and whether phase A still holds the rotor after it
-    /// (until the first COMMAND after ENABLE).
-    aligning: u32,
-    holding: bool,
-    align_duty: i16,
-    /// The seq of the next SAMPLE (the sample index; CONFIG and FAULT_REPORT carry the
-    /// last one sent).
-    tx_seq: u32,
-    /// The run's first sample (the first with ENABLED set and ALIGNING clear after an
-    /// ENABLE that starts a run, §7 step 5) and the electrical zero nearest to where the
-    /// rotor was then: the truth's k and θ count from them. `run_pending`: such an ENABLE
-    /// was taken and that sample has not been sent yet.
-    run_start: Option<(u32, f64)>,
-    run_pending: bool,
-    align_fault: AlignFault,
-    n_r: f64,
+/// The emulated board: the drive core (every rule of the drive's side of the protocol)
+/// over a simulated power stage (the motor model), with the fault injection's hooks.
+pub struct EmulatedDrive {
+    core: DriveCore,
+    stage: SimulatedStage,
+    /// The electrical zero nearest to where the rotor was at the run's first sample: the
+    /// truth's θ counts from it.
+    zero_rad: f64,
     period_s: f64,
-    pub counters: DriveCounters,
+    /// Fault injection: its ALIGN drives phase A the wrong way.
+    align_reversed: bool,
 }
 
-/// What a SAMPLE reports of the period that ended at it.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-struct EndedPeriod {
-    duty: (i16, i16),
-    seq: u32,
-    held: bool,
-    planned: bool,
-}
-
-/// What the drive answers to a frame.
-pub enum Reply {
-    Config(Config),
-}
-
-impl DriveCore {
+impl EmulatedDrive {
     /// `plan_capacity`: PLAN entries kept (0: PLAN frames are not wanted, and dropped).
     pub fn new(s: &Scenario, watchdog_periods: u16, plan_capacity: u16) -> Self {
         let capacity = plan_capacity.min(MAX_PLAN_ENTRIES as u16);
         let config = default_config(s.rates.current_loop_hz, watchdog_periods, capacity);
         let align_duty = align_duty(s, config.align_current_ma);
         Self {
-            scaling: Scaling::new(&config),
-            config,
-            sim: PlantSim::new(s),
-            bus_v: s.drive.bus_voltage_v,
-            enabled: false,
-            latched: 0,
-            reported: 0,
-            session: false,
-            last_rx_seq: None,
-            pending: None,
-            pending_seq: 0,
-            plan: None,
-            planned: false,
-            held_duty: (0, 0),
-            held_seq: 0,
-            ended: EndedPeriod::default(),
-            since_command: 0,
-            since_host: 0,
-            armed: false,
-            aligning: 0,
-            holding: false,
-            align_duty,
-            tx_seq: 1,
-            run_start: None,
-            run_pending: false,
-            align_fault: AlignFault::None,
-            n_r: s.motor.n_r(),
+            stage: SimulatedStage::new(s, Scaling::new(&config)),
+            // The emulated board's sensors never read beyond a limit: its faults are
+            // injected (`inject`), so that runs against it stay what they were.
+            core: DriveCore::new(config, align_duty, Limits::default()),
+            zero_rad: 0.0,
             period_s: s.sample_period_s(),
-            counters: DriveCounters::default(),
+            align_reversed: false,
         }
     }
 
     /// The rotor's true state at the sample about to be sent with wire seq `seq`, once a
     /// run has started.
     pub fn truth(&self, seq: u32) -> Option<truth::TruthRow> {
-        let (first, zero) = self.run_start?;
+        let first = self.core.run_start()?;
         let k = u64::from(seq.wrapping_sub(first));
-        let x = self.sim.motor_state();
+        let x = self.stage.motor_state();
         Some(truth::TruthRow {
             k,
             t_s: k as f64 * self.period_s,
-            theta_rad: x[0] - zero,
+            theta_rad: x[0] - self.zero_rad,
             omega_rad_s: x[1],
             i_a_a: x[2],
             i_b_a: x[3],
         })
     }
 
-    pub fn latched_faults(&self) -> u16 {
-        self.latched
-    }
-
-    /// Whether a host has said HELLO (the drive has somewhere to send its samples).
-    pub fn in_session(&self) -> bool {
-        self.session
-    }
-
-    /// Whether a run is under way (from its first SAMPLE, §7 step 5, until a HELLO, ALIGN
-    /// or DISABLE ends it): fault injection counts its time from there.
-    pub fn in_run(&self) -> bool {
-        self.run_start.is_some()
-    }
-
-    /// A session is live while its host is heard and the motor is energized (enabled,
-    /// aligning or holding): then a HELLO from any other address is not taken (§4.6). A
-    /// host silent for the watchdog's periods, or outputs off, leaves it to the next host.
-    fn live(&self) -> bool {
-        let energized =
-            self.outputs_on() || (self.latched == 0 && (self.aligning > 0 || self.holding));
-        self.session && energized && self.since_host < u32::from(self.config.watchdog_periods)
-    }
-
-    pub fn outputs_on(&self) -> bool {
-        self.enabled && self.latched == 0
-    }
-
-    /// Its ALIGN: phase A at `current_ma` for `ms` (0: it does not align, as a drive with an
-    /// absolute encoder may not), announced in CONFIG.
+    /// Its ALIGN: phase A at `current_ma` for `ms` (0: it does not align), announced in
+    /// CONFIG.
     pub fn set_alignment(&mut self, s: &Scenario, current_ma: u16, ms: u16) {
-        self.config.align_current_ma = current_ma;
-        self.config.align_ms = ms;
-        self.align_duty = align_duty(s, current_ma);
+        let duty = align_duty(s, current_ma);
+        let duty = if self.align_reversed { -duty } else { duty };
+        self.core.set_alignment(current_ma, ms, duty);
     }
 
-    /// Breaks its alignment as `fault` says (fault injection).
+    /// Breaks its alignment as `fault` says (fault injection): in the core (an alignment
+    /// that never ends), in its ALIGN's duty (reversed) or in the wiring (swapped leads).
     pub fn set_align_fault(&mut self, fault: AlignFault) {
-        self.align_fault = fault;
-    }
-
-    /// The seq a CONFIG or FAULT_REPORT carries: the last SAMPLE's (0 before the first).
-    pub fn report_seq(&self) -> u32 {
-        self.tx_seq.wrapping_sub(1)
-    }
-
-    fn end_run(&mut self) {
-        self.run_start = None;
-        self.run_pending = false;
-    }
-
-    fn stop_aligning(&mut self) {
-        self.aligning = 0;
-        self.holding = false;
-    }
-
-    /// Outputs off until the next ENABLE, the watchdog disarmed, the stored PLAN and any
-    /// waiting COMMAND forgotten (§4.3: HELLO, ALIGN, DISABLE and RESET all do this).
-    fn stand_down(&mut self) {
-        self.enabled = false;
-        self.armed = false;
-        self.since_command = 0;
-        self.pending = None;
-        self.plan = None;
-        // Nothing to hold: the next ENABLE starts from duty 0 (§4.1).
-        self.held_duty = (0, 0);
-        self.held_seq = 0;
-        self.stop_aligning();
-    }
-
-    /// Handles one received datagram from the session's host (or from the only host there
-    /// is). Bad, duplicate and out-of-order frames are counted and dropped; nothing from
-    /// them is applied.
-    pub fn on_frame(&mut self, bytes: &[u8]) -> Option<Reply> {
-        self.on_frame_from(bytes, true)
-    }
-
-    /// Handles one received datagram; `from_host`: it came from the session's host's
-    /// address (UDP), or there is no session yet. From any other address only a HELLO is
-    /// read, and only while the session is not live.
-    pub fn on_frame_from(&mut self, bytes: &[u8], from_host: bool) -> Option<Reply> {
-        let frame = match decode(bytes) {
-            Ok(f) => f,
-            Err(DecodeError::BadCrc { .. }) => {
-                self.counters.crc_errors += 1;
-                return None;
-            }
-            Err(_) => {
-                self.counters.bad_frames += 1;
-                return None;
-            }
-        };
-        // Only a host sends these; before a HELLO there is no host to act for (§2, §3.1).
-        let host_kind = !matches!(
-            frame.message,
-            Message::Sample(_) | Message::Config(_) | Message::FaultReport(_)
-        );
-        if !host_kind {
-            self.counters.bad_frames += 1;
-            return None;
-        }
-        if !self.session && frame.message != Message::Hello {
-            self.counters.foreign_frames += 1;
-            return None;
-        }
-        // §2, §4.6: another address may take the drive over only once the session's host
-        // has let go of the motor or gone silent for the watchdog's periods.
-        if self.session && !from_host && (frame.message != Message::Hello || self.live()) {
-            self.counters.foreign_frames += 1;
-            return None;
-        }
-        // A HELLO starts a new session: a new host counts its frames from its own start,
-        // so sequence tracking restarts with it, and the outputs stay off until it enables
-        // them; the next ENABLE starts a run.
-        if frame.message == Message::Hello {
-            self.session = true;
-            self.stand_down();
-            self.end_run();
-        } else if !is_newer(frame.seq, self.last_rx_seq) {
-            self.counters.stale_frames += 1;
-            return None;
-        }
-        self.last_rx_seq = Some(frame.seq);
-        self.since_host = 0;
-        self.counters.frames_ok += 1;
-        match frame.message {
-            Message::Command(c) => {
-                // ±MAX_DUTY is the full range; i16::MIN is the one value beyond it.
-                if c.duty_a == i16::MIN || c.duty_b == i16::MIN {
-                    self.latched |= faults::BAD_COMMAND;
-                } else {
-                    self.pending = Some(c);
-                    self.pending_seq = frame.seq;
-                }
-                None
-            }
-            Message::Control(Action::Enable | Action::Align) if self.latched != 0 => {
-                // Only RESET clears a fault (§5); nothing is energized before it.
-                self.counters.ignored_controls += 1;
-                None
-            }
-            Message::Control(Action::Align) if self.config.align_ms == 0 => {
-                // A drive that does not align (an absolute encoder) ignores ALIGN (§4.3).
-                self.counters.ignored_controls += 1;
-                None
-            }
-            Message::Control(Action::Enable) => {
-                self.enabled = true;
-                // A run starts with the first ENABLE after a HELLO, ALIGN or DISABLE (an
-                // ENABLE after a RESET mid-run continues it), at its first SAMPLE with
-                // ENABLED set and ALIGNING clear (§7 step 5: where the host's k = 0 is).
-                if self.run_start.is_none() {
-                    self.run_pending = true;
-                }
-                self.armed = false;
-                self.since_command = 0;
-                None
-            }
-            Message::Control(Action::Disable) => {
-                self.stand_down();
-                self.end_run();
-                None
-            }
-            Message::Control(Action::Reset) => {
-                // An ENABLE after it continues the run (`stepdrive reset`).
-                self.latched = 0;
-                self.reported = 0;
-                self.stand_down();
-                None
-            }
-            Message::Control(Action::Align) => {
-                // With phase A energized the rotor settles at an electrical zero
-                // (N_r θ ≡ 0 mod 2π), where the host's encoder zero then commutates right.
-                self.stand_down();
-                self.end_run();
-                let periods =
-                    u64::from(self.config.align_ms) * u64::from(self.config.sample_rate_hz) / 1000;
-                self.aligning = u32::try_from(periods).unwrap_or(u32::MAX);
-                self.holding = self.aligning > 0;
-                None
-            }
-            Message::Hello => Some(Reply::Config(self.config)),
-            Message::Plan(p) => {
-                if p.entries().iter().flatten().any(|&d| d == i16::MIN) {
-                    self.latched |= faults::BAD_COMMAND;
-                } else if p.count > self.config.plan_capacity {
-                    // More than it announced it keeps: malformed for this drive.
-                    self.counters.bad_frames += 1;
-                } else if self
-                    .plan
-                    .is_none_or(|(old, _)| !is_newer(old.answers_sample, Some(p.answers_sample)))
-                {
-                    // Newer, or equal (a later frame for the same base replaces it).
-                    self.plan = Some((p, frame.seq));
-                }
-                None
-            }
-            _ => None,
+        self.core.set_align_stuck(fault == AlignFault::Stuck);
+        self.stage
+            .set_swapped_leads(fault == AlignFault::SwappedLeads);
+        let reversed = fault == AlignFault::Reversed;
+        if reversed != self.align_reversed {
+            self.align_reversed = reversed;
+            let c = self.core.config;
+            let duty = -self.core.align_duty();
+            self.core
+                .set_alignment(c.align_current_ma, c.align_ms, duty);
         }
     }
 
-    /// The PLAN entry for the period starting at SAMPLE `sample_seq`, with its frame seq.
-    fn planned_duty(&self, sample_seq: u32) -> Option<((i16, i16), u32)> {
-        let (p, seq) = self.plan.as_ref()?;
-        // Entry j is for the period starting at answers_sample + 2 + j.
-        let j = sample_seq.wrapping_sub(p.answers_sample).wrapping_sub(2);
-        let [a, b] = *p.entries().get(usize::try_from(j).ok()?)?;
-        Some(((a, b), *seq))
-    }
-
-    /// Latches `bits` (e.g. an injected over-current).
-    pub fn trip(&mut self, bits: u16) {
-        self.latched |= bits;
-    }
-
-    /// The sample at the current instant, as a frame.
+    /// The sample at the current instant, as a frame. At a run's first sample the load
+    /// profile's time and the truth's angle start from where the motor is.
     pub fn sample_frame(&mut self, now_ns: u64) -> Frame {
-        let starts_run = (self.outputs_on() && self.aligning == 0) || self.latched != 0;
-        if self.run_pending && starts_run {
-            // The plant's load profile and the truth count from the run's first SAMPLE.
-            self.run_pending = false;
-            self.sim.restart_load_clock();
-            let pitch = std::f64::consts::TAU / self.n_r;
-            let zero = (self.sim.motor_state()[0] / pitch).round() * pitch;
-            self.run_start = Some((self.tx_seq, zero));
+        if self.core.run_starts_at_next_sample() {
+            self.stage.restart_load_clock();
+            let pitch = std::f64::consts::TAU / self.stage.rotor_teeth();
+            self.zero_rad = (self.stage.motor_state()[0] / pitch).round() * pitch;
         }
-        let st = self.sim.state(false);
-        let counts = self.scaling.counts(st.theta_rad);
-        // With phase A's leads swapped the shunt, on the drive's side of them, reads the
-        // current the drive drives, the reverse of the winding's.
-        let i_a = match self.align_fault {
-            AlignFault::SwappedLeads => -st.i_a_a,
-            _ => st.i_a_a,
-        };
-        let mut status_bits = 0;
-        if self.outputs_on() {
-            status_bits |= status::ENABLED;
-        }
-        let ended = self.ended;
-        if ended.held {
-            status_bits |= status::COMMAND_HELD;
-        }
-        if ended.planned {
-            status_bits |= status::COMMAND_PLANNED;
-        }
-        if self.aligning > 0 {
-            status_bits |= status::ALIGNING;
-        }
-        let frame = Frame {
-            seq: self.tx_seq,
-            timestamp_ns: now_ns,
-            message: Message::Sample(Sample {
-                encoder_counts: counts as i32,
-                adc_a: self.scaling.adc(i_a),
-                adc_b: self.scaling.adc(st.i_b_a),
-                adc_bus: self.scaling.bus_adc(self.bus_v),
-                duty_a: ended.duty.0,
-                duty_b: ended.duty.1,
-                applied_command_seq: ended.seq,
-                fault_bits: self.latched,
-                status: status_bits,
-            }),
-        };
-        self.tx_seq = self.tx_seq.wrapping_add(1);
-        frame
+        self.core.sample_frame(now_ns, &mut self.stage)
     }
 
-    /// Decides the duties for the period starting now and integrates the motor over it.
-    /// The command must answer the previous sample (one period of compute delay); without
-    /// one, the previous duties are held; after the watchdog's periods without one, the
-    /// outputs go off and a fault latches. Returns a fault report if one just latched.
+    /// The core's period: the duties for the period starting now, driven into the motor.
     pub fn run_period(&mut self, sample_seq: u32) -> Option<FaultReport> {
-        self.planned = false;
-        self.since_host = self.since_host.saturating_add(1);
-        let wanted = sample_seq.wrapping_sub(1);
-        if self.aligning > 0 && self.latched == 0 {
-            if self.align_fault != AlignFault::Stuck {
-                self.aligning -= 1;
-            }
-            self.pending = None;
-            return self.apply(self.align_duty_now(), 0, sample_seq);
-        }
-        match self.pending.take() {
-            Some(c) if c.answers_sample == wanted && self.enabled => {
-                self.held_duty = (c.duty_a, c.duty_b);
-                self.held_seq = self.pending_seq;
-                self.since_command = 0;
-                self.armed = true;
-                self.holding = false;
-                self.counters.commands_applied += 1;
-            }
-            other => {
-                // A command for a later sample waits for its period; older ones are dropped.
-                match other {
-                    Some(c) if is_newer(c.answers_sample, Some(wanted)) => self.pending = Some(c),
-                    Some(_) => self.counters.commands_late += 1,
-                    None => {}
-                }
-                // Holding the aligned rotor, no PLAN entry applies (§4.3): the watchdog is
-                // not armed before the first COMMAND, and a plan alone would run the motor
-                // on predictions with nothing to stop it.
-                let hold = self.holding && !self.armed;
-                if self.enabled {
-                    self.since_command = self.since_command.saturating_add(1);
-                    self.counters.periods_held += 1;
-                    // The PLAN's duty for this period, if it has one; else the last is held.
-                    if let Some((duty, seq)) = self.planned_duty(sample_seq).filter(|_| !hold) {
-                        self.held_duty = duty;
-                        self.held_seq = seq;
-                        self.planned = true;
-                        self.counters.periods_planned += 1;
-                    }
-                }
-                // A latched fault has the outputs off already: the watchdog is disarmed.
-                if self.armed
-                    && self.latched == 0
-                    && self.since_command >= u32::from(self.config.watchdog_periods)
-                {
-                    self.latched |= faults::WATCHDOG;
-                }
-            }
-        }
-        if self.holding && self.latched == 0 && !self.armed {
-            // Aligned and not yet commanded: phase A keeps the rotor at its zero.
-            return self.apply(self.align_duty_now(), 0, sample_seq);
-        }
-        if !self.outputs_on() {
-            self.held_duty = (0, 0);
-            self.held_seq = 0;
-        }
-        let (duty, seq) = (self.held_duty, self.held_seq);
-        self.apply(duty, seq, sample_seq)
+        self.core.run_period(sample_seq, &mut self.stage)
     }
+}
 
-    fn align_duty_now(&self) -> (i16, i16) {
-        match self.align_fault {
-            AlignFault::Reversed => (-self.align_duty, 0),
-            _ => (self.align_duty, 0),
-        }
+/// The drive's state, counters and frame handling are the core's: an emulated drive is a
+/// drive core whose sample and period also move the simulated motor.
+impl std::ops::Deref for EmulatedDrive {
+    type Target = DriveCore;
+
+    fn deref(&self) -> &DriveCore {
+        &self.core
     }
+}
 
-    /// Applies `duty` (reported in the next SAMPLE with `seq`) over the period and
-    /// integrates the motor; a fault report if bits latched since the last one.
-    fn apply(&mut self, duty: (i16, i16), seq: u32, sample_seq: u32) -> Option<FaultReport> {
-        let duty = if self.latched == 0 { duty } else { (0, 0) };
-        self.held_duty = duty;
-        self.held_seq = if self.latched == 0 { seq } else { 0 };
-        self.ended = EndedPeriod {
-            duty,
-            seq: self.held_seq,
-            held: self.since_command > 0 && self.outputs_on(),
-            planned: self.planned,
-        };
-        let v_a = match self.align_fault {
-            AlignFault::SwappedLeads => -volts_for(duty.0, self.bus_v),
-            _ => volts_for(duty.0, self.bus_v),
-        };
-        let v = DriveCommand {
-            v_a_v: v_a,
-            v_b_v: volts_for(duty.1, self.bus_v),
-            ..Default::default()
-        };
-        self.sim.advance(Some(&v));
-        // Bits latched since the last report, whether by a frame before this period's
-        // sample, by the sample's own values or by the watchdog at this period's start:
-        // period `sample_seq` is the first with the outputs off (§5).
-        if self.latched & !self.reported == 0 {
-            return None;
-        }
-        self.reported = self.latched;
-        Some(FaultReport {
-            fault_bits: self.latched,
-            at_sample: sample_seq,
-        })
+impl std::ops::DerefMut for EmulatedDrive {
+    fn deref_mut(&mut self) -> &mut DriveCore {
+        &mut self.core
     }
 }
 
@@ -629,7 +211,7 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<(), EmulatorError> {
         None => None,
     };
     o.rt.apply()?;
-    let mut core = DriveCore::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
+    let mut core = EmulatedDrive::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
     core.set_alignment(&o.scenario, o.align_ma, o.align_ms);
     core.set_align_fault(o.inject.align);
     tracing::info!(listen = %o.listen[0], serial = ?o.serial, "emulated drive up; waiting for HELLO");
@@ -705,7 +287,7 @@ fn run_emulators(o: &EmulatorOptions) -> Result<(), EmulatorError> {
             }
             _ => None,
         };
-        let mut core = DriveCore::new(s, o.watchdog_periods, o.plan_capacity);
+        let mut core = EmulatedDrive::new(s, o.watchdog_periods, o.plan_capacity);
         core.set_alignment(s, o.align_ma, o.align_ms);
         let inject = if axis == o.inject_axis {
             core.set_align_fault(o.inject.align);
@@ -726,10 +308,10 @@ fn run_emulators(o: &EmulatorOptions) -> Result<(), EmulatorError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use stepdrive_drive_protocol::frame_bytes;
+    use stepdrive_drive_protocol::{faults, frame_bytes, status, Action, Command, Message, Plan};
 
     /// A drive a host has said HELLO to (frame seq 0).
-    fn in_session(mut d: DriveCore) -> DriveCore {
+    fn in_session(mut d: EmulatedDrive) -> EmulatedDrive {
         assert!(matches!(
             d.on_frame(&frame_bytes(0, Message::Hello)),
             Some(Reply::Config(_))
@@ -747,7 +329,7 @@ mod tests {
 
     #[test]
     fn corrupt_stale_and_late_frames_are_never_applied() {
-        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+        let mut d = EmulatedDrive::new(&Scenario::default(), 20, 8);
         assert!(matches!(
             d.on_frame(&frame_bytes(1, Message::Hello)),
             Some(Reply::Config(_))
@@ -796,7 +378,7 @@ mod tests {
         })
     }
 
-    fn applied(d: &mut DriveCore) -> (i16, u32, u16) {
+    fn applied(d: &mut EmulatedDrive) -> (i16, u32, u16) {
         let Message::Sample(s) = d.sample_frame(0).message else {
             panic!()
         };
@@ -809,7 +391,7 @@ mod tests {
     /// dropped; one with a −32768 duty latches BAD_COMMAND like such a COMMAND.
     #[test]
     fn missing_commands_take_the_freshest_plan_entry_for_their_period() {
-        let mut d = in_session(DriveCore::new(&Scenario::default(), 20, 8));
+        let mut d = in_session(EmulatedDrive::new(&Scenario::default(), 20, 8));
         assert_eq!(d.config.plan_capacity, 8);
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         d.run_period(0);
@@ -853,7 +435,7 @@ mod tests {
 
     #[test]
     fn watchdog_turns_outputs_off_and_latches_until_reset() {
-        let mut d = in_session(DriveCore::new(&Scenario::default(), 20, 8));
+        let mut d = in_session(EmulatedDrive::new(&Scenario::default(), 20, 8));
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         d.run_period(0);
         d.on_frame(&frame_bytes(2, cmd(0, 5000)));
@@ -889,7 +471,7 @@ mod tests {
     /// first host's last: it gets its CONFIG and a new session, not a "stale frame".
     #[test]
     fn a_hello_starts_a_new_session() {
-        let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+        let mut d = EmulatedDrive::new(&Scenario::default(), 20, 8);
         assert!(matches!(
             d.on_frame(&frame_bytes(1, Message::Hello)),
             Some(Reply::Config(_))
@@ -916,13 +498,13 @@ mod tests {
     /// at; it rests there within the load's offset (0.01 N·m / 25 N·m/rad = 4e-4 rad).
     #[test]
     fn align_leaves_the_rotor_at_an_electrical_zero() {
-        let mut d = in_session(DriveCore::new(&Scenario::default(), 2000, 8));
+        let mut d = in_session(EmulatedDrive::new(&Scenario::default(), 2000, 8));
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         for k in 0..400u32 {
             d.on_frame(&frame_bytes(2 + k, cmd(k.wrapping_sub(1), 12_000)));
             d.run_period(k);
         }
-        let theta = |d: &mut DriveCore| {
+        let theta = |d: &mut EmulatedDrive| {
             let Message::Sample(s) = d.sample_frame(0).message else {
                 panic!()
             };
@@ -966,7 +548,7 @@ mod tests {
             proptest::collection::vec(any::<u8>(), 0..64),
         );
         proptest!(|(frames in proptest::collection::vec(frame, 1..100))| {
-            let mut d = DriveCore::new(&Scenario::default(), 20, 8);
+            let mut d = EmulatedDrive::new(&Scenario::default(), 20, 8);
             for (k, (seq, kind, payload)) in frames.into_iter().enumerate() {
                 let bytes = stepdrive_drive_protocol::raw_frame(seq, kind % 9, &payload);
                 d.on_frame(&bytes);

@@ -5,7 +5,7 @@
 
 use crate::inject::{send_frame, Before, Injector};
 use crate::truth::TruthWriter;
-use crate::{DriveCore, Reply};
+use crate::{EmulatedDrive, Reply};
 use std::time::Duration;
 use stepdrive_drive_protocol::transport::Wire;
 use stepdrive_drive_protocol::{faults, Frame, Message, MAX_FRAME};
@@ -18,7 +18,7 @@ use stepdrive_shared::Scenario;
 const HELLO_KIND: u8 = 6;
 
 pub struct DriveNode {
-    core: DriveCore,
+    core: EmulatedDrive,
     inject: Injector,
     truth: Option<TruthWriter>,
     period_ns: u64,
@@ -39,7 +39,7 @@ pub struct DriveNode {
 impl DriveNode {
     pub fn new(
         s: &Scenario,
-        core: DriveCore,
+        core: EmulatedDrive,
         inject: Injector,
         truth: Option<TruthWriter>,
     ) -> Self {
@@ -64,7 +64,7 @@ impl DriveNode {
         self
     }
 
-    pub fn core(&self) -> &DriveCore {
+    pub fn core(&self) -> &EmulatedDrive {
         &self.core
     }
 }

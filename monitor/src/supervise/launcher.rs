@@ -350,8 +350,11 @@ pub fn run_stack(
         Role::CurrentLoop => vec!["--method".to_string(), method.as_str().to_string()],
         _ => Vec::new(),
     };
-    let mut l = launch(&stack, s, opts, recording.is_some(), &method_arg)?;
+    // The recording's channels first: opening them waits for its writer to catch up with
+    // the method before, which a stack already launched would wait out as a dead monitor.
+    let recording_on = recording.is_some();
     let observer = Observer::new(s.for_axis(0).unwrap_or(s), mode).recording(recording, method);
+    let mut l = launch(&stack, s, opts, recording_on, &method_arg)?;
     let truth = l.truth.clone();
     let (ending, failures, mut sup) =
         supervise(&mut l, s, mode, method.as_str(), observer, helpers)?;

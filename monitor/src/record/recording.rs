@@ -427,23 +427,6 @@ fn schema(title: &str, fields: &[&str]) -> String {
     )
 }
 
-impl Channels {
-    fn has_channel(&self, id: u16) -> bool {
-        [
-            self.state,
-            self.stats,
-            self.fault,
-            self.setpoint,
-            self.command,
-            self.plan,
-            self.ack,
-            self.status,
-        ]
-        .contains(&id)
-            || self.truth == Some(id)
-    }
-}
-
 struct Channels {
     method: Method,
     axis: u32,
@@ -463,6 +446,23 @@ struct Channels {
     dropped: u64,
     last_fault: u32,
     last_t: f64,
+}
+
+impl Channels {
+    fn has_channel(&self, id: u16) -> bool {
+        [
+            self.state,
+            self.stats,
+            self.fault,
+            self.setpoint,
+            self.command,
+            self.plan,
+            self.ack,
+            self.status,
+        ]
+        .contains(&id)
+            || self.truth == Some(id)
+    }
 }
 
 /// An MCAP file being written. Finished (summary and indexes written) by [`Self::finish`],

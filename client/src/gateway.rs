@@ -476,12 +476,6 @@ fn started_motion(s: &AxisStatus, client: u32) -> bool {
         )
 }
 
-/// Whether `r` is a remote client's: its id odd and at least 2³¹ (never a pid, nor the
-/// gateway's own), and the top of its sequence number (the stack tells clients apart by it).
-fn remote_client(r: &AxisRequest) -> bool {
-    r.client & 1 == 1 && r.client >= 1 << 31 && (r.seq >> 32) as u32 == r.client
-}
-
 /// A remote stream start that names no lead gets the remote one: points cross a network
 /// and two processes the drive's host may hold off (docs/remote.md), and a client that
 /// left the lead to the axis would get the local 50 ms and run dry.
@@ -524,7 +518,7 @@ fn refused_here(
     max_commands_hz: f64,
     state: u32,
 ) -> Option<AxisAck> {
-    let (refusal, text) = if !remote_client(request) {
+    let (refusal, text) = if !request.from_remote_client() {
         (
             Refusal::BadClient,
             format!(

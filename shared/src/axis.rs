@@ -529,6 +529,13 @@ pub mod request_flags {
     }
 }
 
+/// Whether `id` is a remote client's: odd and at or above 2³¹, so never a Linux pid (at
+/// most 2²²), the id every local client uses. A remote client's commands carry it in the top
+/// 32 bits of their sequence numbers too ([`AxisRequest::from_remote_client`]).
+pub fn is_remote_client(id: u32) -> bool {
+    id & 1 == 1 && id >= 1 << 31
+}
+
 /// Client → position loop, on the axis command service: one command, answered by an
 /// [`AxisAck`] within the tick it is taken in.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -560,6 +567,14 @@ pub struct AxisRequest {
     pub j_max_rad_s3: f64,
     /// Stream start: the lead, s.
     pub lead_s: f64,
+}
+
+impl AxisRequest {
+    /// Whether it comes from a remote client as a gateway must see it: a remote client's id
+    /// ([`is_remote_client`]), which the top 32 bits of its sequence number repeat.
+    pub fn from_remote_client(&self) -> bool {
+        is_remote_client(self.client) && (self.seq >> 32) as u32 == self.client
+    }
 }
 
 /// Why a command was refused (0: taken).
@@ -1036,6 +1051,41 @@ impl StreamRow {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn remote_ids_are_odd_and_above_any_pid() {
+        assert!(is_remote_client(0x8000_0001));
+        assert!(is_remote_client(u32::MAX));
+        assert!(!is_remote_client(0x8000_0000), "even");
+        assert!(!is_remote_client(0xfffe_0000), "the gateway's own");
+        assert!(!is_remote_client(4_194_303), "a pid");
+    }
+
+    /// A gateway takes a remote client's request only when its sequence number carries the
+    /// same id.
+    #[test]
+    fn a_remote_request_repeats_its_id_in_its_sequence_number() {
+        let id = 0x8000_0003u32;
+        let request = |client: u32, seq: u64| AxisRequest {
+            client,
+            seq,
+            ..Default::default()
+        };
+        assert!(request(id, u64::from(id) << 32 | 7).from_remote_client());
+        assert!(
+            !request(id, 7).from_remote_client(),
+            "a local sequence number"
+        );
+        assert!(
+            !request(id, u64::from(id + 2) << 32).from_remote_client(),
+            "another id"
+        );
+        let pid = 4242;
+        assert!(
+            !request(pid, u64::from(pid) << 32).from_remote_client(),
+            "a pid"
+        );
+    }
 
     #[test]
     fn a_stream_file_with_a_header_comments_and_optional_columns_parses() {

@@ -36,12 +36,6 @@ fn own_client() -> u32 {
     std::process::id()
 }
 
-/// A remote client's id (the top 32 bits of its commands' sequence numbers): odd and at or
-/// above 2^31, never a pid (`stepdrive_client::Axis::connect_remote`).
-pub fn remote_client(id: u32) -> bool {
-    id & 1 == 1 && id >= 1 << 31
-}
-
 /// The axis is in a motion that needs its client: a jog or a stream (open-ended), or a move
 /// or a coordinated move still on its way.
 pub fn in_motion(s: &AxisStatus) -> bool {
@@ -388,15 +382,6 @@ mod tests {
             mode: mode as u32,
             ..Default::default()
         }
-    }
-
-    #[test]
-    fn remote_ids_are_odd_and_above_any_pid() {
-        assert!(remote_client(0x8000_0001));
-        assert!(remote_client(u32::MAX));
-        assert!(!remote_client(0x8000_0000), "even");
-        assert!(!remote_client(0xfffe_0000), "the gateway's own");
-        assert!(!remote_client(4_194_303), "a pid");
     }
 
     /// A jog or a stream is motion whatever its speed; a move until it has arrived; an

@@ -8,10 +8,11 @@ use crate::report::outcome::{Outcome, LATCHED};
 use crate::supervise::helpers::MAX_RESTARTS;
 use crate::supervise::observer::{Observer, Stop};
 use crate::supervise::standstill::{
-    at_rest, in_motion, outputs_off, remote_client, Phase, Stood, StopLimits, WoundDown, ALLOWANCE,
+    at_rest, in_motion, outputs_off, Phase, Stood, StopLimits, WoundDown, ALLOWANCE,
     STANDSTILL_RAD_S,
 };
 use std::time::{Duration, Instant};
+use stepdrive_shared::axis::is_remote_client;
 use stepdrive_shared::axis::{AxisMode, AxisState, AxisStatus, RequestKind};
 use stepdrive_shared::messages::DriveState;
 use stepdrive_shared::scenario::Mode;
@@ -201,7 +202,7 @@ impl Supervisor<'_, '_> {
                 continue;
             };
             let client = (st.last_seq >> 32) as u32;
-            if !remote_client(client) || !in_motion(&st) {
+            if !is_remote_client(client) || !in_motion(&st) {
                 continue;
             }
             let mode = AxisMode::from_u32(st.mode).map_or("motion", |m| m.name());

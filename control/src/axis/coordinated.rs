@@ -51,6 +51,46 @@ pub struct CoordinatedMove {
     velocity: DataArrayOrVec<f64, MAX_AXES>,
     acceleration: DataArrayOrVec<f64, MAX_AXES>,
     jerk: DataArrayOrVec<f64, MAX_AXES>,
+    /// A gantry's move ([`Gantry`]), when this is one.
+    gantry: Option<Gantry>,
+}
+
+/// Axes at rest with one limit set (a gantry's): the generator plans the axis that goes
+/// furthest alone, and every other axis is that one scaled by its share of the distance, so
+/// the path is the straight line exactly. Ruckig's phase synchronisation promises the same
+/// but fell back to time synchronisation when two axes' distances nearly agreed (contour
+/// errors up to 6.8 % of the path, in about 3 % of the property test's runs of 300 moves).
+/// Scaled by at most 1, every axis keeps within the lead's limits, which are its own.
+#[derive(Debug, Clone, Copy)]
+struct Gantry {
+    lead: usize,
+    start: [f64; MAX_AXES],
+    /// Axis i's distance over the lead's.
+    share: [f64; MAX_AXES],
+}
+
+impl Gantry {
+    /// The gantry of a rest-to-rest move of axes with identical limits, if it is one.
+    fn of(from: &[Reference], to: &[f64], limits: &[Limits]) -> Option<Self> {
+        let at_rest = from.iter().all(|s| s.omega == 0.0 && s.alpha == 0.0);
+        let one_kind = limits.windows(2).all(|w| w[0] == w[1]);
+        let distance = |i: usize| to[i] - from[i].theta;
+        let lead =
+            (0..from.len()).max_by(|&a, &b| distance(a).abs().total_cmp(&distance(b).abs()))?;
+        if !at_rest || !one_kind || distance(lead) == 0.0 {
+            return None;
+        }
+        let mut g = Gantry {
+            lead,
+            start: [0.0; MAX_AXES],
+            share: [0.0; MAX_AXES],
+        };
+        for (i, s) in from.iter().enumerate() {
+            g.start[i] = s.theta;
+            g.share[i] = distance(i) / distance(lead);
+        }
+        Some(g)
+    }
 }
 
 impl std::fmt::Debug for CoordinatedMove {
@@ -82,6 +122,7 @@ impl CoordinatedMove {
             velocity: DataArrayOrVec::new(None, 0.0),
             acceleration: DataArrayOrVec::new(None, 0.0),
             jerk: DataArrayOrVec::new(None, 0.0),
+            gantry: None,
         }
     }
 
@@ -116,8 +157,11 @@ impl CoordinatedMove {
         }
         let mut input = self.input.clone();
         let mut targets = [0.0; MAX_AXES];
+        // Checked below with the rest; a gantry's axes but its lead stand still in the
+        // generator and follow the lead in `step`.
+        let gantry = Gantry::of(from, to, limits);
         for i in 0..MAX_AXES {
-            input.enabled[i] = i < axes;
+            input.enabled[i] = i < axes && gantry.is_none_or(|g| g.lead == i);
             // A disabled degree of freedom stands at 0 with harmless limits.
             let (s, target, l) = match i < axes {
                 true => (from[i], to[i], limits[i]),
@@ -169,6 +213,7 @@ impl CoordinatedMove {
         self.input = input;
         self.targets = targets;
         self.axes = axes;
+        self.gantry = gantry;
         self.periods = (self.trajectory.get_duration() / self.period_s).round() as u64;
         self.k = 0;
         Ok(())
@@ -227,12 +272,25 @@ impl CoordinatedMove {
             &mut section,
         );
         for i in 0..self.axes {
-            out[i] = Reference {
-                theta: self.position[i],
-                omega: self.velocity[i],
-                alpha: self.acceleration[i],
+            out[i] = match self.gantry {
+                Some(g) => {
+                    let (lead, share) = (g.lead, g.share[i]);
+                    jerk[i] = self.jerk[lead] * share;
+                    Reference {
+                        theta: g.start[i] + (self.position[lead] - g.start[lead]) * share,
+                        omega: self.velocity[lead] * share,
+                        alpha: self.acceleration[lead] * share,
+                    }
+                }
+                None => {
+                    jerk[i] = self.jerk[i];
+                    Reference {
+                        theta: self.position[i],
+                        omega: self.velocity[i],
+                        alpha: self.acceleration[i],
+                    }
+                }
             };
-            jerk[i] = self.jerk[i];
         }
         false
     }
@@ -361,11 +419,59 @@ mod tests {
         }
         if straight {
             prop_assert!(
-                spread <= 1e-6,
+                spread <= 1e-12,
                 "off the straight line by {spread:e} of the path"
             );
         }
         Ok(())
+    }
+
+    /// Moves the property test found off the line when the generator synchronised a
+    /// gantry's axes itself: two axes whose distances nearly agree (6.0555 and −6.0516 rad,
+    /// ...) were 1.2e-5 to 6.8e-2 of the path apart.
+    #[test]
+    fn a_gantry_whose_distances_nearly_agree_keeps_to_the_straight_line() {
+        let l = |v, a, j| Limits { v, a, j };
+        let cases: [(&[(f64, f64)], Limits); 4] = [
+            (
+                &[
+                    (37.02320287425054, -7.659161340859225),
+                    (-14.359160960483408, 30.319957939295836),
+                ],
+                l(41.490649261434825, 298.8482064657476, 97472.32788839703),
+            ),
+            (
+                &[
+                    (-26.974101159549686, -20.91856048678748),
+                    (-41.1300496535637, -47.18164536221271),
+                ],
+                l(36.466612575644604, 152.2899533843818, 39923.09235534783),
+            ),
+            (
+                &[
+                    (35.59311884124884, -34.700108735226586),
+                    (-3.570794210495365, 21.667402393555527),
+                    (-33.7523855078319, 36.52981250085063),
+                    (-21.52670677692922, 5.611284614004494),
+                    (-44.68422898827898, -14.244638684512635),
+                    (9.492142502564864, 42.57197287166266),
+                ],
+                l(44.684115271375646, 90.1513739056756, 59725.03329720952),
+            ),
+            (
+                &[
+                    (47.693741045830755, 15.256257130126073),
+                    (-17.356810424348087, -49.78871339169754),
+                ],
+                l(19.519748795249473, 84.32771758811688, 76648.52120845905),
+            ),
+        ];
+        for (ends, limits) in cases {
+            let axes: Vec<(f64, f64, Limits)> = ends.iter().map(|e| (e.0, e.1, limits)).collect();
+            if let Err(e) = same_tick(&axes, true) {
+                panic!("{ends:?}: {e}");
+            }
+        }
     }
 
     proptest! {
@@ -382,7 +488,7 @@ mod tests {
         }
 
         /// The same with one limit set for every axis (a gantry's): the axes also keep to
-        /// the straight line between start and target (their path fractions agree to 1e-6:
+        /// the straight line between start and target (their path fractions agree to 1e-12:
         /// no contour error). Axes whose limits differ in kind (one speed-bound, another
         /// jerk-bound) cannot share a profile's shape; they arrive together, off the line.
         #[test]

@@ -455,7 +455,7 @@ impl DriveCore {
         frame
     }
 
-    /// Decides the duties for the period starting now and integrates the motor over it.
+    /// Decides the duties for the period starting now and drives them into the stage.
     /// The command must answer the previous sample (one period of compute delay); without
     /// one, the previous duties are held; after the watchdog's periods without one, the
     /// outputs go off and a fault latches. Returns a fault report if one just latched.

@@ -114,6 +114,18 @@ fn field(status: &str, label: &str) -> Option<f64> {
         .ok()
 }
 
+/// The setpoint's θ_d in `axis status`'s text (`setpoint     θ_d 1.000000 rad, ω_d …`):
+/// where a stream's follower starts.
+fn setpoint(status: &str) -> Option<f64> {
+    status
+        .lines()
+        .find(|l| l.starts_with("setpoint"))?
+        .split_whitespace()
+        .nth(2)?
+        .parse()
+        .ok()
+}
+
 /// Remote `axis status`, `enable`, `move --wait`, a refused command, command latency and a
 /// stream, through the gateway across the veth; then a remote jog whose link is cut: its
 /// client's renewals stop and the axis quick-stops the jog itself (`[axis] jog_timeout_s`,
@@ -182,9 +194,11 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
     println!("{}", text(&lat).trim());
 
     // A 100 Hz stream of 2 s from a file, paced by the status the gateway relays: from
-    // where the axis stands, at rest, and back (one it cannot follow ends non-zero).
+    // where the axis's setpoint stands, at rest, and back (one it cannot follow ends
+    // non-zero).
     let dir = TempDir::new("remote");
-    let theta0 = field(&local_status(), "θ ").expect("θ in the status");
+    let before = local_status();
+    let theta0 = setpoint(&before).expect("θ_d in the status");
     let rows: String = (0..=200)
         .map(|k| {
             let t = k as f64 * 0.01;
@@ -195,7 +209,12 @@ fn a_client_in_another_network_namespace_commands_the_axis_and_a_cut_link_quick_
     let csv = dir.path("sine.csv");
     std::fs::write(&csv, rows).expect("write the stream");
     let streamed = remote(&["stream", csv.to_str().expect("UTF-8"), "--priority", "0"]);
-    assert!(streamed.status.success(), "{}", text(&streamed));
+    assert!(
+        streamed.status.success(),
+        "{}\nthe axis before the stream:\n{before}\nand after:\n{}",
+        text(&streamed),
+        local_status()
+    );
     assert!(
         text(&streamed).contains("201 points streamed"),
         "{}",

@@ -643,7 +643,7 @@ fn stream_rows(
         // The stream this command started ends here: the axis brakes to a hold (a stream
         // left to run dry would be quick-stopped by its watchdog).
         let ended = stream.end();
-        return Err(stream_failed(e, sent, ended.err()));
+        return Err(stream_failed(e, sent, dry, ended.err()));
     }
     stream.end().map_err(failed)?;
     println!(
@@ -656,8 +656,15 @@ fn stream_rows(
     Ok(())
 }
 
-/// A stream that failed after `sent` points, ended (or not: `end_failed`) by this command.
-fn stream_failed(e: ClientError, sent: u64, end_failed: Option<ClientError>) -> anyhow::Error {
+/// A stream that failed after `sent` points, ended (or not: `end_failed`) by this command;
+/// `dry`: it ran dry on the way (its points came later than its lead: the likelier cause of
+/// a path the axis could not follow than the path itself).
+fn stream_failed(
+    e: ClientError,
+    sent: u64,
+    dry: bool,
+    end_failed: Option<ClientError>,
+) -> anyhow::Error {
     let ended = match end_failed {
         None => "the stream was ended: the axis brakes to a hold".to_string(),
         Some(f) => format!(
@@ -669,9 +676,14 @@ fn stream_failed(e: ClientError, sent: u64, end_failed: Option<ClientError>) -> 
         Some(x) => (x.code, x.headline.clone()),
         None => (1, e.to_string()),
     };
+    let dry = if dry {
+        "; it ran dry on the way (STREAM_UNDERRUN: points came later than the stream's lead, --lead)"
+    } else {
+        ""
+    };
     Exit {
         code,
-        headline: format!("{headline} (after {sent} points; {ended})"),
+        headline: format!("{headline} (after {sent} points{dry}; {ended})"),
     }
     .into()
 }
@@ -693,11 +705,11 @@ fn stream_together(mut group: Group, rows: &[Vec<f64>], lead: Option<f64>) -> Re
         stream.played_out()?;
         stream.followed()
     })();
+    let dry = stream.ran_dry();
     if let Err(e) = played {
         let ended = stream.end();
-        return Err(stream_failed(e, sent, ended.err()));
+        return Err(stream_failed(e, sent, dry, ended.err()));
     }
-    let dry = stream.ran_dry();
     let offsets: Vec<Option<f64>> = stream
         .last_statuses()
         .iter()

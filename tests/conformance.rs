@@ -13,7 +13,7 @@ use stepdrive_drive_protocol::{
     crc32, decode, encode, faults, frame_bytes, reseal, status, Action, Command, Config,
     FaultReport, Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
-use stepdrive_emulated_drive::{AlignFault, EmulatedDrive, Reply};
+use stepdrive_emulated_drive::{emulated_drive, AlignFault, EmulatedDrive, Reply};
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
 
@@ -109,7 +109,7 @@ fn the_documents_test_vectors_decode_to_what_the_document_says() {
 const WATCHDOG: u16 = 20;
 
 fn drive() -> EmulatedDrive {
-    EmulatedDrive::new(&Scenario::default(), WATCHDOG, 8)
+    emulated_drive(&Scenario::default(), WATCHDOG, 8)
 }
 
 /// The host's frames, numbered from 1 as a host process does.
@@ -1355,7 +1355,7 @@ fn h13_a_swapped_phase_is_caught_before_the_run_by_the_phase_b_step() {
     // check passes, and the rotor rests half an electrical period off; driven on phase B it
     // turns a quarter period towards −θ. Refused before the run's ENABLE.
     let mut d = drive();
-    d.set_align_fault(AlignFault::SwappedLeads);
+    AlignFault::SwappedLeads.apply(&mut d);
     let mut c = bridge_core(20_000.0, None);
     let (verdict, sent) = start_against(&mut d, &mut c);
     let Err(Refusal::PhaseStep { ratio, .. }) = verdict else {

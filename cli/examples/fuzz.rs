@@ -25,7 +25,7 @@ use stepdrive_drive_protocol::{
     cobs_encode, decode, encode, reseal, Action, Command, Config, FaultReport, Frame, Message,
     Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
 };
-use stepdrive_emulated_drive::EmulatedDrive;
+use stepdrive_emulated_drive::emulated_drive;
 use stepdrive_shared::scenario::MAX_SAMPLES;
 use stepdrive_shared::stats::StatsReport;
 use stepdrive_shared::Scenario;
@@ -254,7 +254,7 @@ fn fuzz_bridge(r: &mut Rng, t: &mut Tally) {
 }
 
 fn fuzz_drive(r: &mut Rng, t: &mut Tally, s: &Scenario) {
-    let mut d = EmulatedDrive::new(s, 1 + r.below(200) as u16, r.below(257) as u16);
+    let mut d = emulated_drive(s, 1 + r.below(200) as u16, r.below(257) as u16);
     for k in 0..1 + r.below(200) as u32 {
         for _ in 0..r.below(3) {
             let bytes = random_frame_bytes(r, k + 1);

@@ -509,6 +509,7 @@ pub fn run(a: RunArgs) -> Result<()> {
         instance: a.stack.instance.clone(),
         mode: a.mode,
         deployment,
+        drive_truth: a.stack.drive_truth.clone(),
     };
     let mut runs = Vec::new();
     for method in &a.select.methods {
@@ -668,6 +669,7 @@ pub fn serve(a: ServeArgs) -> Result<()> {
         instance: a.stack.instance.clone(),
         mode,
         deployment,
+        drive_truth: a.stack.drive_truth.clone(),
     };
     tracing::info!(
         "serving instance `{}` ({}): the axis is disabled; command it with `stepdrive axis \
@@ -780,6 +782,7 @@ pub fn latency(a: LatencyArgs) -> Result<()> {
             instance: a.stack.instance.clone(),
             mode: Mode::Realtime,
             deployment,
+            drive_truth: None,
         },
         skip_baselines: a.skip_baselines,
     };
@@ -1104,6 +1107,7 @@ pub fn identify(a: IdentifyArgs) -> Result<()> {
             instance: a.instance.clone(),
             mode: a.mode,
             deployment,
+            drive_truth: None,
         };
         use stepdrive_monitor::studies::identify::{identified, NodeResult};
         match stepdrive_monitor::supervise::launcher::run_identify(&run, &bounds, &opts)? {

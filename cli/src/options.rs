@@ -368,6 +368,12 @@ pub struct StackArgs {
     /// /dev/ttyACM0, instead of UDP.
     #[arg(long, value_name = "PATH", conflicts_with = "drive")]
     pub drive_port: Option<PathBuf>,
+    /// Hardware mode with --drive or --drive-port: the true rotor state a simulated drive
+    /// writes (CSV `k,t_s,theta_rad,omega_rad_s,i_a_a,i_b_a`, k from each run's first
+    /// sample; the emulated firmware's UART2, firmware/qemu-mps2/run): each method's true
+    /// figures are read from it at the method's end, beside what the sensors said.
+    #[arg(long, value_name = "FILE")]
+    pub drive_truth: Option<PathBuf>,
     /// Realtime: periods without a command before the plant (or drive) turns its outputs off
     /// and latches a fault (default 1000 = 50 ms at 20 kHz).
     #[arg(long, value_name = "N", value_parser = clap::value_parser!(u32).range(1..))]
@@ -417,6 +423,11 @@ impl StackArgs {
             anyhow::bail!(
                 "--drive and --drive-port are for --mode hardware (this run is {})",
                 mode.as_str()
+            );
+        }
+        if self.drive_truth.is_some() && drive.is_none() {
+            anyhow::bail!(
+                "--drive-truth is for a drive of --drive or --drive-port (an emulated drive started for the run writes its own)"
             );
         }
         if drive.is_some() {

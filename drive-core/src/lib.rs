@@ -13,6 +13,9 @@
 
 #![no_std]
 
+#[cfg(feature = "simulated-stage")]
+pub mod simulated;
+
 use stepdrive_drive_protocol::{
     decode, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport, Frame,
     Message, Plan, Sample, MAX_PLAN_ENTRIES,

@@ -21,7 +21,6 @@
 
 #[cfg(feature = "std")]
 pub mod transport;
-#[cfg(feature = "std")]
 pub mod units;
 
 use thiserror::Error;
@@ -680,6 +679,71 @@ pub fn cobs_decode(data: &[u8], out: &mut [u8]) -> Result<usize, DecodeError> {
     Ok(n)
 }
 
+/// The longest COBS encoding of a frame, its 0x00 delimiter included.
+pub const MAX_ENCODED: usize = MAX_FRAME + MAX_FRAME / 254 + 2;
+
+/// COBS frames out of a byte stream a byte at a time, in a fixed buffer: a firmware's
+/// receive path (no allocation, nothing to grow). Bytes up to a 0x00 delimiter are one
+/// frame; a run longer than any frame's encoding is dropped up to its delimiter, and a
+/// broken encoding is dropped, both counted. Empty frames (delimiters back to back, as a
+/// sender may use to resynchronise) are skipped.
+pub struct FrameCollector {
+    buf: [u8; MAX_ENCODED],
+    len: usize,
+    overlong: bool,
+    /// Frames dropped for a broken or overlong encoding.
+    pub framing_errors: u32,
+}
+
+impl Default for FrameCollector {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl FrameCollector {
+    pub const fn new() -> Self {
+        Self {
+            buf: [0; MAX_ENCODED],
+            len: 0,
+            overlong: false,
+            framing_errors: 0,
+        }
+    }
+
+    /// Takes one byte; at a delimiter that ends a whole frame, the frame decoded into
+    /// `out` (its length).
+    pub fn push(&mut self, byte: u8, out: &mut [u8]) -> Option<usize> {
+        if byte != 0 {
+            match self.buf.get_mut(self.len) {
+                Some(slot) => {
+                    *slot = byte;
+                    self.len += 1;
+                }
+                None => self.overlong = true,
+            }
+            return None;
+        }
+        let (len, overlong) = (self.len, self.overlong);
+        self.len = 0;
+        self.overlong = false;
+        if overlong {
+            self.framing_errors = self.framing_errors.wrapping_add(1);
+            return None;
+        }
+        if len == 0 {
+            return None;
+        }
+        match cobs_decode(&self.buf[..len], out) {
+            Ok(n) if n > 0 => Some(n),
+            _ => {
+                self.framing_errors = self.framing_errors.wrapping_add(1);
+                None
+            }
+        }
+    }
+}
+
 /// Classifies an incoming sequence number against the last accepted one: only strictly
 /// newer frames are accepted (wrapping comparison, so a u32 counter may roll over).
 pub fn is_newer(seq: u32, last: Option<u32>) -> bool {
@@ -795,6 +859,38 @@ mod tests {
                 0x18, 0xFC, 0xD0, 0x07, 0x30, 0xF8, 0xAF, 0x2B, 0xDF, 0xE0
             ]
         );
+    }
+
+    /// Frames fed a byte at a time come out whole, between garbage, an overlong run and a
+    /// broken encoding, each of those counted once.
+    #[test]
+    fn the_collector_takes_frames_a_byte_at_a_time() {
+        let mut c = FrameCollector::new();
+        let mut out = [0u8; MAX_FRAME];
+        let mut enc = [0u8; MAX_ENCODED];
+        let mut feed = |c: &mut FrameCollector, bytes: &[u8]| -> Vec<Vec<u8>> {
+            let mut got = Vec::new();
+            for &b in bytes {
+                if let Some(n) = c.push(b, &mut out) {
+                    got.push(out[..n].to_vec());
+                }
+            }
+            got
+        };
+        let hello = frame_bytes(7, Message::Hello);
+        let n = cobs_encode(&hello, &mut enc);
+        let mut line = vec![0, 0];
+        line.extend_from_slice(&enc[..n]);
+        // Longer than any frame's encoding, then its delimiter.
+        line.extend(std::iter::repeat_n(0x55u8, MAX_ENCODED + 10));
+        line.push(0);
+        // A code byte pointing past the frame's end.
+        line.extend_from_slice(&[5, 1, 0]);
+        line.extend_from_slice(&enc[..n]);
+        let got = feed(&mut c, &line);
+        assert_eq!(got, vec![hello.clone(), hello.clone()]);
+        assert_eq!(c.framing_errors, 2);
+        assert_eq!(decode(&got[0]).map(|f| f.seq), Ok(7));
     }
 
     #[test]
@@ -991,6 +1087,32 @@ mod tests {
             if let Ok(n) = cobs_decode(&data, &mut out) {
                 prop_assert!(n <= room);
             }
+        }
+
+        /// Any bytes, then a frame: the collector never panics, and the frame comes out
+        /// whole after the first delimiter.
+        #[test]
+        fn the_collector_resynchronises_after_any_bytes(
+            garbage in proptest::collection::vec(any::<u8>(), 0..2000),
+            seq in any::<u32>(),
+        ) {
+            let mut c = FrameCollector::new();
+            let mut out = [0u8; MAX_FRAME];
+            for &b in &garbage {
+                if let Some(n) = c.push(b, &mut out) {
+                    prop_assert!(n <= MAX_FRAME);
+                }
+            }
+            let frame = frame_bytes(seq, Message::Hello);
+            let mut enc = [0u8; MAX_ENCODED];
+            let n = cobs_encode(&frame, &mut enc);
+            let mut got = None;
+            for &b in [0u8].iter().chain(&enc[..n]) {
+                if let Some(k) = c.push(b, &mut out) {
+                    got = Some(out[..k].to_vec());
+                }
+            }
+            prop_assert_eq!(got, Some(frame));
         }
     }
 

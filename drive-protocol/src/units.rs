@@ -2,12 +2,24 @@
 //! duties. Used by the emulated drive (SI → counts) and by the bridge (counts → SI).
 
 use crate::{Config, MAX_DUTY};
-use std::f64::consts::TAU;
+use core::f64::consts::TAU;
+
+/// `x.round()`: the host's, or libm's where there is no `std` (a firmware build); both
+/// round exactly, half away from zero, so the two agree bit for bit.
+#[cfg(feature = "std")]
+pub fn round(x: f64) -> f64 {
+    x.round()
+}
+
+#[cfg(not(feature = "std"))]
+pub fn round(x: f64) -> f64 {
+    libm::round(x)
+}
 
 /// The emulated drive's scaling (a real drive reports its own in CONFIG).
 pub fn default_config(sample_rate_hz: f64, watchdog_periods: u16, plan_capacity: u16) -> Config {
     Config {
-        sample_rate_hz: sample_rate_hz.round() as u32,
+        sample_rate_hz: round(sample_rate_hz) as u32,
         // A 20-bit encoder: 6 µrad per count, far below the errors being measured.
         counts_per_rev: 1 << 20,
         // 16-bit current ADC, ±3.28 A.
@@ -49,21 +61,19 @@ impl Scaling {
         counts as f64 * self.rad_per_count
     }
     pub fn counts(&self, theta: f64) -> i64 {
-        (theta / self.rad_per_count).round() as i64
+        round(theta / self.rad_per_count) as i64
     }
     pub fn amps(&self, adc: u16) -> f64 {
         (f64::from(adc) - self.zero) * self.amp_per_count
     }
     pub fn adc(&self, amps: f64) -> u16 {
-        (amps / self.amp_per_count + self.zero)
-            .round()
-            .clamp(0.0, 65535.0) as u16
+        round(amps / self.amp_per_count + self.zero).clamp(0.0, 65535.0) as u16
     }
     pub fn bus_volts(&self, adc: u16) -> f64 {
         f64::from(adc) * self.volt_per_count
     }
     pub fn bus_adc(&self, volts: f64) -> u16 {
-        (volts / self.volt_per_count).round().clamp(0.0, 65535.0) as u16
+        round(volts / self.volt_per_count).clamp(0.0, 65535.0) as u16
     }
 }
 

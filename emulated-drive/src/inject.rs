@@ -56,6 +56,18 @@ pub enum AlignFault {
     SwappedLeads,
 }
 
+impl AlignFault {
+    /// Breaks `drive`'s alignment as this says: in the core (an alignment that never
+    /// ends), in its ALIGN's duty (reversed) or in the wiring (swapped leads).
+    pub fn apply(self, drive: &mut crate::EmulatedDrive) {
+        drive.break_alignment(
+            self == Self::Stuck,
+            self == Self::SwappedLeads,
+            self == Self::Reversed,
+        );
+    }
+}
+
 /// A xorshift64* generator: the injected losses are the same in every run.
 struct Dice(u64);
 

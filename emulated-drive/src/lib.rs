@@ -10,14 +10,13 @@ pub mod stage;
 pub mod truth;
 
 pub use inject::{AlignFault, FaultInjection, Injector};
-use stage::SimulatedStage;
 pub use stepdrive_drive_core::{DriveCore, DriveCounters, Limits, Reply};
 
 use std::net::SocketAddr;
 use std::time::Duration;
 use stepdrive_drive_protocol::transport::Wire;
-use stepdrive_drive_protocol::units::{default_config, Scaling};
-use stepdrive_drive_protocol::{FaultReport, Frame, MAX_DUTY, MAX_PLAN_ENTRIES};
+use stepdrive_drive_protocol::units::default_config;
+use stepdrive_drive_protocol::MAX_PLAN_ENTRIES;
 use stepdrive_runtime::pacer::WaitStrategy;
 use stepdrive_runtime::rt::RtOptions;
 use stepdrive_runtime::runner::{Runner, Settings};
@@ -25,106 +24,18 @@ use stepdrive_runtime::RunError;
 use stepdrive_shared::Scenario;
 
 /// The emulated board: the drive core (every rule of the drive's side of the protocol)
-/// over a simulated power stage (the motor model), with the fault injection's hooks.
-pub struct EmulatedDrive {
-    core: DriveCore,
-    stage: SimulatedStage,
-    /// The electrical zero nearest to where the rotor was at the run's first sample: the
-    /// truth's θ counts from it.
-    zero_rad: f64,
-    period_s: f64,
-    /// Fault injection: its ALIGN drives phase A the wrong way.
-    align_reversed: bool,
-}
+/// over the simulated power stage (the motor model), with the fault injection's hooks; the
+/// emulated firmware runs the same one.
+pub use stepdrive_drive_core::simulated::SimulatedDrive as EmulatedDrive;
 
-impl EmulatedDrive {
-    /// `plan_capacity`: PLAN entries kept (0: PLAN frames are not wanted, and dropped).
-    pub fn new(s: &Scenario, watchdog_periods: u16, plan_capacity: u16) -> Self {
-        let capacity = plan_capacity.min(MAX_PLAN_ENTRIES as u16);
-        let config = default_config(s.rates.current_loop_hz, watchdog_periods, capacity);
-        let align_duty = align_duty(s, config.align_current_ma);
-        Self {
-            stage: SimulatedStage::new(s, Scaling::new(&config)),
-            // The emulated board's sensors never read beyond a limit: its faults are
-            // injected (`inject`), so that runs against it stay what they were.
-            core: DriveCore::new(config, align_duty, Limits::default()),
-            zero_rad: 0.0,
-            period_s: s.sample_period_s(),
-            align_reversed: false,
-        }
-    }
-
-    /// The rotor's true state at the sample about to be sent with wire seq `seq`, once a
-    /// run has started.
-    pub fn truth(&self, seq: u32) -> Option<truth::TruthRow> {
-        let first = self.core.run_start()?;
-        let k = u64::from(seq.wrapping_sub(first));
-        let x = self.stage.motor_state();
-        Some(truth::TruthRow {
-            k,
-            t_s: k as f64 * self.period_s,
-            theta_rad: x[0] - self.zero_rad,
-            omega_rad_s: x[1],
-            i_a_a: x[2],
-            i_b_a: x[3],
-        })
-    }
-
-    /// Its ALIGN: phase A at `current_ma` for `ms` (0: it does not align), announced in
-    /// CONFIG.
-    pub fn set_alignment(&mut self, s: &Scenario, current_ma: u16, ms: u16) {
-        let duty = align_duty(s, current_ma);
-        let duty = if self.align_reversed { -duty } else { duty };
-        self.core.set_alignment(current_ma, ms, duty);
-    }
-
-    /// Breaks its alignment as `fault` says (fault injection): in the core (an alignment
-    /// that never ends), in its ALIGN's duty (reversed) or in the wiring (swapped leads).
-    pub fn set_align_fault(&mut self, fault: AlignFault) {
-        self.core.set_align_stuck(fault == AlignFault::Stuck);
-        self.stage
-            .set_swapped_leads(fault == AlignFault::SwappedLeads);
-        let reversed = fault == AlignFault::Reversed;
-        if reversed != self.align_reversed {
-            self.align_reversed = reversed;
-            let c = self.core.config;
-            let duty = -self.core.align_duty();
-            self.core
-                .set_alignment(c.align_current_ma, c.align_ms, duty);
-        }
-    }
-
-    /// The sample at the current instant, as a frame. At a run's first sample the load
-    /// profile's time and the truth's angle start from where the motor is.
-    pub fn sample_frame(&mut self, now_ns: u64) -> Frame {
-        if self.core.run_starts_at_next_sample() {
-            self.stage.restart_load_clock();
-            let pitch = std::f64::consts::TAU / self.stage.rotor_teeth();
-            self.zero_rad = (self.stage.motor_state()[0] / pitch).round() * pitch;
-        }
-        self.core.sample_frame(now_ns, &mut self.stage)
-    }
-
-    /// The core's period: the duties for the period starting now, driven into the motor.
-    pub fn run_period(&mut self, sample_seq: u32) -> Option<FaultReport> {
-        self.core.run_period(sample_seq, &mut self.stage)
-    }
-}
-
-/// The drive's state, counters and frame handling are the core's: an emulated drive is a
-/// drive core whose sample and period also move the simulated motor.
-impl std::ops::Deref for EmulatedDrive {
-    type Target = DriveCore;
-
-    fn deref(&self) -> &DriveCore {
-        &self.core
-    }
-}
-
-impl std::ops::DerefMut for EmulatedDrive {
-    fn deref_mut(&mut self) -> &mut DriveCore {
-        &mut self.core
-    }
+/// The emulated board for `s`: its rate, the default scaling, the scenario's `[plant]`
+/// motor and load; `plan_capacity`: PLAN entries kept (0: PLAN frames are not wanted, and
+/// dropped). Its ALIGN is set for the nominal motor's winding (`[motor]`), as a drive is
+/// configured for the motor it is sold with.
+pub fn emulated_drive(s: &Scenario, watchdog_periods: u16, plan_capacity: u16) -> EmulatedDrive {
+    let capacity = plan_capacity.min(MAX_PLAN_ENTRIES as u16);
+    let config = default_config(s.rates.current_loop_hz, watchdog_periods, capacity);
+    EmulatedDrive::new(config, stage::params(s), s.motor.resistance_ohm)
 }
 
 #[derive(Debug, Clone)]
@@ -178,14 +89,6 @@ pub enum EmulatorError {
     },
 }
 
-/// Phase A's duty for `current_ma` in the steady state (R·I), within the bus.
-fn align_duty(s: &Scenario, current_ma: u16) -> i16 {
-    let v = s.motor.resistance_ohm * f64::from(current_ma) * 1e-3;
-    (v / s.drive.bus_voltage_v * f64::from(MAX_DUTY))
-        .round()
-        .clamp(0.0, f64::from(MAX_DUTY)) as i16
-}
-
 pub fn run_emulator(o: &EmulatorOptions) -> Result<(), EmulatorError> {
     let axes = o.scenario.axis_count();
     if axes > 1 || o.listen.len() != 1 {
@@ -211,9 +114,9 @@ pub fn run_emulator(o: &EmulatorOptions) -> Result<(), EmulatorError> {
         None => None,
     };
     o.rt.apply()?;
-    let mut core = EmulatedDrive::new(&o.scenario, o.watchdog_periods, o.plan_capacity);
-    core.set_alignment(&o.scenario, o.align_ma, o.align_ms);
-    core.set_align_fault(o.inject.align);
+    let mut core = emulated_drive(&o.scenario, o.watchdog_periods, o.plan_capacity);
+    core.set_alignment(o.align_ma, o.align_ms);
+    o.inject.align.apply(&mut core);
     tracing::info!(listen = %o.listen[0], serial = ?o.serial, "emulated drive up; waiting for HELLO");
     let node = node::DriveNode::new(&o.scenario, core, Injector::new(o.inject.clone()), truth)
         .lasting(o.duration);
@@ -287,10 +190,10 @@ fn run_emulators(o: &EmulatorOptions) -> Result<(), EmulatorError> {
             }
             _ => None,
         };
-        let mut core = EmulatedDrive::new(s, o.watchdog_periods, o.plan_capacity);
-        core.set_alignment(s, o.align_ma, o.align_ms);
+        let mut core = emulated_drive(s, o.watchdog_periods, o.plan_capacity);
+        core.set_alignment(o.align_ma, o.align_ms);
         let inject = if axis == o.inject_axis {
-            core.set_align_fault(o.inject.align);
+            o.inject.align.apply(&mut core);
             o.inject.clone()
         } else {
             FaultInjection::default()
@@ -329,7 +232,7 @@ mod tests {
 
     #[test]
     fn corrupt_stale_and_late_frames_are_never_applied() {
-        let mut d = EmulatedDrive::new(&Scenario::default(), 20, 8);
+        let mut d = emulated_drive(&Scenario::default(), 20, 8);
         assert!(matches!(
             d.on_frame(&frame_bytes(1, Message::Hello)),
             Some(Reply::Config(_))
@@ -391,7 +294,7 @@ mod tests {
     /// dropped; one with a −32768 duty latches BAD_COMMAND like such a COMMAND.
     #[test]
     fn missing_commands_take_the_freshest_plan_entry_for_their_period() {
-        let mut d = in_session(EmulatedDrive::new(&Scenario::default(), 20, 8));
+        let mut d = in_session(emulated_drive(&Scenario::default(), 20, 8));
         assert_eq!(d.config.plan_capacity, 8);
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         d.run_period(0);
@@ -435,7 +338,7 @@ mod tests {
 
     #[test]
     fn watchdog_turns_outputs_off_and_latches_until_reset() {
-        let mut d = in_session(EmulatedDrive::new(&Scenario::default(), 20, 8));
+        let mut d = in_session(emulated_drive(&Scenario::default(), 20, 8));
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         d.run_period(0);
         d.on_frame(&frame_bytes(2, cmd(0, 5000)));
@@ -471,7 +374,7 @@ mod tests {
     /// first host's last: it gets its CONFIG and a new session, not a "stale frame".
     #[test]
     fn a_hello_starts_a_new_session() {
-        let mut d = EmulatedDrive::new(&Scenario::default(), 20, 8);
+        let mut d = emulated_drive(&Scenario::default(), 20, 8);
         assert!(matches!(
             d.on_frame(&frame_bytes(1, Message::Hello)),
             Some(Reply::Config(_))
@@ -498,7 +401,7 @@ mod tests {
     /// at; it rests there within the load's offset (0.01 N·m / 25 N·m/rad = 4e-4 rad).
     #[test]
     fn align_leaves_the_rotor_at_an_electrical_zero() {
-        let mut d = in_session(EmulatedDrive::new(&Scenario::default(), 2000, 8));
+        let mut d = in_session(emulated_drive(&Scenario::default(), 2000, 8));
         d.on_frame(&frame_bytes(1, Message::Control(Action::Enable)));
         for k in 0..400u32 {
             d.on_frame(&frame_bytes(2 + k, cmd(k.wrapping_sub(1), 12_000)));
@@ -548,7 +451,7 @@ mod tests {
             proptest::collection::vec(any::<u8>(), 0..64),
         );
         proptest!(|(frames in proptest::collection::vec(frame, 1..100))| {
-            let mut d = EmulatedDrive::new(&Scenario::default(), 20, 8);
+            let mut d = emulated_drive(&Scenario::default(), 20, 8);
             for (k, (seq, kind, payload)) in frames.into_iter().enumerate() {
                 let bytes = stepdrive_drive_protocol::raw_frame(seq, kind % 9, &payload);
                 d.on_frame(&bytes);

@@ -9,16 +9,7 @@ use std::sync::mpsc::{sync_channel, SyncSender, TrySendError};
 use std::thread::JoinHandle;
 
 /// One sample, k counted from the run's first (the first after ENABLE).
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct TruthRow {
-    pub k: u64,
-    pub t_s: f64,
-    /// From the electrical zero the alignment found, rad.
-    pub theta_rad: f64,
-    pub omega_rad_s: f64,
-    pub i_a_a: f64,
-    pub i_b_a: f64,
-}
+pub use stepdrive_drive_core::simulated::TruthRow;
 
 /// The CSV header of a truth file.
 pub const HEADER: &str = "k,t_s,theta_rad,omega_rad_s,i_a_a,i_b_a";

@@ -36,6 +36,9 @@ pub struct LaunchOptions {
     /// How every process runs; in hardware mode without `drive.address` an emulated drive
     /// is started on loopback.
     pub deployment: Deployment,
+    /// Hardware mode with a drive of its own that simulates its motor (the emulated
+    /// firmware): the file it writes the true rotor state to, read at each method's end.
+    pub drive_truth: Option<PathBuf>,
 }
 
 /// Child exit codes that are the child's own verdict on the run (a latched fault, a
@@ -185,14 +188,15 @@ fn launch(
     let mut children = Vec::with_capacity(stack.nodes.len() + 1);
     // Only an emulated drive knows where the rotor really is; it writes that beside the
     // run so that the report can set the truth against what the sensors said.
-    let truth = emulated.then(|| {
-        std::env::temp_dir().join(format!(
+    let truth = match emulated {
+        true => Some(std::env::temp_dir().join(format!(
             "{}{}-{}.csv",
             crate::supervise::children::TRUTH_PREFIX,
             std::process::id(),
             opts.instance
-        ))
-    });
+        ))),
+        false => opts.drive_truth.clone(),
+    };
     if let (true, Some(addr)) = (emulated, &d.drive.address) {
         children.push(spawn_emulated_drive(addr, &files, truth.as_deref())?);
     }
@@ -355,7 +359,7 @@ pub fn run_stack(
     let recording_on = recording.is_some();
     let observer = Observer::new(s.for_axis(0).unwrap_or(s), mode).recording(recording, method);
     let mut l = launch(&stack, s, opts, recording_on, &method_arg)?;
-    let truth = l.truth.clone();
+    let (truth, emulated) = (l.truth.clone(), l.emulated);
     let (ending, failures, mut sup) =
         supervise(&mut l, s, mode, method.as_str(), observer, helpers)?;
     let wall = sup.observer.wall_s();
@@ -378,7 +382,10 @@ pub fn run_stack(
     let mut observer = observer;
     if let Some(path) = truth {
         let rows = read_truth(&path);
-        let _ = std::fs::remove_file(&path);
+        // The emulated drive's file is the run's; a drive's own is not ours to remove.
+        if emulated {
+            let _ = std::fs::remove_file(&path);
+        }
         report.truth = truth_report(s, method, &rows);
         if !rows.is_empty() {
             observer.truth(&rows);

@@ -20,6 +20,8 @@ mod axis_safety;
 mod conformance;
 // End-to-end runs: the real `stepdrive` binary, its processes talking through iceoryx2.
 mod end_to_end;
+// The drive firmware in QEMU over the wire (ignored unless asked for: it must be built).
+mod firmware;
 // A plant that is not the model through the processes; the robustness command's document.
 mod real_motors;
 // A run recorded, read back, drawn and exported; recordings cut short are finished.

@@ -1,5 +1,6 @@
 //! Drive units and their calibration, as a CONFIG defines them: encoder counts, ADC counts,
-//! duties. Used by the emulated drive (SI → counts) and by the bridge (counts → SI).
+//! duties. Used by the simulated drive (SI → counts: the emulated drive, the firmware in
+//! QEMU) and by the bridge (counts → SI).
 
 use crate::{Config, MAX_DUTY};
 use core::f64::consts::TAU;

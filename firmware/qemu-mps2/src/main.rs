@@ -29,9 +29,9 @@ use smoltcp::socket::udp;
 use smoltcp::time::Instant;
 use smoltcp::wire::{EthernetAddress, IpAddress, IpCidr, Ipv4Address};
 use stepdrive_drive_core::simulated::{SimulatedDrive, StageParams};
-use stepdrive_drive_core::Reply;
+use stepdrive_drive_core::{DriveCore, Limits, Measurement, PowerStage, Reply};
 use stepdrive_drive_protocol::units::default_config;
-use stepdrive_drive_protocol::{Frame, Message, MAX_FRAME};
+use stepdrive_drive_protocol::{encode, Action, Command, Frame, Message, MAX_FRAME};
 use stepdrive_motor::{Disturbance, Motor};
 use uart::Uart;
 
@@ -43,11 +43,15 @@ mod uart;
 const CORE_HZ: u32 = 25_000_000;
 /// The sample rate: what a UART-linked board carries (docs/drive-protocol.md §2).
 const SAMPLE_HZ: u32 = 2_000;
-/// Periods without a COMMAND before the outputs go off and WATCHDOG latches: 0.1 s.
-const WATCHDOG_PERIODS: u16 = 200;
-/// PLAN entries kept: the watchdog's periods and the host's 8 between PLANs, so that a plan
-/// covers every period until the watchdog trips (§4.7).
-const PLAN_CAPACITY: u16 = WATCHDOG_PERIODS + 8;
+/// PLAN entries kept: the most one UDP datagram carries unfragmented on a 1500-byte MTU
+/// (smoltcp here does not reassemble fragments; docs/drive-protocol.md §4.7). 208 entries
+/// (0.1 s) were too few: a host at ordinary priority once went 208 periods without a
+/// COMMAND, and the rotor stepped out on held duties.
+const PLAN_CAPACITY: u16 = 360;
+/// Periods without a COMMAND before the outputs go off and WATCHDOG latches: 0.176 s, the
+/// plan's length less the host's 8 periods between PLANs, so that a plan covers every
+/// period until the watchdog trips (§4.7).
+const WATCHDOG_PERIODS: u16 = PLAN_CAPACITY - 8;
 
 /// The drive's address on QEMU's user network, and the port it listens on.
 const MAC: [u8; 6] = [0x02, 0x00, 0x5d, 0x00, 0x00, 0x01];
@@ -138,6 +142,90 @@ fn now_cycles() -> (u32, u32) {
     (TICKS.load(Ordering::Relaxed), CORE_HZ / SAMPLE_HZ - 1 - val)
 }
 
+/// A power stage that costs nothing: the drive core's own cost, measured alone.
+struct Still;
+
+impl PowerStage for Still {
+    fn drive(&mut self, _duty: (i16, i16)) {}
+
+    fn measure(&mut self) -> Measurement {
+        Measurement {
+            encoder_counts: 0,
+            adc_a: 32_768,
+            adc_b: 32_768,
+            adc_bus: 2_400,
+        }
+    }
+}
+
+/// The drive core's cost a period, in core cycles by SysTick (instructions × 1/40 under
+/// QEMU's `-icount shift=0`): the SAMPLE built and encoded, the COMMAND answering it
+/// decoded (CRC included) and applied, the period run; the stage and the link left out.
+fn bench_core(syst: &mut cortex_m::peripheral::SYST) -> u32 {
+    const PERIODS: u32 = 200;
+    let mut core = DriveCore::new(
+        default_config(f64::from(SAMPLE_HZ), WATCHDOG_PERIODS, PLAN_CAPACITY),
+        0,
+        Limits::default(),
+    );
+    let mut buf = [0u8; MAX_FRAME];
+    let mut feed = |core: &mut DriveCore, seq: u32, message: Message| {
+        let n = encode(
+            &Frame {
+                seq,
+                timestamp_ns: 0,
+                message,
+            },
+            &mut buf,
+        );
+        let _ = core.on_frame(&buf[..n]);
+    };
+    feed(&mut core, 1, Message::Hello);
+    feed(&mut core, 2, Message::Control(Action::Enable));
+    // The COMMANDs' bytes made beforehand: a host's work, not the drive's.
+    let mut commands = [[0u8; 32]; PERIODS as usize];
+    let mut lengths = [0usize; PERIODS as usize];
+    for k in 0..PERIODS {
+        let n = encode(
+            &Frame {
+                seq: 3 + k,
+                timestamp_ns: 0,
+                message: Message::Command(Command {
+                    // Each answers the SAMPLE before the period it is for (SAMPLE seqs
+                    // count from 1).
+                    answers_sample: k,
+                    duty_a: 1_000,
+                    duty_b: -1_000,
+                }),
+            },
+            &mut buf,
+        );
+        commands[k as usize][..n].copy_from_slice(&buf[..n]);
+        lengths[k as usize] = n;
+    }
+    syst.set_clock_source(SystClkSource::Core);
+    syst.set_reload(0x00FF_FFFF);
+    syst.clear_current();
+    syst.enable_counter();
+    let start = cortex_m::peripheral::SYST::get_current();
+    for k in 0..PERIODS as usize {
+        let _ = core.on_frame(&commands[k][..lengths[k]]);
+        let sample = core.sample_frame(0, &mut Still);
+        let n = encode(&sample, &mut buf);
+        core::hint::black_box(&buf[..n]);
+        let _ = core.run_period(sample.seq, &mut Still);
+    }
+    let end = cortex_m::peripheral::SYST::get_current();
+    syst.disable_counter();
+    // Every COMMAND but the first (it answers no SAMPLE) applied, or the figure is not
+    // the cost of a commanded period.
+    match core.counters.commands_applied {
+        // The 24-bit counter counts down, from the reload once started.
+        n if n + 1 >= u64::from(PERIODS) => (start.wrapping_sub(end) & 0x00FF_FFFF) / PERIODS,
+        _ => 0,
+    }
+}
+
 #[entry]
 fn main() -> ! {
     // SAFETY: the board's UARTs, and only this loop drives them.
@@ -208,6 +296,10 @@ fn main() -> ! {
     );
 
     let mut p = cortex_m::Peripherals::take().expect("taken once, at start");
+    log.line(
+        b"drive core cycles a period ",
+        i64::from(bench_core(&mut p.SYST)),
+    );
     // SAFETY: their handler (DefaultHandler) only clears the devices' interrupts.
     unsafe {
         cortex_m::peripheral::NVIC::unmask(Irq(Uart::UART0_RX_IRQ));

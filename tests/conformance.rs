@@ -11,7 +11,7 @@ use stepdrive_bridge::core::{
 use stepdrive_bridge::link::{DriveLink, EncoderCalibration, Event, HeldLoad, HOLD_SAMPLES};
 use stepdrive_drive_protocol::{
     crc32, decode, encode, faults, frame_bytes, reseal, status, Action, Command, Config,
-    FaultReport, Frame, Message, Plan, Sample, MAX_FRAME, MAX_PLAN_ENTRIES,
+    FaultReport, Frame, Message, Plan, Sample, MAX_FRAME,
 };
 use stepdrive_emulated_drive::{emulated_drive, AlignFault, EmulatedDrive, Reply};
 use stepdrive_shared::stats::StatsReport;
@@ -384,15 +384,7 @@ fn d9_align_brings_the_rotor_to_an_electrical_zero_from_wherever_it_was() {
 }
 
 fn plan(answers: u32, duties: &[i16]) -> Message {
-    let mut d = [[0i16; 2]; MAX_PLAN_ENTRIES];
-    for (slot, &x) in d.iter_mut().zip(duties) {
-        *slot = [x, x];
-    }
-    Message::Plan(Plan {
-        answers_sample: answers,
-        count: duties.len() as u16,
-        duties: d,
-    })
+    Message::Plan(Plan::new(answers, duties.iter().map(|&x| [x, x])))
 }
 
 #[test]

@@ -16,7 +16,7 @@ use std::process::{Child, Command as Process, Stdio};
 use std::time::{Duration, Instant};
 use stepdrive_drive_protocol::{
     decode, encode, faults, status, Action, Command, Config, Frame, Message, Plan, Sample,
-    MAX_FRAME, MAX_PLAN_ENTRIES,
+    MAX_FRAME,
 };
 
 /// The firmware's UDP port on QEMU's user network (firmware/qemu-mps2/src/main.rs).
@@ -25,9 +25,8 @@ const DRIVE_PORT: u16 = 5555;
 fn elf() -> PathBuf {
     std::env::var_os("STEPDRIVE_FIRMWARE_ELF").map_or_else(
         || {
-            PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(
-                "../firmware/target/thumbv7em-none-eabihf/release/stepdrive-firmware-qemu-mps2",
-            )
+            PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+                .join("../firmware/target/stepdrive-firmware-qemu-mps2.elf")
         },
         PathBuf::from,
     )
@@ -213,18 +212,6 @@ impl Host {
     }
 }
 
-fn plan(answers: u32, duties: &[i16]) -> Message {
-    let mut d = [[0i16; 2]; MAX_PLAN_ENTRIES];
-    for (slot, &x) in d.iter_mut().zip(duties) {
-        *slot = [x, 0];
-    }
-    Message::Plan(Plan {
-        answers_sample: answers,
-        count: duties.len() as u16,
-        duties: d,
-    })
-}
-
 /// A session: HELLO answered by a CONFIG at 2 kHz; COMMANDs before ENABLE never drive;
 /// ENABLE, then COMMANDs applied (through a jump in the host's sequence numbers); a frame
 /// with a bad CRC, garbage, an oversized datagram and a CONFIG sent to the drive change
@@ -303,7 +290,10 @@ fn the_firmware_keeps_the_protocol_over_the_wire() {
         duty_a: 5_000,
         duty_b: 0,
     }));
-    host.send(plan(s0, &entries));
+    host.send(Message::Plan(Plan::new(
+        s0,
+        entries.iter().map(|&x| [x, 0]),
+    )));
     let mut planned = 0;
     for _ in 0..30 {
         let (seq, s) = host.sample();

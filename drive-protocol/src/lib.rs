@@ -136,6 +136,23 @@ pub struct Plan {
 }
 
 impl Plan {
+    /// The plan continuing the COMMAND that answers `answers_sample`: `entries` (the first
+    /// [`MAX_PLAN_ENTRIES`] of them), (duty_a, duty_b) for the periods from
+    /// `answers_sample + 2` on.
+    pub fn new(answers_sample: u32, entries: impl IntoIterator<Item = [i16; 2]>) -> Self {
+        let mut duties = [[0; 2]; MAX_PLAN_ENTRIES];
+        let mut count = 0;
+        for (slot, entry) in duties.iter_mut().zip(entries) {
+            *slot = entry;
+            count += 1;
+        }
+        Self {
+            answers_sample,
+            count,
+            duties,
+        }
+    }
+
     pub fn entries(&self) -> &[[i16; 2]] {
         &self.duties[..usize::from(self.count).min(MAX_PLAN_ENTRIES)]
     }

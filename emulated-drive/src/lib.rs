@@ -270,15 +270,7 @@ mod tests {
     }
 
     fn plan(answers: u32, duties: &[i16]) -> Message {
-        let mut d = [[0i16; 2]; MAX_PLAN_ENTRIES];
-        for (slot, &x) in d.iter_mut().zip(duties) {
-            *slot = [x, -x];
-        }
-        Message::Plan(Plan {
-            answers_sample: answers,
-            count: duties.len() as u16,
-            duties: d,
-        })
+        Message::Plan(Plan::new(answers, duties.iter().map(|&x| [x, -x])))
     }
 
     fn applied(d: &mut EmulatedDrive) -> (i16, u32, u16) {

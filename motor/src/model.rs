@@ -24,6 +24,17 @@ pub struct Motor {
 }
 
 impl Motor {
+    /// The paper's Table I motor (a scenario's `[motor]` defaults; a firmware's simulated
+    /// motor).
+    pub const TABLE_I: Motor = Motor {
+        l: 40e-3,
+        r: 14.8,
+        j: 8e-5,
+        k_m: 0.5,
+        n_r: 50.0,
+        b: 5e-3,
+    };
+
     /// ẋ of eq. (1) for phase voltages `v` and load torque `tau_l`.
     pub fn derivative(&self, x: &MotorState, v: [f64; 2], tau_l: f64) -> MotorState {
         let (s, c) = math::sin_cos(self.n_r * x[THETA]);
@@ -166,16 +177,8 @@ impl Motor {
 mod tests {
     use super::*;
 
-    /// The paper's Table 1 motor.
     fn table1() -> Motor {
-        Motor {
-            l: 40e-3,
-            r: 14.8,
-            j: 8e-5,
-            k_m: 0.5,
-            n_r: 50.0,
-            b: 5e-3,
-        }
+        Motor::TABLE_I
     }
 
     /// Locked rotor (J → ∞ is emulated by holding θ, ω at zero: with ω = 0 the electrical

@@ -1109,6 +1109,17 @@ impl FromStr for Mode {
 mod tests {
     use super::*;
 
+    /// The scenario's default motor is the one the firmware simulates (`Motor::TABLE_I`).
+    #[test]
+    fn the_default_motor_is_table_i() {
+        let m = stepdrive_motor::Motor::from(&MotorParams::default());
+        let t = stepdrive_motor::Motor::TABLE_I;
+        assert_eq!(
+            [m.l, m.r, m.j, m.k_m, m.n_r, m.b].map(f64::to_bits),
+            [t.l, t.r, t.j, t.k_m, t.n_r, t.b].map(f64::to_bits)
+        );
+    }
+
     #[test]
     fn default_scenario_is_valid_and_round_trips_through_toml() {
         let s = Scenario::default();

@@ -61,14 +61,7 @@ const DRIVE_PORT: u16 = 5555;
 
 /// The default scenario's motor and load (docs/paper.md Table I; `[load] torque_nm`), as the
 /// emulated drive simulates it for a scenario that leaves `[plant]` alone.
-const MOTOR: Motor = Motor {
-    l: 40e-3,
-    r: 14.8,
-    j: 8e-5,
-    k_m: 0.5,
-    n_r: 50.0,
-    b: 5e-3,
-};
+const MOTOR: Motor = Motor::TABLE_I;
 const LOAD_NM: f64 = 0.01;
 const BUS_V: f64 = 24.0;
 /// RK4 steps a period: one (f64 arithmetic is in software on a Cortex-M4F; four steps cost

@@ -246,6 +246,16 @@ impl DriveCore {
         self.tx_seq.wrapping_sub(1)
     }
 
+    /// A CONFIG or FAULT_REPORT as the frame the drive sends at `now_ns` (its seq
+    /// [`report_seq`](Self::report_seq)).
+    pub fn report_frame(&self, message: Message, now_ns: u64) -> Frame {
+        Frame {
+            seq: self.report_seq(),
+            timestamp_ns: now_ns,
+            message,
+        }
+    }
+
     fn end_run(&mut self) {
         self.run_start = None;
         self.run_pending = false;

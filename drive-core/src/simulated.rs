@@ -15,9 +15,6 @@ pub struct StageParams {
     pub motor: Motor,
     pub load: Disturbance,
     pub sample_hz: f64,
-    /// The sample period, s (`1 / sample_hz`, given so that the host's and a firmware's
-    /// periods are the same number).
-    pub period_s: f64,
     /// RK4 sub-steps per period.
     pub substeps: u32,
     pub bus_v: f64,
@@ -25,6 +22,8 @@ pub struct StageParams {
 
 pub struct SimulatedStage {
     p: StageParams,
+    /// The sample period, s: `1 / sample_hz`, as the plant's (`Scenario::sample_period_s`).
+    period_s: f64,
     x: MotorState,
     /// Periods driven, and the one the load profile's time counts from (the run's start).
     k: u64,
@@ -40,6 +39,7 @@ impl SimulatedStage {
     /// `p`'s motor at rest at θ = 0, behind a drive that reports in `scaling`'s units.
     pub fn new(p: StageParams, scaling: Scaling) -> Self {
         Self {
+            period_s: 1.0 / p.sample_hz,
             p,
             x: MotorState::zeros(),
             k: 0,
@@ -83,7 +83,7 @@ impl PowerStage for SimulatedStage {
             v,
             &self.p.load,
             t,
-            self.p.period_s,
+            self.period_s,
             self.p.substeps,
         );
         self.k += 1;
@@ -104,6 +104,9 @@ impl PowerStage for SimulatedStage {
     }
 }
 
+/// The CSV header of a truth file; each [`TruthRow`] displays as one line of it.
+pub const TRUTH_HEADER: &str = "k,t_s,theta_rad,omega_rad_s,i_a_a,i_b_a";
+
 /// The rotor's true state at one sample, k counted from the run's first (the first after
 /// ENABLE).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -115,6 +118,18 @@ pub struct TruthRow {
     pub omega_rad_s: f64,
     pub i_a_a: f64,
     pub i_b_a: f64,
+}
+
+/// One line of a truth file (without its newline): what `emulate-drive`'s file and the
+/// firmware's UART2 carry, and `stepdrive run` reads back.
+impl core::fmt::Display for TruthRow {
+    fn fmt(&self, f: &mut core::fmt::Formatter<'_>) -> core::fmt::Result {
+        write!(
+            f,
+            "{},{},{:e},{:e},{:e},{:e}",
+            self.k, self.t_s, self.theta_rad, self.omega_rad_s, self.i_a_a, self.i_b_a
+        )
+    }
 }
 
 /// A simulated board: the drive core (every rule of the drive's side of the protocol) over
@@ -154,7 +169,7 @@ impl SimulatedDrive {
         let x = self.stage.motor_state();
         Some(TruthRow {
             k,
-            t_s: k as f64 * self.stage.p.period_s,
+            t_s: k as f64 * self.stage.period_s,
             theta_rad: x[THETA] - self.zero_rad,
             omega_rad_s: x[OMEGA],
             i_a_a: x[I_A],

@@ -8,7 +8,7 @@ use crate::truth::TruthWriter;
 use crate::{EmulatedDrive, Reply};
 use std::time::Duration;
 use stepdrive_drive_protocol::transport::Wire;
-use stepdrive_drive_protocol::{faults, Frame, Message, MAX_FRAME};
+use stepdrive_drive_protocol::{faults, Message, MAX_FRAME};
 use stepdrive_runtime::node::{Cx, Flow, Late, Node, Pace, Poll, Role, Start};
 use stepdrive_runtime::pacer::sleep_until;
 use stepdrive_runtime::RunError;
@@ -121,11 +121,7 @@ impl Node for DriveNode {
                     *peer = Some(from);
                 }
                 self.running_since = None;
-                let f = Frame {
-                    seq: self.core.report_seq(),
-                    timestamp_ns: cx.now(),
-                    message: Message::Config(c),
-                };
+                let f = self.core.report_frame(Message::Config(c), cx.now());
                 send_frame(wire, &f, &mut self.tx);
             }
         }
@@ -182,11 +178,9 @@ impl Node for DriveNode {
                 faults = report.fault_bits,
                 "drive fault latched: outputs off until RESET"
             );
-            let f = Frame {
-                seq: self.core.report_seq(),
-                timestamp_ns: cx.now(),
-                message: Message::FaultReport(report),
-            };
+            let f = self
+                .core
+                .report_frame(Message::FaultReport(report), cx.now());
             send_frame(wire, &f, &mut self.tx);
         }
         self.sample_seq = self.sample_seq.wrapping_add(1);

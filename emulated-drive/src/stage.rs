@@ -12,7 +12,6 @@ pub fn params(s: &Scenario) -> StageParams {
         motor: Motor::from(&s.plant_motor()),
         load: s.disturbance(),
         sample_hz: s.rates.current_loop_hz,
-        period_s: s.sample_period_s(),
         substeps: s.rates.plant_substeps,
         bus_v: s.drive.bus_voltage_v,
     }

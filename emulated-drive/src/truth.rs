@@ -8,11 +8,9 @@ use std::path::{Path, PathBuf};
 use std::sync::mpsc::{sync_channel, SyncSender, TrySendError};
 use std::thread::JoinHandle;
 
-/// One sample, k counted from the run's first (the first after ENABLE).
-pub use stepdrive_drive_core::simulated::TruthRow;
-
-/// The CSV header of a truth file.
-pub const HEADER: &str = "k,t_s,theta_rad,omega_rad_s,i_a_a,i_b_a";
+/// One sample, k counted from the run's first (the first after ENABLE), and the file's
+/// header: the simulated drive's, which the firmware writes too.
+pub use stepdrive_drive_core::simulated::{TruthRow, TRUTH_HEADER as HEADER};
 
 /// Rows the channel holds: 3.3 s at 20 kHz, far more than a writer falls behind.
 const QUEUE: usize = 1 << 16;
@@ -35,11 +33,7 @@ impl TruthWriter {
             .spawn(move || {
                 let mut rows = 0;
                 for r in rx {
-                    writeln!(
-                        out,
-                        "{},{},{:e},{:e},{:e},{:e}",
-                        r.k, r.t_s, r.theta_rad, r.omega_rad_s, r.i_a_a, r.i_b_a
-                    )?;
+                    writeln!(out, "{r}")?;
                     rows += 1;
                 }
                 out.flush()?;

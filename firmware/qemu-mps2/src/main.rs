@@ -28,7 +28,7 @@ use smoltcp::iface::{Config as NetConfig, Interface, SocketSet, SocketStorage};
 use smoltcp::socket::udp;
 use smoltcp::time::Instant;
 use smoltcp::wire::{EthernetAddress, IpAddress, IpCidr, Ipv4Address};
-use stepdrive_drive_core::simulated::{SimulatedDrive, StageParams};
+use stepdrive_drive_core::simulated::{SimulatedDrive, StageParams, TRUTH_HEADER};
 use stepdrive_drive_core::{DriveCore, Limits, Measurement, PowerStage, Reply};
 use stepdrive_drive_protocol::units::default_config;
 use stepdrive_drive_protocol::{encode, Action, Command, Frame, Message, MAX_FRAME};
@@ -235,12 +235,11 @@ fn main() -> ! {
         motor: MOTOR,
         load: Disturbance::constant(LOAD_NM),
         sample_hz: f64::from(SAMPLE_HZ),
-        period_s: 1.0 / f64::from(SAMPLE_HZ),
         substeps: SUBSTEPS,
         bus_v: BUS_V,
     };
     let mut drive = SimulatedDrive::new(config, stage, MOTOR.r);
-    let _ = truth.write_str("k,t_s,theta_rad,omega_rad_s,i_a_a,i_b_a\n");
+    let _ = writeln!(truth, "{TRUTH_HEADER}");
 
     // The UDP link's buffers: never returned from, main's locals live for ever.
     let mut storage = [SocketStorage::EMPTY; 1];
@@ -315,11 +314,7 @@ fn main() -> ! {
             let from_host = links.peer.is_none_or(|p| p == from);
             if let Some(Reply::Config(c)) = drive.on_frame_from(&frame[..n], from_host) {
                 links.peer = Some(from);
-                let f = Frame {
-                    seq: drive.report_seq(),
-                    timestamp_ns: u64::from(done) * period_ns,
-                    message: Message::Config(c),
-                };
+                let f = drive.report_frame(Message::Config(c), u64::from(done) * period_ns);
                 links.send(&f, from, now);
             }
         }
@@ -338,18 +333,10 @@ fn main() -> ! {
                 links.send(&sample, peer, now);
             }
             if let Some(t) = drive.truth(sample.seq) {
-                let _ = writeln!(
-                    truth,
-                    "{},{},{:e},{:e},{:e},{:e}",
-                    t.k, t.t_s, t.theta_rad, t.omega_rad_s, t.i_a_a, t.i_b_a
-                );
+                let _ = writeln!(truth, "{t}");
             }
             if let Some(report) = drive.run_period(sample.seq) {
-                let f = Frame {
-                    seq: drive.report_seq(),
-                    timestamp_ns: now_ns,
-                    message: Message::FaultReport(report),
-                };
+                let f = drive.report_frame(Message::FaultReport(report), now_ns);
                 if let Some(peer) = links.peer {
                     links.send(&f, peer, now);
                 }

@@ -766,6 +766,24 @@ fn d23_past_a_plans_end_the_last_duties_are_held_and_not_planned() {
     assert_eq!((got.duty_a, got.applied_command_seq), (3000, plan_seq));
 }
 
+#[test]
+fn d23_a_shorter_plan_that_replaces_a_longer_one_ends_where_it_ends() {
+    let mut d = drive();
+    let mut h = following(&mut d);
+    let (s, _) = period(&mut d);
+    h.command(&mut d, s, 1000);
+    h.send(&mut d, plan(s, &[2000, 3000, 4000]));
+    h.send(&mut d, plan(s, &[5000])); // the same base: replaces, entries and length
+    let plan_seq = h.0;
+    period(&mut d); // s + 1: C(s)
+    period(&mut d); // s + 2: entry 0
+    let (_, got) = period(&mut d); // s + 3: past the new plan's end, not the old one's
+    assert_eq!(got.duty_a, 5000);
+    let (_, got) = period(&mut d);
+    assert_eq!(got.status, status::ENABLED | status::COMMAND_HELD);
+    assert_eq!((got.duty_a, got.applied_command_seq), (5000, plan_seq));
+}
+
 // ---- the host (H1–H17), against the bridge's link and core ----
 
 fn configured_link() -> DriveLink {

@@ -17,8 +17,8 @@
 pub mod simulated;
 
 use stepdrive_drive_protocol::{
-    decode, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport, Frame,
-    Message, Plan, Sample, MAX_PLAN_ENTRIES,
+    decode_view, faults, is_newer, status, Action, Command, Config, DecodeError, FaultReport,
+    Frame, Message, Plan, PlanView, Sample, MAX_PLAN_ENTRIES,
 };
 
 /// The bridges and the sensors: what the core drives and reads, in drive units.
@@ -103,8 +103,10 @@ pub struct DriveCore {
     last_rx_seq: Option<u32>,
     pending: Option<Command>,
     pending_seq: u32,
-    /// The PLAN with the newest `answers_sample`, and its frame's seq.
-    plan: Option<(Plan, u32)>,
+    /// The PLAN with the newest `answers_sample`, and its frame's seq (`None`: no plan; the
+    /// table is kept, and written in place, for the next).
+    plan: Plan,
+    plan_seq: Option<u32>,
     planned: bool,
     /// The duties to hold when a period has no COMMAND, and the frame they came from.
     held_duty: (i16, i16),
@@ -166,7 +168,8 @@ impl DriveCore {
             last_rx_seq: None,
             pending: None,
             pending_seq: 0,
-            plan: None,
+            plan: Plan::new(0, []),
+            plan_seq: None,
             planned: false,
             held_duty: (0, 0),
             held_seq: 0,
@@ -273,7 +276,7 @@ impl DriveCore {
         self.armed = false;
         self.since_command = 0;
         self.pending = None;
-        self.plan = None;
+        self.plan_seq = None;
         // Nothing to hold: the next ENABLE starts from duty 0 (§4.1).
         self.held_duty = (0, 0);
         self.held_seq = 0;
@@ -291,7 +294,7 @@ impl DriveCore {
     /// address (UDP), or there is no session yet. From any other address only a HELLO is
     /// read, and only while the session is not live.
     pub fn on_frame_from(&mut self, bytes: &[u8], from_host: bool) -> Option<Reply> {
-        let frame = match decode(bytes) {
+        let frame = match decode_view(bytes) {
             Ok(f) => f,
             Err(DecodeError::BadCrc { .. }) => {
                 self.counters.crc_errors += 1;
@@ -393,17 +396,16 @@ impl DriveCore {
             }
             Message::Hello => Some(Reply::Config(self.config)),
             Message::Plan(p) => {
-                if p.entries().iter().flatten().any(|&d| d == i16::MIN) {
+                if p.entries().flatten().any(|d| d == i16::MIN) {
                     self.latched |= faults::BAD_COMMAND;
                 } else if p.count > self.config.plan_capacity {
                     // More than it announced it keeps: malformed for this drive.
                     self.counters.bad_frames += 1;
-                } else if self
-                    .plan
-                    .is_none_or(|(old, _)| !is_newer(old.answers_sample, Some(p.answers_sample)))
+                } else if self.plan_seq.is_none()
+                    || !is_newer(self.plan.answers_sample, Some(p.answers_sample))
                 {
                     // Newer, or equal (a later frame for the same base replaces it).
-                    self.plan = Some((p, frame.seq));
+                    self.keep_plan(p, frame.seq);
                 }
                 None
             }
@@ -411,9 +413,23 @@ impl DriveCore {
         }
     }
 
+    /// Takes `p` as the plan, into the table kept for it (no 4 KB value built and moved).
+    fn keep_plan(&mut self, p: PlanView, seq: u32) {
+        let kept = &mut self.plan;
+        // Entries past `count` stay zero, as a Plan's are.
+        let old = usize::from(kept.count);
+        kept.duties[usize::from(p.count)..old.max(usize::from(p.count))].fill([0, 0]);
+        for (slot, entry) in kept.duties.iter_mut().zip(p.entries()) {
+            *slot = entry;
+        }
+        kept.answers_sample = p.answers_sample;
+        kept.count = p.count;
+        self.plan_seq = Some(seq);
+    }
+
     /// The PLAN entry for the period starting at SAMPLE `sample_seq`, with its frame seq.
     fn planned_duty(&self, sample_seq: u32) -> Option<((i16, i16), u32)> {
-        let (p, seq) = self.plan.as_ref()?;
+        let (p, seq) = (&self.plan, self.plan_seq.as_ref()?);
         // Entry j is for the period starting at answers_sample + 2 + j.
         let j = sample_seq.wrapping_sub(p.answers_sample).wrapping_sub(2);
         let [a, b] = *p.entries().get(usize::try_from(j).ok()?)?;

@@ -158,6 +158,32 @@ impl Plan {
     }
 }
 
+/// A received PLAN, its entries still in the frame's bytes ([`decode_view`]): a drive takes
+/// a frame every period, and a [`Plan`] held inline made every one of them a 4 KB copy.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PlanView<'a> {
+    pub answers_sample: u32,
+    /// 1 ..= MAX_PLAN_ENTRIES, the entries' count.
+    pub count: u16,
+    table: &'a [u8],
+}
+
+impl<'a> PlanView<'a> {
+    /// (duty_a, duty_b) for the periods from `answers_sample + 2` on.
+    pub fn entries(&self) -> impl ExactSizeIterator<Item = [i16; 2]> + 'a {
+        self.table.chunks_exact(4).map(|e| {
+            [
+                i16::from_le_bytes([e[0], e[1]]),
+                i16::from_le_bytes([e[2], e[3]]),
+            ]
+        })
+    }
+
+    pub fn to_plan(&self) -> Plan {
+        Plan::new(self.answers_sample, self.entries())
+    }
+}
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Action {
     Enable = 1,
@@ -274,11 +300,13 @@ impl Config {
     }
 }
 
+/// A message; `P` is how a PLAN is held: a [`Plan`] of its own (what a host builds, what
+/// [`decode`] gives) or a [`PlanView`] of the received bytes ([`decode_view`]).
 // A Message lives on the stack of the wire path, which must not allocate: the 4 KB PLAN
 // variant stays inline rather than boxed.
 #[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Message {
+pub enum Message<P = Plan> {
     /// drive → host, every period.
     Sample(Sample),
     /// host → drive, every period.
@@ -292,10 +320,10 @@ pub enum Message {
     /// host → drive: announces the host (its UDP address) and asks for CONFIG.
     Hello,
     /// host → drive, every few periods when the drive keeps plans.
-    Plan(Plan),
+    Plan(P),
 }
 
-impl Message {
+impl<P> Message<P> {
     pub fn kind(&self) -> u8 {
         match self {
             Message::Sample(_) => 1,
@@ -308,6 +336,21 @@ impl Message {
         }
     }
 
+    /// The same message with its PLAN (if it is one) held as `f` makes it.
+    pub fn map_plan<Q>(self, f: impl FnOnce(P) -> Q) -> Message<Q> {
+        match self {
+            Message::Sample(s) => Message::Sample(s),
+            Message::Command(c) => Message::Command(c),
+            Message::Control(a) => Message::Control(a),
+            Message::FaultReport(r) => Message::FaultReport(r),
+            Message::Config(c) => Message::Config(c),
+            Message::Hello => Message::Hello,
+            Message::Plan(p) => Message::Plan(f(p)),
+        }
+    }
+}
+
+impl Message {
     /// The payload length this message encodes to.
     fn payload_len(&self) -> usize {
         match self {
@@ -350,12 +393,12 @@ impl Message {
     }
 }
 
-/// A decoded frame.
+/// A decoded frame (`P` as in [`Message`]).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Frame {
+pub struct Frame<P = Plan> {
     pub seq: u32,
     pub timestamp_ns: u64,
-    pub message: Message,
+    pub message: Message<P>,
 }
 
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
@@ -511,6 +554,16 @@ impl Reader<'_> {
 
 /// Decodes and checks one frame: length, magic, version, kind, payload length, CRC.
 pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
+    let f = decode_view(b)?;
+    Ok(Frame {
+        seq: f.seq,
+        timestamp_ns: f.timestamp_ns,
+        message: f.message.map_plan(|p| p.to_plan()),
+    })
+}
+
+/// [`decode`], a PLAN's entries left in `b`: nothing the size of a PLAN is built or copied.
+pub fn decode_view(b: &[u8]) -> Result<Frame<PlanView<'_>>, DecodeError> {
     if b.len() < HEADER_LEN + CRC_LEN {
         return Err(DecodeError::TooShort(b.len()));
     }
@@ -609,18 +662,10 @@ pub fn decode(b: &[u8]) -> Result<Frame, DecodeError> {
                     len: payload,
                 });
             }
-            let mut duties = [[0i16; 2]; MAX_PLAN_ENTRIES];
-            let table = &body[r.at..r.at + 4 * entries];
-            for (d, e) in duties.iter_mut().zip(table.chunks_exact(4)) {
-                *d = [
-                    i16::from_le_bytes([e[0], e[1]]),
-                    i16::from_le_bytes([e[2], e[3]]),
-                ];
-            }
-            Message::Plan(Plan {
+            Message::Plan(PlanView {
                 answers_sample,
                 count,
-                duties,
+                table: &body[r.at..r.at + 4 * entries],
             })
         }
         6 => {

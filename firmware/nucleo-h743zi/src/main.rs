@@ -53,14 +53,14 @@ use embassy_stm32::timer::qei::{Qei, QeiPin};
 use embassy_stm32::timer::simple_pwm::PwmPin;
 use embassy_stm32::timer::{Ch1, Ch2, Ch3, Ch4, Channel};
 use embassy_stm32::{bind_interrupts, Config};
-use embassy_sync::blocking_mutex::CriticalSectionMutex;
 use embassy_sync::blocking_mutex::raw::CriticalSectionRawMutex;
+use embassy_sync::blocking_mutex::CriticalSectionMutex;
 use embassy_sync::signal::Signal;
 use heapless::spsc::{Consumer, Producer, Queue};
 use panic_probe as _;
 use static_cell::StaticCell;
 use stepdrive_drive_core::{DriveCore, DriveCounters, Reply};
-use stepdrive_drive_protocol::{encode, faults, Frame, Message, MAX_FRAME};
+use stepdrive_drive_protocol::{encode, Frame, Message, MAX_FRAME};
 
 bind_interrupts!(struct Irqs {
     ETH => eth::InterruptHandler;
@@ -125,8 +125,9 @@ impl Sampler {
         // Every frame received before the sampling instant takes effect before it (§4.1).
         while let Some(d) = self.rx.dequeue() {
             let from_host = self.peer.is_none_or(|p| p == d.from);
-            if let Some(Reply::Config(c)) =
-                self.core.on_frame_from(&d.bytes[..usize::from(d.len)], from_host)
+            if let Some(Reply::Config(c)) = self
+                .core
+                .on_frame_from(&d.bytes[..usize::from(d.len)], from_host)
             {
                 self.peer = Some(d.from);
                 let f = self.core.report_frame(Message::Config(c), now_ns);
@@ -260,6 +261,7 @@ async fn link_task(
 #[embassy_executor::task]
 async fn log_task() -> ! {
     let mut last = DriveCounters::default();
+    let mut last_faults = 0;
     loop {
         embassy_time::Timer::after_secs(1).await;
         let (c, faults_latched) = SAMPLER.lock(|s| {
@@ -291,10 +293,14 @@ async fn log_task() -> ! {
             TX_FAILED.load(Ordering::Relaxed),
             faults_latched,
         );
-        if faults_latched & faults::WATCHDOG != 0 && last.commands_applied != c.commands_applied {
-            warn!("WATCHDOG latched: the host went silent; RESET clears it");
+        if faults_latched != last_faults && faults_latched != 0 {
+            warn!(
+                "faults latched {=u16:#x} (bit 0 WATCHDOG, 1 OVERCURRENT, 2 BUS_VOLTAGE, 3 BAD_COMMAND): the outputs are off until the host's RESET",
+                faults_latched
+            );
         }
         last = c;
+        last_faults = faults_latched;
     }
 }
 
@@ -390,7 +396,10 @@ async fn main(spawner: Spawner) {
     pwm.set_frequency(Hertz(2 * board::PWM_HZ));
     let arr = pwm.get_max_compare_value() as u16;
     if u32::from(arr) != board::TIM1_CLOCK_HZ / (2 * board::PWM_HZ) {
-        warn!("TIM1 reload {} is not TIM1_CLOCK_HZ / (2 PWM_HZ): check the clock tree", arr);
+        warn!(
+            "TIM1 reload {} is not TIM1_CLOCK_HZ / (2 PWM_HZ): check the clock tree",
+            arr
+        );
     }
     let (half, _) = convert::bridge_compares(0, arr);
     for ch in [Channel::Ch1, Channel::Ch2, Channel::Ch3, Channel::Ch4] {
@@ -402,7 +411,9 @@ async fn main(spawner: Spawner) {
     pwm.set_autoreload_preload(true);
     // TRGO on every update (the PWM's top and bottom: the repetition counter stays 0), for
     // the ADCs. embassy's timer driver (0.4) has no master-mode setter.
-    pac::TIM1.cr2().modify(|w| w.set_mms(pac::timer::vals::Mms::UPDATE));
+    pac::TIM1
+        .cr2()
+        .modify(|w| w.set_mms(pac::timer::vals::Mms::UPDATE));
     pwm.enable_outputs();
 
     // ---- TIM4: the quadrature encoder (16 bits, extended to 32 in convert.rs).
@@ -482,8 +493,12 @@ async fn main(spawner: Spawner) {
     });
     static RESOURCES: StaticCell<StackResources<2>> = StaticCell::new();
     // The seed only randomizes TCP's and DNS's choices, which the drive does not use.
-    let (stack, runner) =
-        embassy_net::new(device, net_config, RESOURCES.init(StackResources::new()), 0x5d);
+    let (stack, runner) = embassy_net::new(
+        device,
+        net_config,
+        RESOURCES.init(StackResources::new()),
+        0x5d,
+    );
 
     // ---- The queues between the link task and the sample interrupt, and the core.
     static RX_QUEUE: StaticCell<Queue<Datagram, RX_SLOTS>> = StaticCell::new();

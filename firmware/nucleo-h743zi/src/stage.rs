@@ -5,11 +5,11 @@
 use crate::convert::{bridge_compares, EncoderCount};
 use embassy_stm32::adc::Adc;
 use embassy_stm32::gpio::Output;
+use embassy_stm32::pac;
 use embassy_stm32::peripherals::{ADC1, ADC2, TIM1, TIM4};
 use embassy_stm32::timer::low_level::Timer;
 use embassy_stm32::timer::qei::Qei;
 use embassy_stm32::timer::Channel;
-use embassy_stm32::pac;
 use stepdrive_drive_core::{Measurement, PowerStage};
 
 pub struct Stage {

@@ -24,11 +24,11 @@ pub const DRIVE_PORT: u16 = 5555;
 /// The bridges' PWM rate (TIM1, centre-aligned): above hearing, within what a DRV8412's
 /// switching losses allow at a stepper's currents.
 pub const PWM_HZ: u32 = 20_000;
-/// PWM periods a sample period: the sample rate is `PWM_HZ / SAMPLE_DIV`. 2 (10 kHz) by
-/// default: the link carries 20 kHz (1: README.md, "Rates"), but the drive core alone is
-/// estimated at ~46 % of a 20 kHz period on this core and the network stack's share is
-/// unmeasured; 10 kHz leaves room until a board has been measured.
-pub const SAMPLE_DIV: u32 = 2;
+/// PWM periods a sample period: the sample rate is `PWM_HZ / SAMPLE_DIV`. 1 (20 kHz) by
+/// default, the stack's default rate: the link carries it, and the drive core is estimated
+/// at ~10 % of the period on this core (README.md, "Rates"). If the log's sample interrupt
+/// cycles come near the 12 000 it has (25 µs), 2 (10 kHz, with scenario-10khz.toml).
+pub const SAMPLE_DIV: u32 = 1;
 pub const SAMPLE_HZ: u32 = PWM_HZ / SAMPLE_DIV;
 const _: () = assert!(SAMPLE_DIV >= 1 && PWM_HZ % SAMPLE_DIV == 0);
 
@@ -66,7 +66,7 @@ pub const OVERCURRENT_MA: u32 = 3_000;
 /// The bus outside this range latches BUS_VOLTAGE.
 pub const BUS_MIN_MV: u32 = 10_000;
 pub const BUS_MAX_MV: u32 = 40_000;
-/// Periods without a COMMAND before the outputs go off (35 ms at 10 kHz), and PLAN entries
+/// Periods without a COMMAND before the outputs go off (17.6 ms at 20 kHz), and PLAN entries
 /// kept: 360, the most one UDP datagram carries unfragmented on a 1500-byte MTU (the IP
 /// stack here does not reassemble fragments); watchdog = capacity − 8, so that a plan
 /// covers every period until the watchdog trips (docs/drive-protocol.md §4.7).

@@ -37,7 +37,7 @@ pub fn bridges_enabled(duty: (i16, i16), outputs_on: bool) -> bool {
 /// (which wraps at ±2^31; the host unwraps it by differences, §4.1).
 ///
 /// Correct as long as the rotor turns fewer than 32768 counts between two readings (one
-/// sample period): 3.3e8 counts/s at 10 kHz, far beyond any encoder here.
+/// sample period): 6.6e8 counts/s at 20 kHz, far beyond any encoder here.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct EncoderCount {
     last: u16,

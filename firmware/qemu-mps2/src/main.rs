@@ -41,8 +41,9 @@ mod uart;
 
 /// The board's core clock, which SysTick counts (QEMU's mps2-an386: 25 MHz).
 const CORE_HZ: u32 = 25_000_000;
-/// The sample rate: what a UART-linked board carries (docs/drive-protocol.md §2).
-const SAMPLE_HZ: u32 = 2_000;
+// The sample rate: by default 2 kHz, what a UART-linked board carries (docs/drive-protocol.md
+// §2); `run --rate HZ` builds another.
+include!(concat!(env!("OUT_DIR"), "/sample_rate.rs"));
 /// PLAN entries kept: the most one UDP datagram carries unfragmented on a 1500-byte MTU
 /// (smoltcp here does not reassemble fragments; docs/drive-protocol.md §4.7). 208 entries
 /// (0.1 s) were too few: a host at ordinary priority once went 208 periods without a

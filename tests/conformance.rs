@@ -731,6 +731,30 @@ fn d21_a_live_session_is_not_taken_over_by_another_address() {
 }
 
 #[test]
+fn d21_a_dead_hosts_session_passes_on_with_watchdog_latched() {
+    // §2: a host gone silent leaves the drive to the next one after the watchdog, "which has
+    // latched by then if a COMMAND had armed it". Another address says HELLO every period
+    // after this host's last COMMAND.
+    let mut d = drive();
+    let mut h = following(&mut d);
+    let (k, _) = period(&mut d);
+    h.command(&mut d, k, 1500);
+    let taken = (0..WATCHDOG + 10).find(|_| {
+        period(&mut d);
+        matches!(
+            d.on_frame_from(&frame_bytes(1, Message::Hello), false),
+            Some(Reply::Config(_))
+        )
+    });
+    assert!(taken.is_some(), "never taken");
+    assert_eq!(
+        d.latched_faults(),
+        faults::WATCHDOG,
+        "taken {taken:?} periods after the last COMMAND, before the watchdog latched"
+    );
+}
+
+#[test]
 fn d22_hello_stops_an_align() {
     let mut d = drive();
     let mut h = Host(0);

@@ -216,10 +216,15 @@ impl DriveCore {
     /// A session is live while its host is heard and the motor is energized (enabled,
     /// aligning or holding): then a HELLO from any other address is not taken (§4.6). A
     /// host silent for the watchdog's periods, or outputs off, leaves it to the next host.
+    /// An armed watchdog ends a silent host's session itself, by tripping, so that the next
+    /// host finds WATCHDOG latched (§2); the host's last frame comes a period or more
+    /// before its last COMMAND is applied, so its silence alone ends the session sooner.
     fn live(&self) -> bool {
         let energized =
             self.outputs_on() || (self.latched == 0 && (self.aligning > 0 || self.holding));
-        self.session && energized && self.since_host < u32::from(self.config.watchdog_periods)
+        let heard = self.since_host < u32::from(self.config.watchdog_periods)
+            || (self.armed && self.outputs_on());
+        self.session && energized && heard
     }
 
     pub fn outputs_on(&self) -> bool {

@@ -103,8 +103,8 @@ pub struct DriveCore {
     last_rx_seq: Option<u32>,
     pending: Option<Command>,
     pending_seq: u32,
-    /// The PLAN with the newest `answers_sample`, and its frame's seq (`None`: no plan; the
-    /// table is kept, and written in place, for the next).
+    /// The PLAN with the newest `answers_sample` (its table written in place by each PLAN
+    /// taken), and its frame's seq (`None`: no plan).
     plan: Plan,
     plan_seq: Option<u32>,
     planned: bool,
@@ -293,6 +293,22 @@ impl DriveCore {
     /// them is applied.
     pub fn on_frame(&mut self, bytes: &[u8]) -> Option<Reply> {
         self.on_frame_from(bytes, true)
+    }
+
+    /// [`DriveCore::on_frame_from`] on a link whose frames come from addresses (UDP, §2):
+    /// `host` is the session's host, the address whose HELLO was answered last (`None`
+    /// before one). A HELLO answered makes `from` the host; its CONFIG, to send to `from`,
+    /// is returned.
+    pub fn on_datagram<A: PartialEq + Copy>(
+        &mut self,
+        bytes: &[u8],
+        from: A,
+        host: &mut Option<A>,
+    ) -> Option<Config> {
+        let from_host = host.is_none_or(|h| h == from);
+        let Reply::Config(config) = self.on_frame_from(bytes, from_host)?;
+        *host = Some(from);
+        Some(config)
     }
 
     /// Handles one received datagram; `from_host`: it came from the session's host's

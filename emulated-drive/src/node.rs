@@ -14,9 +14,6 @@ use stepdrive_runtime::pacer::sleep_until;
 use stepdrive_runtime::RunError;
 use stepdrive_shared::Scenario;
 
-/// The kind byte of HELLO (frame offset 3).
-const HELLO_KIND: u8 = 6;
-
 pub struct DriveNode {
     core: EmulatedDrive,
     inject: Injector,
@@ -106,20 +103,12 @@ impl Node for DriveNode {
     /// waits for the next HELLO, so it is never waiting on a peer.
     fn poll(&mut self, wire: &mut Wire, cx: &mut Cx) -> Result<Poll, RunError> {
         while let Ok(Some((n, from))) = wire.recv(&mut self.rx, 0) {
-            // §2: once a host said HELLO, frames from any other address are not its (only
-            // a new HELLO moves the session, and not while it is live: the core's rule).
-            let mut from_host = true;
-            if let (Wire::Udp { peer: Some(p), .. }, Some(from)) = (&*wire, from) {
-                from_host = from == *p;
-                if !from_host && self.rx.get(3) != Some(&HELLO_KIND) {
-                    self.core.counters.foreign_frames += 1;
-                    continue;
-                }
-            }
-            if let Some(Reply::Config(c)) = self.core.on_frame_from(&self.rx[..n], from_host) {
-                if let (Wire::Udp { peer, .. }, Some(from)) = (&mut *wire, from) {
-                    *peer = Some(from);
-                }
+            let bytes = &self.rx[..n];
+            let config = match (&mut *wire, from) {
+                (Wire::Udp { peer, .. }, Some(from)) => self.core.on_datagram(bytes, from, peer),
+                _ => self.core.on_frame(bytes).map(|Reply::Config(c)| c),
+            };
+            if let Some(c) = config {
                 self.running_since = None;
                 let f = self.core.report_frame(Message::Config(c), cx.now());
                 send_frame(wire, &f, &mut self.tx);

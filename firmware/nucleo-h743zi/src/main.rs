@@ -59,7 +59,7 @@ use embassy_sync::signal::Signal;
 use heapless::spsc::{Consumer, Producer, Queue};
 use panic_probe as _;
 use static_cell::StaticCell;
-use stepdrive_drive_core::{DriveCore, DriveCounters, Reply};
+use stepdrive_drive_core::{DriveCore, DriveCounters};
 use stepdrive_drive_protocol::{encode, Frame, Message, MAX_FRAME};
 
 bind_interrupts!(struct Irqs {
@@ -124,12 +124,8 @@ impl Sampler {
         let now_ns = self.periods * PERIOD_NS;
         // Every frame received before the sampling instant takes effect before it (§4.1).
         while let Some(d) = self.rx.dequeue() {
-            let from_host = self.peer.is_none_or(|p| p == d.from);
-            if let Some(Reply::Config(c)) = self
-                .core
-                .on_frame_from(&d.bytes[..usize::from(d.len)], from_host)
-            {
-                self.peer = Some(d.from);
+            let bytes = &d.bytes[..usize::from(d.len)];
+            if let Some(c) = self.core.on_datagram(bytes, d.from, &mut self.peer) {
                 let f = self.core.report_frame(Message::Config(c), now_ns);
                 self.send(&f, d.from);
             }

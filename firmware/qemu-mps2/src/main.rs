@@ -29,7 +29,7 @@ use smoltcp::socket::udp;
 use smoltcp::time::Instant;
 use smoltcp::wire::{EthernetAddress, IpAddress, IpCidr, Ipv4Address};
 use stepdrive_drive_core::simulated::{SimulatedDrive, StageParams, TRUTH_HEADER};
-use stepdrive_drive_core::{DriveCore, Limits, Measurement, PowerStage, Reply};
+use stepdrive_drive_core::{DriveCore, Limits, Measurement, PowerStage};
 use stepdrive_drive_protocol::units::default_config;
 use stepdrive_drive_protocol::{encode, Action, Command, Frame, Message, Plan, MAX_FRAME};
 use stepdrive_motor::{Disturbance, Motor};
@@ -338,9 +338,7 @@ fn main() -> ! {
     loop {
         let now = Instant::from_micros(i64::from(done) * period_us);
         while let Some((n, from)) = links.receive(now, &mut frame) {
-            let from_host = links.peer.is_none_or(|p| p == from);
-            if let Some(Reply::Config(c)) = drive.on_frame_from(&frame[..n], from_host) {
-                links.peer = Some(from);
+            if let Some(c) = drive.on_datagram(&frame[..n], from, &mut links.peer) {
                 let f = drive.report_frame(Message::Config(c), u64::from(done) * period_ns);
                 links.send(&f, from, now);
             }

@@ -440,6 +440,7 @@ fn a_killed_stack_leaves_the_firmware_off_with_watchdog_latched_until_reset() {
             "no CONFIG for another host within 5 s of the kill"
         );
     };
+    eprintln!("another host's HELLO taken {answered:?} after the kill");
     // Free once the dead host has been silent for the watchdog's periods. Wall time here is
     // QEMU's and a loaded host's: the bound is loose (0.3-1.5 s were seen beside a build,
     // against 176 ms of watchdog); the wire test above counts the periods exactly.

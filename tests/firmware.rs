@@ -91,6 +91,15 @@ impl Drop for Board {
     }
 }
 
+/// The machine's measurement lock (/tmp/stepdrive-measure.lock), held until the file is
+/// dropped: a realtime stack has the CPUs to itself.
+fn measurement_lock() -> std::fs::File {
+    let lock = std::fs::File::create("/tmp/stepdrive-measure.lock").expect("the lock file");
+    // SAFETY: flock on a descriptor this function owns; released when `lock` is dropped.
+    assert_eq!(unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX) }, 0);
+    lock
+}
+
 /// A host written from the document: frames out with its own sequence numbers, the drive's
 /// frames in.
 struct Host {
@@ -377,9 +386,7 @@ fn a_killed_stack_leaves_the_firmware_off_with_watchdog_latched_until_reset() {
     let inst = instance("killed-host");
     let drive = format!("127.0.0.1:{}", board.port);
     let rt_before = rt_runtime_us();
-    let lock = std::fs::File::create("/tmp/stepdrive-measure.lock").expect("the lock file");
-    // SAFETY: flock on a descriptor this function owns; released when `lock` is dropped.
-    assert_eq!(unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX) }, 0);
+    let lock = measurement_lock();
     // What the stack said before it was killed, for a failure's message.
     let said = dir.path("stack.txt");
     let log = std::fs::File::create(&said).expect("the stack's log file");
@@ -505,9 +512,7 @@ fn the_stack_runs_against_the_firmware_and_reports_the_true_rotor() {
         PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../firmware/qemu-mps2/scenario-2khz.toml");
     let inst = instance("firmware");
     let drive = format!("127.0.0.1:{}", board.port);
-    let lock = std::fs::File::create("/tmp/stepdrive-measure.lock").expect("the lock file");
-    // SAFETY: flock on a descriptor this function owns; released when `lock` is dropped.
-    assert_eq!(unsafe { libc::flock(lock.as_raw_fd(), libc::LOCK_EX) }, 0);
+    let lock = measurement_lock();
     let out = stepdrive(&[
         "run",
         "--mode",
